@@ -1,0 +1,290 @@
+//! Excitation signals, in volts at the amplifier input (before the output limits).
+//!
+//! - **PRBS**: a maximum-length sequence from the 15-bit Fibonacci LFSR `x^15 + x^14 + 1` (period 32 767 bits),
+//!   each bit held `hold` samples, `+-amplitude`. With the default `hold = 5` at 10 kHz the bit rate is 2 kHz: a
+//!   `sinc^2` spectrum whose main lobe ends at 2 kHz and is 3.9 dB down at 1 kHz; the board's 1 kHz reconstruction
+//!   filter then confines the drive to 0-1 kHz, as in the paper. The register starts at `0x7FFF` and each clock emits
+//!   `b = s14 ^ s13`, exactly the convention of the float64 reference, so its data can be regenerated bit for bit.
+//! - **Smoothed triangle**: the unit triangle's Fourier series cut at `max_hz` (paper: 10 Hz fundamental, 1 kHz):
+//!   `u(t) = A 8/pi^2 sum_{n odd} (-1)^((n-1)/2) sin(n w t) / n^2`. Evaluated per sample with one `sin`, one `cos`
+//!   and the recurrence `sin((n+2) x) = 2 cos(2x) sin(n x) - sin((n-2) x)`: about 3 flops per harmonic, no table.
+//!   At most [`MAX_HARMONICS`] odd harmonics (a fundamental below 7.9 Hz is cut there, not at `max_hz`).
+//! - **Sine**, **constant**, **off**.
+//!
+//! Phase is a 64-bit accumulator (`2^64` = one cycle), so periodic signals never drift and need no `fmod`.
+//! Everything adds `offset_v` (a static command the excitation rides on).
+
+use crate::Real;
+
+/// Most odd harmonics the smoothed triangle sums.
+pub const MAX_HARMONICS: usize = 64;
+
+/// PRBS register length (bits) and its period in bits.
+pub const PRBS_BITS: u32 = 15;
+/// `2^15 - 1`.
+pub const PRBS_PERIOD_BITS: u32 = (1 << PRBS_BITS) - 1;
+
+/// Which signal, in physical terms.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Waveform {
+    /// No excitation: the output sits at the offset.
+    Off,
+    /// PRBS, each bit held `hold` samples.
+    Prbs {
+        /// Samples per bit (>= 1).
+        hold: u32,
+    },
+    /// Smoothed triangle: fundamental `freq_hz`, harmonics up to `max_hz`.
+    Triangle {
+        /// Fundamental, Hz.
+        freq_hz: f64,
+        /// Highest harmonic kept, Hz.
+        max_hz: f64,
+    },
+    /// A sine at `freq_hz`.
+    Sine {
+        /// Frequency, Hz.
+        freq_hz: f64,
+    },
+}
+
+/// What to generate: waveform, amplitude and offset.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExcitationDesign {
+    /// The waveform.
+    pub waveform: Waveform,
+    /// Peak amplitude, V.
+    pub amplitude_v: f64,
+    /// Constant added to the waveform, V.
+    pub offset_v: f64,
+}
+
+impl ExcitationDesign {
+    /// The paper's PRBS: 1 V, bits held 5 samples at 10 kHz.
+    pub const PAPER_PRBS: Self = ExcitationDesign { waveform: Waveform::Prbs { hold: 5 }, amplitude_v: 1.0, offset_v: 0.0 };
+    /// The paper's smoothed triangle: 10 Hz, 1 V, harmonics to 1 kHz.
+    pub const PAPER_TRIANGLE: Self = ExcitationDesign {
+        waveform: Waveform::Triangle { freq_hz: 10.0, max_hz: 1000.0 },
+        amplitude_v: 1.0,
+        offset_v: 0.0,
+    };
+    /// Nothing.
+    pub const OFF: Self = ExcitationDesign { waveform: Waveform::Off, amplitude_v: 0.0, offset_v: 0.0 };
+
+    /// A sine of `amplitude_v` at `freq_hz`.
+    pub fn sine(freq_hz: f64, amplitude_v: f64) -> Self {
+        ExcitationDesign { waveform: Waveform::Sine { freq_hz }, amplitude_v, offset_v: 0.0 }
+    }
+
+    /// A constant `v`.
+    pub fn constant(v: f64) -> Self {
+        ExcitationDesign { waveform: Waveform::Off, amplitude_v: 0.0, offset_v: v }
+    }
+
+    /// The generator's configuration for sample rate `fs_hz`.
+    pub fn design<T: Real>(&self, fs_hz: f64) -> Excitation<T> {
+        let phase_step = |f_hz: f64| {
+            let cycles = f_hz / fs_hz;
+            let frac = cycles - libm::floor(cycles);
+            (frac * 18_446_744_073_709_551_616.0) as u64
+        };
+        let mut weights = [T::zero(); MAX_HARMONICS];
+        let (kind, step, harmonics) = match self.waveform {
+            Waveform::Off => (Kind::Off, 0, 0),
+            Waveform::Prbs { hold } => (Kind::Prbs { hold: hold.max(1) }, 0, 0),
+            Waveform::Sine { freq_hz } => (Kind::Sine, phase_step(freq_hz), 0),
+            Waveform::Triangle { freq_hz, max_hz } => {
+                let mut count = 0;
+                while count < MAX_HARMONICS && (2 * count + 1) as f64 * freq_hz <= max_hz * (1.0 + 1e-12) {
+                    let n = (2 * count + 1) as f64;
+                    let sign = if count % 2 == 0 { 1.0 } else { -1.0 };
+                    let pi = core::f64::consts::PI;
+                    weights[count] = T::of(sign * 8.0 / (pi * pi) / (n * n));
+                    count += 1;
+                }
+                (Kind::Triangle, phase_step(freq_hz), count)
+            }
+        };
+        Excitation {
+            kind,
+            phase_step: step,
+            amplitude: T::of(self.amplitude_v),
+            offset: T::of(self.offset_v),
+            weights,
+            harmonics,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Kind {
+    Off,
+    Prbs { hold: u32 },
+    Triangle,
+    Sine,
+}
+
+/// A designed generator (the configuration).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Excitation<T> {
+    kind: Kind,
+    phase_step: u64,
+    amplitude: T,
+    offset: T,
+    weights: [T; MAX_HARMONICS],
+    harmonics: usize,
+}
+
+/// A generator's running state: the LFSR, the hold counter and the phase.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExcitationState {
+    lfsr: u16,
+    bit_high: bool,
+    hold_left: u32,
+    phase: u64,
+}
+
+impl Default for ExcitationState {
+    fn default() -> Self {
+        ExcitationState { lfsr: 0x7FFF, bit_high: false, hold_left: 0, phase: 0 }
+    }
+}
+
+impl<T: Real> Excitation<T> {
+    /// The next sample, V.
+    #[inline]
+    pub fn next(&self, s: &mut ExcitationState) -> T {
+        let unit = match self.kind {
+            Kind::Off => T::zero(),
+            Kind::Prbs { hold } => {
+                if s.hold_left == 0 {
+                    let b = ((s.lfsr >> 14) ^ (s.lfsr >> 13)) & 1;
+                    s.lfsr = ((s.lfsr << 1) | b) & 0x7FFF;
+                    s.bit_high = b == 1;
+                    s.hold_left = hold;
+                }
+                s.hold_left -= 1;
+                if s.bit_high {
+                    T::one()
+                } else {
+                    -T::one()
+                }
+            }
+            Kind::Sine => {
+                let x = T::phase_fraction(s.phase) * T::TAU();
+                s.phase = s.phase.wrapping_add(self.phase_step);
+                x.sin()
+            }
+            Kind::Triangle => {
+                let x = T::phase_fraction(s.phase) * T::TAU();
+                s.phase = s.phase.wrapping_add(self.phase_step);
+                self.odd_sine_series(x)
+            }
+        };
+        self.offset + self.amplitude * unit
+    }
+
+    /// `sum_m w_m sin((2m + 1) x)` by the three-term recurrence.
+    #[inline]
+    fn odd_sine_series(&self, x: T) -> T {
+        let (s1, c1) = x.sin_cos();
+        let two_cos_2x = T::of(2.0) * (c1 * c1 - s1 * s1);
+        let (mut prev, mut cur) = (-s1, s1); // sin(-x), sin(x)
+        let mut sum = T::zero();
+        for &w in &self.weights[..self.harmonics] {
+            sum += w * cur;
+            let next = two_cos_2x * cur - prev;
+            prev = cur;
+            cur = next;
+        }
+        sum
+    }
+
+    /// True when this generator emits a time-varying signal.
+    pub fn is_active(&self) -> bool {
+        self.kind != Kind::Off && self.amplitude != T::zero()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn prbs_starts_like_the_reference_and_has_the_maximal_period() {
+        let gen = ExcitationDesign::PAPER_PRBS.design::<f64>(10_000.0);
+        let mut s = ExcitationState::default();
+        let bits: std::vec::Vec<f64> = (0..(PRBS_PERIOD_BITS as usize + 3) * 5).map(|_| gen.next(&mut s)).collect();
+        // Reference: first bit b = (1 ^ 1) & 1 = 0 -> -1 V, held for 5 samples.
+        assert_eq!(&bits[..5], &[-1.0; 5]);
+        let period = PRBS_PERIOD_BITS as usize * 5;
+        assert_eq!(&bits[..15], &bits[period..period + 15]);
+        // No shorter period: the register state sequence of a maximal LFSR visits all 32767 non-zero states.
+        let mut reg = 0x7FFFu16;
+        let mut seen = std::collections::HashSet::new();
+        for _ in 0..PRBS_PERIOD_BITS {
+            assert!(seen.insert(reg));
+            let b = ((reg >> 14) ^ (reg >> 13)) & 1;
+            reg = ((reg << 1) | b) & 0x7FFF;
+        }
+        assert_eq!(reg, 0x7FFF);
+        // Balanced: 16384 ones and 16383 zeros per period.
+        let sum: f64 = bits[..period].iter().sum();
+        assert_eq!(sum, 5.0);
+    }
+
+    #[test]
+    fn smoothed_triangle_matches_its_fourier_series_and_peaks_near_the_amplitude() {
+        let fs = 10_000.0;
+        let gen = ExcitationDesign::PAPER_TRIANGLE.design::<f64>(fs);
+        let mut s = ExcitationState::default();
+        let pi = core::f64::consts::PI;
+        let mut max = 0.0f64;
+        for k in 0..2000 {
+            let t = k as f64 / fs;
+            let direct: f64 = (0..50)
+                .map(|m| {
+                    let n = (2 * m + 1) as f64;
+                    let sign = if m % 2 == 0 { 1.0 } else { -1.0 };
+                    8.0 / (pi * pi) * sign * libm::sin(2.0 * pi * n * 10.0 * t) / (n * n)
+                })
+                .sum();
+            let u = gen.next(&mut s);
+            // The recurrence accumulates a few ulps per harmonic.
+            assert!((u - direct).abs() < 1e-12, "k = {k}: {u} vs {direct}");
+            max = max.max(u.abs());
+        }
+        // Truncation at 50 odd harmonics rounds the corners: the peak is 1 - 8/pi^2 sum_{n > 99} 1/n^2 ~ 0.996.
+        assert!(max > 0.99 && max < 1.0, "{max}");
+    }
+
+    #[test]
+    fn f32_triangle_stays_within_single_precision_noise_of_f64() {
+        let g64 = ExcitationDesign::PAPER_TRIANGLE.design::<f64>(10_000.0);
+        let g32 = ExcitationDesign::PAPER_TRIANGLE.design::<f32>(10_000.0);
+        let (mut s64, mut s32) = (ExcitationState::default(), ExcitationState::default());
+        for _ in 0..100_000 {
+            let (a, b) = (g64.next(&mut s64), g32.next(&mut s32));
+            // 24-bit phase (6e-8 cycle) times the steepest slope (4 V/cycle), plus f32 recurrence error.
+            assert!((a - b as f64).abs() < 2e-5);
+        }
+    }
+
+    #[test]
+    fn sine_has_the_requested_frequency_and_amplitude() {
+        let gen = ExcitationDesign::sine(423.0, 0.5).design::<f64>(10_000.0);
+        let mut s = ExcitationState::default();
+        for k in 0..10_000 {
+            let expect = 0.5 * libm::sin(2.0 * core::f64::consts::PI * 423.0 * k as f64 / 10_000.0);
+            assert!((gen.next(&mut s) - expect).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn off_and_constant_emit_their_offset() {
+        let mut s = ExcitationState::default();
+        assert_eq!(ExcitationDesign::OFF.design::<f32>(1e4).next(&mut s), 0.0);
+        assert_eq!(ExcitationDesign::constant(0.25).design::<f32>(1e4).next(&mut s), 0.25);
+        assert!(!ExcitationDesign::OFF.design::<f32>(1e4).is_active());
+    }
+}

@@ -1,0 +1,167 @@
+//! The identification pre-filter (paper Section II-B):
+//!
+//! ```text
+//! W_p(s) = s / (s + w_lc)  *  w_p^2 / (s^2 + 2 zeta_p w_p s + w_p^2),   w_lc = 2 pi f_lc,  w_p = 2 pi f_p
+//! ```
+//!
+//! with `f_lc = 100 Hz`, `f_p = 450 Hz`, `zeta_p = 0.1` (the paper prints the damping term as `2 zeta pi f0 s`; we use
+//! the standard `2 zeta w s`, so `zeta_p` is the damping ratio the text states). It concentrates the signal power
+//! where the parameter sensitivities peak (the resonance band) and, being strictly proper of relative degree two,
+//! gives the filtered signal's first and second derivatives as proper transfer functions, which the continuous-time
+//! RLS needs as regressor and target.
+//!
+//! ## Realisation
+//! Controllable canonical form of `w_p^2 / ((s + w_lc)(s^2 + 2 zeta_p w_p s + w_p^2))`:
+//!
+//! ```text
+//! xi1' = xi2,  xi2' = xi3,  xi3' = -d0 xi1 - d1 xi2 - d2 xi3 + w_p^2 in
+//! d2 = w_lc + 2 zeta_p w_p,  d1 = w_p^2 + 2 zeta_p w_p w_lc,  d0 = w_lc w_p^2
+//! ```
+//!
+//! so that `W_p in = xi2`, `s W_p in = xi3` and `s^2 W_p in = xi3'`. The same realisation as the float64 reference.
+//!
+//! ## Discretisation
+//! The filter runs as a discrete filter on the sampled signal: the exact zero-order-hold discretisation of the
+//! realisation above (`xi[k+1] = Phi xi[k] + Gam in[k]`, outputs read from `xi[k]` and `in[k]`). Its outputs are
+//! the exact samples of the continuous filter's response to the input held over each sample period. Applied to both
+//! the sampled `u'` and `y'`, it commutes with the ZOH-sampled plant, so an estimator that integrates the stage model
+//! with the filtered `u` held over each step sees exactly the filtered `y` (SPEC section 6, "Discretisation matters
+//! more than the estimator"). Cost per sample: 13 multiplies, 11 adds.
+
+use crate::filters::response::{polyval, s_at, Complex};
+use crate::linalg::{mat_vec, zoh};
+use crate::Real;
+
+/// Physical description of `W_p`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PrefilterDesign {
+    /// High-pass corner `f_lc`, Hz.
+    pub f_lc_hz: f64,
+    /// Resonant low-pass natural frequency `f_p`, Hz.
+    pub f_p_hz: f64,
+    /// Resonant low-pass damping ratio `zeta_p`.
+    pub zeta_p: f64,
+}
+
+impl Default for PrefilterDesign {
+    fn default() -> Self {
+        PrefilterDesign { f_lc_hz: 100.0, f_p_hz: 450.0, zeta_p: 0.1 }
+    }
+}
+
+impl PrefilterDesign {
+    /// Denominator coefficients `[d0, d1, d2]` (monic, `s^3 + d2 s^2 + d1 s + d0`) and the numerator gain `w_p^2`.
+    pub fn continuous(&self) -> ([f64; 3], f64) {
+        let wc = 2.0 * core::f64::consts::PI * self.f_lc_hz;
+        let wp = 2.0 * core::f64::consts::PI * self.f_p_hz;
+        let d2 = wc + 2.0 * self.zeta_p * wp;
+        let d1 = wp * wp + 2.0 * self.zeta_p * wp * wc;
+        let d0 = wc * wp * wp;
+        ([d0, d1, d2], wp * wp)
+    }
+
+    /// The analog response of `s^order W_p(s)` at `f_hz` (`order` 0, 1 or 2).
+    pub fn analog_response(&self, order: u32, f_hz: f64) -> Complex {
+        let ([d0, d1, d2], g) = self.continuous();
+        let s = s_at(f_hz);
+        let mut num = [0.0; 4];
+        num[1 + order as usize] = g;
+        polyval(&num, s) / polyval(&[d0, d1, d2, 1.0], s)
+    }
+
+    /// The discrete filter for sample period `t_s`.
+    pub fn design<T: Real>(&self, t_s: f64) -> Prefilter<T> {
+        let ([d0, d1, d2], g) = self.continuous();
+        let a = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-d0, -d1, -d2]];
+        let (phi, psi) = zoh(&a, t_s);
+        let gam = mat_vec(&psi, &[0.0, 0.0, g]);
+        let c = T::of;
+        Prefilter {
+            phi: phi.map(|row| row.map(c)),
+            gam: gam.map(c),
+            accel: [c(-d0), c(-d1), c(-d2)],
+            feedthrough: c(g),
+        }
+    }
+}
+
+/// The discretised pre-filter (the configuration).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prefilter<T> {
+    phi: [[T; 3]; 3],
+    gam: [T; 3],
+    /// `[-d0, -d1, -d2]`: the row of the realisation that gives the second derivative.
+    accel: [T; 3],
+    /// `w_p^2`, the direct feed-through of the second derivative.
+    feedthrough: T,
+}
+
+/// The pre-filter's state `xi`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PrefilterState<T> {
+    xi: [T; 3],
+}
+
+/// The filtered signal and its first two time derivatives at one sample.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Prefiltered<T> {
+    /// `W_p in`.
+    pub value: T,
+    /// `s W_p in`, per second.
+    pub d1: T,
+    /// `s^2 W_p in`, per second squared.
+    pub d2: T,
+}
+
+impl<T: Real> Prefilter<T> {
+    /// One sample: the outputs at this sample, then the state advanced to the next.
+    #[inline]
+    pub fn update(&self, s: &mut PrefilterState<T>, input: T) -> Prefiltered<T> {
+        let [x1, x2, x3] = s.xi;
+        let out = Prefiltered {
+            value: x2,
+            d1: x3,
+            d2: self.accel[0] * x1 + self.accel[1] * x2 + self.accel[2] * x3 + self.feedthrough * input,
+        };
+        let p = &self.phi;
+        s.xi = [
+            p[0][0] * x1 + p[0][1] * x2 + p[0][2] * x3 + self.gam[0] * input,
+            p[1][0] * x1 + p[1][1] * x2 + p[1][2] * x3 + self.gam[1] * input,
+            p[2][0] * x1 + p[2][1] * x2 + p[2][2] * x3 + self.gam[2] * input,
+        ];
+        out
+    }
+
+    /// The discrete filter's frequency response at `f_hz` for output `order` (0: value, 1: d1, 2: d2):
+    /// `C (zI - Phi)^-1 Gam + D`, by Cramer's rule on the 3x3 system.
+    pub fn response(&self, order: u32, f_hz: f64, t_s: f64) -> Complex {
+        let z = crate::filters::response::z_at(f_hz, t_s);
+        let m: [[Complex; 3]; 3] = core::array::from_fn(|i| {
+            core::array::from_fn(|j| {
+                let d = if i == j { z } else { Complex::new(0.0, 0.0) };
+                d - self.phi[i][j].as_f64().into()
+            })
+        });
+        let g: [Complex; 3] = self.gam.map(|x| x.as_f64().into());
+        let det3 = |m: &[[Complex; 3]; 3]| {
+            m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+        };
+        let det = det3(&m);
+        let x: [Complex; 3] = core::array::from_fn(|col| {
+            let mut mc = m;
+            for (row, gi) in mc.iter_mut().zip(g.iter()) {
+                row[col] = *gi;
+            }
+            det3(&mc) / det
+        });
+        match order {
+            0 => x[1],
+            1 => x[2],
+            _ => {
+                let a = self.accel.map(|v| v.as_f64());
+                x[0].scale(a[0]) + x[1].scale(a[1]) + x[2].scale(a[2]) + self.feedthrough.as_f64().into()
+            }
+        }
+    }
+}

@@ -1,0 +1,63 @@
+//! The board, as one sample of it: a probe reading in, an amplifier command out, at a fixed sample rate.
+//!
+//! [`StageBoard`] is all the core knows of hardware. The NUCLEO-G474RE firmware implements it on the ADC and DAC
+//! registers inside the sample-clock interrupt; `hal-sim` implements it on a simulated stage. Both then call
+//! [`run_sample`], the same code, once per sample.
+//!
+//! Converters are described by [`ConverterFormat`] (bits and full-scale voltage), never assumed to be 12-bit: the
+//! G474's ADC with hardware oversampling delivers 16-bit codes, and an external 16-18-bit SPI converter is the
+//! natural upgrade. The analog front end between converter and instrument (divider, level shift, sensor gain) is a
+//! setting of the pipeline ([`crate::pipeline::ProbeFrontEnd`], [`crate::pipeline::AmplifierFrontEnd`]).
+
+use crate::estimator::EstimatorBank;
+use crate::pipeline::{Pipeline, PipelineConfig, SampleOutput};
+use crate::Real;
+
+/// A converter's code range and the voltage it spans: code `c` is `c * full_scale_v / 2^bits` volts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ConverterFormat {
+    /// Resolution of the delivered code (for an oversampling ADC: after accumulation and shift).
+    pub bits: u8,
+    /// Voltage of code `2^bits` (the reference), V.
+    pub full_scale_v: f64,
+}
+
+impl ConverterFormat {
+    /// The largest code.
+    pub const fn max_code(&self) -> u32 {
+        ((1u64 << self.bits) - 1) as u32
+    }
+    /// Volts per code.
+    pub fn volts_per_code(&self) -> f64 {
+        self.full_scale_v / (1u64 << self.bits) as f64
+    }
+}
+
+/// One sample of a stage's board.
+pub trait StageBoard {
+    /// The hardware sample rate, Hz.
+    fn sample_rate_hz(&self) -> f64;
+    /// Format of the probe ADC's code.
+    fn probe_format(&self) -> ConverterFormat;
+    /// Format of the amplifier DAC's code.
+    fn amplifier_format(&self) -> ConverterFormat;
+    /// The probe conversion of this sample (converted at the sample instant).
+    fn read_probe(&mut self) -> u32;
+    /// The amplifier command for the coming sample period.
+    fn write_amplifier(&mut self, code: u32);
+}
+
+/// One sample, end to end: read the probe, run the pipeline, write the amplifier.
+#[inline]
+pub fn run_sample<B, T, E>(board: &mut B, pipeline: &mut Pipeline<T, E>, cfg: &PipelineConfig<T>) -> SampleOutput<T>
+where
+    B: StageBoard + ?Sized,
+    T: Real,
+    E: EstimatorBank<T>,
+{
+    let code = board.read_probe();
+    let out = pipeline.step(cfg, code);
+    board.write_amplifier(out.dac_code);
+    out
+}

@@ -1,0 +1,25 @@
+//! # nanopos-id: the `no_std` core
+//!
+//! Online identification of the first resonance of a piezo-driven nanopositioning stage, sample by sample at
+//! 10 kHz. This crate is the part that runs unchanged in the board's sample-clock interrupt (f32) and in host tests
+//! and tools (f64): the stage model ([`params`]), the signal-processing blocks ([`filters`]), the excitation
+//! generators ([`excitation`]), the board abstraction ([`hal`]), the estimator interface ([`estimator`]) and the
+//! per-sample [`pipeline`] that ties them together.
+//!
+//! Units follow the paper (Eielsen et al.): displacement in micrometres, input in volts, time in seconds;
+//! `a0` in 1/s^2, `a1` in 1/s, `b0` in um/(s^2 V).
+#![cfg_attr(not(test), no_std)]
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod estimator;
+pub mod excitation;
+pub mod filters;
+pub mod hal;
+pub mod linalg;
+pub mod params;
+pub mod pipeline;
+pub mod scalar;
+
+pub use params::StageParams;
+pub use scalar::Real;

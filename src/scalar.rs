@@ -1,0 +1,51 @@
+//! The scalar the core is generic over: `f32` on the Cortex-M4F (single-precision FPU), `f64` on the host as the
+//! reference. Designs (filter coefficients, discretisations) are always computed in `f64` and then rounded once to
+//! the working scalar with [`Real::of`], so the f32 and f64 paths differ only by that rounding and by arithmetic.
+
+use core::fmt::Debug;
+use core::ops::{AddAssign, MulAssign, SubAssign};
+use num_traits::{Float, FloatConst};
+
+/// A floating-point scalar the core runs in.
+pub trait Real:
+    Float + FloatConst + Default + Debug + AddAssign + SubAssign + MulAssign + Send + Sync + 'static
+{
+    /// Round an `f64` (a design-time constant) to this scalar.
+    fn of(x: f64) -> Self;
+    /// Widen to `f64` (reporting, comparison with the reference).
+    fn as_f64(self) -> f64;
+    /// A 64-bit phase accumulator as a fraction of a cycle in `[0, 1)`, to the precision this scalar holds
+    /// (24 bits for f32, 53 for f64), without a 64-bit float conversion on the target.
+    fn phase_fraction(phase: u64) -> Self;
+}
+
+impl Real for f32 {
+    #[inline(always)]
+    fn of(x: f64) -> Self {
+        x as f32
+    }
+    #[inline(always)]
+    fn as_f64(self) -> f64 {
+        self as f64
+    }
+    #[inline(always)]
+    fn phase_fraction(phase: u64) -> Self {
+        // Top 24 bits: exactly representable in f32, and a u32 -> f32 conversion is one VCVT.
+        ((phase >> 40) as u32) as f32 * (1.0 / 16_777_216.0)
+    }
+}
+
+impl Real for f64 {
+    #[inline(always)]
+    fn of(x: f64) -> Self {
+        x
+    }
+    #[inline(always)]
+    fn as_f64(self) -> f64 {
+        self
+    }
+    #[inline(always)]
+    fn phase_fraction(phase: u64) -> Self {
+        (phase >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0)
+    }
+}
