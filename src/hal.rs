@@ -50,7 +50,11 @@ pub trait StageBoard {
 
 /// One sample, end to end: read the probe, run the pipeline, write the amplifier.
 #[inline]
-pub fn run_sample<B, T, E>(board: &mut B, pipeline: &mut Pipeline<T, E>, cfg: &PipelineConfig<T>) -> SampleOutput<T>
+pub fn run_sample<B, T, E>(
+    board: &mut B,
+    pipeline: &mut Pipeline<T, E>,
+    cfg: &PipelineConfig<T>,
+) -> SampleOutput<T>
 where
     B: StageBoard + ?Sized,
     T: Real,

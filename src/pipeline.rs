@@ -42,7 +42,11 @@ pub struct ProbeFrontEnd {
 
 impl Default for ProbeFrontEnd {
     fn default() -> Self {
-        ProbeFrontEnd { um_per_v: 5.0, adc_v_per_sensor_v: 3.3 / 20.0, adc_offset_v: 1.65 }
+        ProbeFrontEnd {
+            um_per_v: 5.0,
+            adc_v_per_sensor_v: 3.3 / 20.0,
+            adc_offset_v: 1.65,
+        }
     }
 }
 
@@ -57,7 +61,10 @@ pub struct AmplifierFrontEnd {
 
 impl Default for AmplifierFrontEnd {
     fn default() -> Self {
-        AmplifierFrontEnd { dac_v_per_command_v: 3.3 / 20.0, dac_offset_v: 1.65 }
+        AmplifierFrontEnd {
+            dac_v_per_command_v: 3.3 / 20.0,
+            dac_offset_v: 1.65,
+        }
     }
 }
 
@@ -77,7 +84,12 @@ pub struct OutputLimits {
 
 impl Default for OutputLimits {
     fn default() -> Self {
-        OutputLimits { min_v: -10.0, max_v: 10.0, max_slew_v_per_s: 25_000.0, safe_v: 0.0 }
+        OutputLimits {
+            min_v: -10.0,
+            max_v: 10.0,
+            max_slew_v_per_s: 25_000.0,
+            safe_v: 0.0,
+        }
     }
 }
 
@@ -92,7 +104,10 @@ pub struct FaultSettings {
 
 impl Default for FaultSettings {
     fn default() -> Self {
-        FaultSettings { over_range_margin_codes: 16, stuck_samples: 1000 }
+        FaultSettings {
+            over_range_margin_codes: 16,
+            stuck_samples: 1000,
+        }
     }
 }
 
@@ -160,16 +175,29 @@ impl core::fmt::Display for SettingsError {
         match self {
             SettingsError::SampleRate => write!(f, "sample rate must be a positive number of Hz"),
             SettingsError::FilterFrequency(which) => {
-                write!(f, "{which}: frequencies must be positive and below the Nyquist frequency")
+                write!(
+                    f,
+                    "{which}: frequencies must be positive and below the Nyquist frequency"
+                )
             }
-            SettingsError::PrefilterDamping => write!(f, "pre-filter damping ratio must be positive"),
+            SettingsError::PrefilterDamping => {
+                write!(f, "pre-filter damping ratio must be positive")
+            }
             SettingsError::Limits => {
                 write!(f, "output limits need min_v < max_v, safe_v between them, and a positive slew limit")
             }
-            SettingsError::FrontEnd(which) => write!(f, "{which} front end: gains must be finite and non-zero"),
-            SettingsError::Converter => write!(f, "converter format: 1 to 24 bits and a positive full scale"),
+            SettingsError::FrontEnd(which) => {
+                write!(f, "{which} front end: gains must be finite and non-zero")
+            }
+            SettingsError::Converter => write!(
+                f,
+                "converter format: 1 to 24 bits and a positive full scale"
+            ),
             SettingsError::Excitation => {
-                write!(f, "excitation: frequencies below Nyquist, finite amplitude and offset")
+                write!(
+                    f,
+                    "excitation: frequencies below Nyquist, finite amplitude and offset"
+                )
             }
         }
     }
@@ -241,7 +269,10 @@ impl PipelineSettings {
         }
         let nyquist = fs / 2.0;
         let in_band = |f: f64| f.is_finite() && f > 0.0 && f < nyquist;
-        for (name, r) in [("reconstruction replica", self.reconstruction), ("anti-aliasing replica", self.antialias)] {
+        for (name, r) in [
+            ("reconstruction replica", self.reconstruction),
+            ("anti-aliasing replica", self.antialias),
+        ] {
             if !(in_band(r.cutoff_hz) && in_band(r.prewarp_hz)) {
                 return Err(SettingsError::FilterFrequency(name));
             }
@@ -253,8 +284,15 @@ impl PipelineSettings {
             return Err(SettingsError::PrefilterDamping);
         }
         let l = &self.limits;
-        let finite = [l.min_v, l.max_v, l.max_slew_v_per_s, l.safe_v].iter().all(|x| x.is_finite());
-        if !(finite && l.min_v < l.max_v && l.safe_v >= l.min_v && l.safe_v <= l.max_v && l.max_slew_v_per_s > 0.0) {
+        let finite = [l.min_v, l.max_v, l.max_slew_v_per_s, l.safe_v]
+            .iter()
+            .all(|x| x.is_finite());
+        if !(finite
+            && l.min_v < l.max_v
+            && l.safe_v >= l.min_v
+            && l.safe_v <= l.max_v
+            && l.max_slew_v_per_s > 0.0)
+        {
             return Err(SettingsError::Limits);
         }
         let nonzero = |x: f64| x.is_finite() && x != 0.0;
@@ -273,7 +311,9 @@ impl PipelineSettings {
         let e = &self.excitation;
         let freq_ok = match e.waveform {
             crate::excitation::Waveform::Sine { freq_hz } => in_band(freq_hz),
-            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => in_band(freq_hz) && max_hz.is_finite(),
+            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => {
+                in_band(freq_hz) && max_hz.is_finite()
+            }
             _ => true,
         };
         if !(freq_ok && e.amplitude_v.is_finite() && e.offset_v.is_finite()) {
@@ -291,7 +331,10 @@ impl PipelineSettings {
             reconstruction: self.reconstruction.design(fs).cast(),
             antialias: self.antialias.design(fs).cast(),
             prefilter: self.prefilter.design(1.0 / fs),
-            probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
+            probe: Affine {
+                scale: T::of(vpc_in * k_probe),
+                offset: T::of(-p.adc_offset_v * k_probe),
+            },
             amplifier: Affine {
                 scale: T::of(a.dac_v_per_command_v / vpc_out),
                 offset: T::of(a.dac_offset_v / vpc_out),
@@ -410,21 +453,32 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     #[inline]
     pub fn step(&mut self, cfg: &PipelineConfig<T>, probe_code: u32) -> SampleOutput<T> {
         self.samples = self.samples.wrapping_add(1);
-        let y_um = cfg.probe.apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
+        let y_um = cfg
+            .probe
+            .apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
         self.check_probe(cfg, probe_code);
 
-        let mut target = if self.faults.is_empty() { cfg.excitation.next(&mut self.excitation) } else { cfg.safe_v };
+        let mut target = if self.faults.is_empty() {
+            cfg.excitation.next(&mut self.excitation)
+        } else {
+            cfg.safe_v
+        };
         if !target.is_finite() {
             self.faults |= Faults::COMMAND_NOT_FINITE;
             self.counters.command_not_finite += 1;
             target = cfg.safe_v;
         }
         let clamped = target.max(cfg.min_v).min(cfg.max_v);
-        let step = (clamped - self.command_v).max(-cfg.max_step_v).min(cfg.max_step_v);
+        let step = (clamped - self.command_v)
+            .max(-cfg.max_step_v)
+            .min(cfg.max_step_v);
         let (dac_code, u_v) = encode(cfg, self.command_v + step);
         self.command_v = u_v;
 
-        let u_replica = cfg.antialias.update(&mut self.antialias, cfg.reconstruction.update(&mut self.reconstruction, u_v));
+        let u_replica = cfg.antialias.update(
+            &mut self.antialias,
+            cfg.reconstruction.update(&mut self.reconstruction, u_v),
+        );
         let sample = FilteredSample {
             u: u_replica,
             y: y_um,
@@ -437,7 +491,13 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         } else {
             None
         };
-        SampleOutput { dac_code, u_v, y_um, faults: self.faults, estimator_input }
+        SampleOutput {
+            dac_code,
+            u_v,
+            y_um,
+            faults: self.faults,
+            estimator_input,
+        }
     }
 
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {
@@ -493,8 +553,12 @@ fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
     let code = if raw <= T::zero() {
         0
     } else {
-        num_traits::cast::<T, u32>(raw).unwrap_or(cfg.dac_max_code).min(cfg.dac_max_code)
+        num_traits::cast::<T, u32>(raw)
+            .unwrap_or(cfg.dac_max_code)
+            .min(cfg.dac_max_code)
     };
-    let back = cfg.amplifier_inverse.apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero));
+    let back = cfg
+        .amplifier_inverse
+        .apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero));
     (code, back)
 }
