@@ -1,1 +1,13 @@
-//! placeholder
+//! # hal-sim: the simulated stage
+//!
+//! The paper's signal chain ([`plant`]) behind the same `StageBoard` trait as the NUCLEO-G474RE ([`board`]),
+//! driven by the real `nanopos-id` pipeline ([`sim`]), deterministic for a seed ([`noise`]). The `nanopos-sim`
+//! binary's commands live in [`cmd`].
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod board;
+pub mod cmd;
+pub mod noise;
+pub mod plant;
+pub mod sim;

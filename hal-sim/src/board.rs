@@ -1,0 +1,198 @@
+//! The simulated NUCLEO-G474RE: the [`Plant`] behind the same [`StageBoard`] trait as the real board, with the
+//! converters and the analog front end in between.
+//!
+//! - **DAC**: 12 bits over 0-3.3 V; the written code is decoded back to the amplifier-input voltage through the
+//!   front end (0-3.3 V onto +-10 V) and held over the sample period.
+//! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
+//! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
+//!   by `shift`, giving `12 + log2(ratio) - shift` bits (256x and shift 4: 16 bits). Each conversion carries its
+//!   own input-referred noise (`conversion_noise_lsb`, in 12-bit LSB RMS; 1 LSB assumed); averaging divides it by
+//!   `sqrt(ratio)`, and it dithers the 12-bit quantisation so the average resolves below one 12-bit code. The model
+//!   draws the averaged noise directly (one normal per sample, not `ratio`) and rounds to the output code.
+//!
+//! Effective resolution with the defaults (probe +-10 V = +-50 um onto 0-3.3 V): one 12-bit code is 24.4 nm, one
+//! 16-bit code 1.53 nm; averaged conversion noise 1 LSB12 / 16 = 1.53 nm RMS, output quantisation 1.53 / sqrt(12) =
+//! 0.44 nm RMS; with the probe's 1.25 nm the floor is sqrt(1.25^2 + 1.53^2 + 0.44^2) = 2.0 nm RMS
+//! ([`SimBoard::noise_floor_um`]; measured by the `noise_floor` test).
+
+use crate::noise::NormalStream;
+use crate::plant::{Plant, PlantSettings};
+use nanopos_id::hal::{ConverterFormat, StageBoard};
+use nanopos_id::pipeline::{AmplifierFrontEnd, ProbeFrontEnd};
+
+/// The G474's ADC in oversampling mode.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdcModel {
+    /// Native resolution, bits.
+    pub native_bits: u8,
+    /// Conversions accumulated per sample (1 to 256, a power of two).
+    pub oversampling: u32,
+    /// Right shift of the accumulated sum.
+    pub shift: u8,
+    /// Reference voltage, V.
+    pub vref_v: f64,
+    /// Input-referred noise of one conversion, native LSB RMS.
+    pub conversion_noise_lsb: f64,
+}
+
+impl Default for AdcModel {
+    fn default() -> Self {
+        AdcModel { native_bits: 12, oversampling: 256, shift: 4, vref_v: 3.3, conversion_noise_lsb: 1.0 }
+    }
+}
+
+impl AdcModel {
+    /// The delivered code's format.
+    pub fn format(&self) -> ConverterFormat {
+        let bits = self.native_bits as u32 + self.oversampling.trailing_zeros() - self.shift as u32;
+        ConverterFormat { bits: bits as u8, full_scale_v: self.vref_v }
+    }
+}
+
+/// The DAC.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DacModel {
+    /// Resolution, bits.
+    pub bits: u8,
+    /// Reference voltage, V.
+    pub vref_v: f64,
+}
+
+impl Default for DacModel {
+    fn default() -> Self {
+        DacModel { bits: 12, vref_v: 3.3 }
+    }
+}
+
+impl DacModel {
+    /// The code format.
+    pub fn format(&self) -> ConverterFormat {
+        ConverterFormat { bits: self.bits, full_scale_v: self.vref_v }
+    }
+}
+
+/// Everything about the simulated board.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoardSettings {
+    /// The analog chain.
+    pub plant: PlantSettings,
+    /// Displacement noise, um RMS (0: none).
+    pub noise_um_rms: f64,
+    /// Noise seed.
+    pub seed: u64,
+    /// Probe ADC.
+    pub adc: AdcModel,
+    /// Amplifier DAC.
+    pub dac: DacModel,
+    /// Probe front end (must match the pipeline's for readings to mean um).
+    pub probe: ProbeFrontEnd,
+    /// Amplifier front end.
+    pub amplifier: AmplifierFrontEnd,
+}
+
+impl Default for BoardSettings {
+    fn default() -> Self {
+        BoardSettings {
+            plant: PlantSettings::default(),
+            noise_um_rms: 1.25e-3,
+            seed: 1,
+            adc: AdcModel::default(),
+            dac: DacModel::default(),
+            probe: ProbeFrontEnd::default(),
+            amplifier: AmplifierFrontEnd::default(),
+        }
+    }
+}
+
+/// The simulated board.
+#[derive(Clone, Debug)]
+pub struct SimBoard {
+    settings: BoardSettings,
+    plant: Plant,
+    probe_noise: NormalStream,
+    adc_noise: NormalStream,
+    last_u_v: f64,
+    /// A probe code to return instead of the measurement (fault injection).
+    pub forced_probe_code: Option<u32>,
+}
+
+impl SimBoard {
+    /// A board at rest.
+    pub fn new(settings: BoardSettings) -> Self {
+        SimBoard {
+            plant: Plant::new(settings.plant),
+            probe_noise: NormalStream::new(settings.seed),
+            // A separate stream, so switching the ADC noise off leaves the probe noise sample-for-sample the same.
+            adc_noise: NormalStream::new(settings.seed ^ 0xADC0_ADC0_ADC0_ADC0),
+            last_u_v: 0.0,
+            forced_probe_code: None,
+            settings,
+        }
+    }
+
+    /// The plant (true parameters, state).
+    pub fn plant(&self) -> &Plant {
+        &self.plant
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &BoardSettings {
+        &self.settings
+    }
+
+    /// The amplifier-input voltage the last written code produced, V.
+    pub fn last_u_v(&self) -> f64 {
+        self.last_u_v
+    }
+
+    /// ADC volts per micrometre of displacement.
+    fn adc_v_per_um(&self) -> f64 {
+        self.settings.probe.adc_v_per_sensor_v / self.settings.probe.um_per_v
+    }
+
+    /// The RMS noise of a reading at rest, um, from the models above (probe noise, averaged conversion noise,
+    /// output quantisation).
+    pub fn noise_floor_um(&self) -> f64 {
+        let adc = &self.settings.adc;
+        let native_lsb_um = adc.vref_v / (1u64 << adc.native_bits) as f64 / self.adc_v_per_um();
+        let out_lsb_um = self.settings.adc.format().volts_per_code() / self.adc_v_per_um();
+        let conversion = adc.conversion_noise_lsb * native_lsb_um / (adc.oversampling as f64).sqrt();
+        let quantisation = out_lsb_um / 12f64.sqrt();
+        (self.settings.noise_um_rms.powi(2) + conversion.powi(2) + quantisation.powi(2)).sqrt()
+    }
+}
+
+impl StageBoard for SimBoard {
+    fn sample_rate_hz(&self) -> f64 {
+        1.0 / self.settings.plant.sample_period_s
+    }
+
+    fn probe_format(&self) -> ConverterFormat {
+        self.settings.adc.format()
+    }
+
+    fn amplifier_format(&self) -> ConverterFormat {
+        self.settings.dac.format()
+    }
+
+    fn read_probe(&mut self) -> u32 {
+        let y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let adc = &self.settings.adc;
+        let format = adc.format();
+        let v = self.settings.probe.adc_offset_v + self.adc_v_per_um() * y_um;
+        let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
+        let noise_v = adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt();
+        let v = v + noise_v * self.adc_noise.next_normal();
+        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code() as f64) as u32;
+        self.forced_probe_code.unwrap_or(code)
+    }
+
+    fn write_amplifier(&mut self, code: u32) {
+        let dac = self.settings.dac.format();
+        let code = code.min(dac.max_code());
+        let v_dac = code as f64 * dac.volts_per_code();
+        let a = &self.settings.amplifier;
+        self.last_u_v = (v_dac - a.dac_offset_v) / a.dac_v_per_command_v;
+        self.plant.advance(self.last_u_v);
+    }
+}

@@ -1,0 +1,118 @@
+//! The `nanopos-sim` commands, one file each, and what they share: the error type (one line, exit code 2), output
+//! files that appear only when complete, and progress on a terminal.
+
+pub mod simulate;
+
+use std::fmt;
+use std::fs::File;
+use std::io::{BufWriter, IsTerminal, Write};
+use std::path::{Path, PathBuf};
+
+/// A user-facing error: one line that names what was wrong and where.
+#[derive(Debug)]
+pub struct CliError(pub String);
+
+impl fmt::Display for CliError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for CliError {}
+
+/// Shorthand for building a [`CliError`].
+pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
+    Err(CliError(msg.into()))
+}
+
+/// An output file written under a temporary name in the same directory and renamed into place by
+/// [`OutputFile::commit`]; dropped without commit (an error, a panic), it removes the temporary, so no partial file
+/// is ever left under the requested name.
+pub struct OutputFile {
+    path: PathBuf,
+    temp: PathBuf,
+    writer: Option<BufWriter<File>>,
+}
+
+impl OutputFile {
+    /// Start writing `path`.
+    pub fn create(path: &Path) -> Result<Self, CliError> {
+        let name = path.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
+        let temp = path.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
+        let file = File::create(&temp)
+            .map_err(|e| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e))))?;
+        Ok(OutputFile { path: path.to_path_buf(), temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
+    }
+
+    /// The buffered writer.
+    pub fn writer(&mut self) -> &mut BufWriter<File> {
+        self.writer.as_mut().expect("writer present until commit")
+    }
+
+    /// A write error, named after the final path.
+    pub fn write_error(&self, e: std::io::Error) -> CliError {
+        CliError(format!("{}: cannot write: {}", self.path.display(), io_reason(&e)))
+    }
+
+    /// Flush and move into place.
+    pub fn commit(mut self) -> Result<(), CliError> {
+        let mut w = self.writer.take().expect("commit once");
+        w.flush().map_err(|e| self.write_error(e))?;
+        let file = w.into_inner().map_err(|e| self.write_error(e.into_error()))?;
+        file.sync_all().map_err(|e| self.write_error(e))?;
+        std::fs::rename(&self.temp, &self.path)
+            .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
+    }
+}
+
+impl Drop for OutputFile {
+    fn drop(&mut self) {
+        if self.writer.take().is_some() {
+            let _ = std::fs::remove_file(&self.temp);
+        }
+    }
+}
+
+/// An I/O error's reason without Rust's " (os error N)" suffix.
+pub fn io_reason(e: &std::io::Error) -> String {
+    let s = e.to_string();
+    match s.find(" (os error") {
+        Some(i) => s[..i].to_string(),
+        None => s,
+    }
+}
+
+/// Progress on standard error, only when it is a terminal.
+pub struct Progress {
+    label: &'static str,
+    total: u64,
+    shown_percent: u64,
+    enabled: bool,
+}
+
+impl Progress {
+    /// Progress over `total` steps.
+    pub fn new(label: &'static str, total: u64) -> Self {
+        Progress { label, total: total.max(1), shown_percent: u64::MAX, enabled: std::io::stderr().is_terminal() }
+    }
+
+    /// Report that `done` steps are done.
+    #[inline]
+    pub fn update(&mut self, done: u64) {
+        if !self.enabled {
+            return;
+        }
+        let percent = done * 100 / self.total;
+        if percent != self.shown_percent {
+            self.shown_percent = percent;
+            eprint!("\r{}: {percent:3}%", self.label);
+        }
+    }
+
+    /// Clear the line.
+    pub fn finish(&self) {
+        if self.enabled {
+            eprint!("\r{}\r", " ".repeat(self.label.len() + 6));
+        }
+    }
+}

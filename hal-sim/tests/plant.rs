@@ -1,0 +1,230 @@
+//! The simulated stage against independent references: the float64 reference's data, fine numerical integration,
+//! and a frequency sweep through the real pipeline.
+
+use hal_sim::board::BoardSettings;
+use hal_sim::noise::NormalStream;
+use hal_sim::plant::{Plant, PlantSettings, STATES};
+use hal_sim::sim::Simulation;
+use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
+use nanopos_id::pipeline::PipelineSettings;
+use nanopos_id::StageParams;
+
+/// `data_fingerprint` of `../shared/golden/paper-reference.json` (float64 reference, numpy), copied here so the
+/// test stands without the shared folder: ideal ZOH plant, Table I parameters, switch at 100 s, noise 1.25 nm.
+struct Fingerprint {
+    excitation: ExcitationDesign,
+    seed: u64,
+    segment_samples: u64,
+    u_first5: [f64; 5],
+    y_first5: [f64; 5],
+    u_sum: f64,
+    y_sum: f64,
+    y_sumsq: f64,
+    x1_at_end_seg1: f64,
+}
+
+const PRBS_SEG100: Fingerprint = Fingerprint {
+    excitation: ExcitationDesign::PAPER_PRBS,
+    seed: 1,
+    segment_samples: 1_000_000,
+    u_first5: [-1.0; 5],
+    y_first5: [
+        -4.283415223981393e-05,
+        -0.005621691423114443,
+        -0.01882739804842363,
+        -0.03307262771475241,
+        -0.058078469739104,
+    ],
+    u_sum: -930.0,
+    y_sum: -107.24826590377349,
+    y_sumsq: 551865.9343335293,
+    x1_at_end_seg1: 0.4228771749704778,
+};
+
+const TRIANGLE_SEG100: Fingerprint = Fingerprint {
+    excitation: ExcitationDesign::PAPER_TRIANGLE,
+    seed: 2,
+    segment_samples: 1_000_000,
+    u_first5: [0.0, 0.003976180515826248, 0.007961460501146928, 0.01196146456481152, 0.015976194060673722],
+    y_first5: [
+        -8.932528350125886e-06,
+        -0.0016718988040809587,
+        0.00017863928538707925,
+        -0.001595828384749815,
+        -0.0004015881358200443,
+    ],
+    u_sum: -6.693312570860144e-11,
+    y_sum: -1.8501381991254746,
+    y_sumsq: 8880.39720218678,
+    x1_at_end_seg1: -0.0008380340093454559,
+};
+
+fn regenerate_and_compare(fp: &Fingerprint) {
+    let gen = fp.excitation.design::<f64>(10_000.0);
+    let mut ex = ExcitationState::default();
+    let mut plant =
+        Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, fp.segment_samples));
+    let mut noise = NormalStream::new(fp.seed);
+    let (mut u_sum, mut y_sum, mut y_sumsq) = (0.0, 0.0, 0.0);
+    for k in 0..2 * fp.segment_samples {
+        let y = plant.output_um() + 1.25e-3 * noise.next_normal();
+        let u = gen.next(&mut ex);
+        if k < 5 {
+            // The triangle's recurrence and the reference's direct sum round differently in the last bit.
+            assert!((u - fp.u_first5[k as usize]).abs() < 1e-15, "u[{k}] = {u:e}");
+            // Same formula, same order of operations up to the matrix exponential (scipy's Pade vs our Taylor):
+            // agreement to a few ulps of the noise term.
+            assert!((y - fp.y_first5[k as usize]).abs() < 1e-15, "y[{k}] = {y:e}, reference {:e}", fp.y_first5[k as usize]);
+        }
+        u_sum += u;
+        y_sum += y;
+        y_sumsq += y * y;
+        plant.advance(u);
+        if plant.sample() == fp.segment_samples - 1 {
+            // The last sample of the first segment. A million ZOH steps: the Phi rounding difference (~1e-16 per
+            // step) is forgotten within the mode's ~25 ms memory, so the states agree to ~1e-14.
+            let x1 = plant.stage_x1_um();
+            assert!((x1 - fp.x1_at_end_seg1).abs() < 1e-12, "x1 at the end of segment 1: {x1} vs {}", fp.x1_at_end_seg1);
+        }
+    }
+    // u: PRBS sums are exact integers; the triangle's sum of 2e6 values of size 1 carries ~1e-10 of rounding.
+    assert!((u_sum - fp.u_sum).abs() < 1e-9, "u_sum {u_sum} vs {}", fp.u_sum);
+    assert!((y_sum / fp.y_sum - 1.0).abs() < 1e-9, "y_sum {y_sum} vs {}", fp.y_sum);
+    assert!((y_sumsq / fp.y_sumsq - 1.0).abs() < 1e-10, "y_sumsq {y_sumsq} vs {}", fp.y_sumsq);
+}
+
+#[test]
+fn ideal_plant_regenerates_the_reference_prbs_data() {
+    regenerate_and_compare(&PRBS_SEG100);
+}
+
+#[test]
+fn ideal_plant_regenerates_the_reference_triangle_data() {
+    regenerate_and_compare(&TRIANGLE_SEG100);
+}
+
+#[test]
+fn zoh_plant_matches_a_finely_integrated_analog_chain() {
+    // The whole chain (filters, amplifier, two modes, sensor) under a held, changing input, against RK4 at T/2000.
+    let settings = PlantSettings::default();
+    let (a, b, c) = settings.continuous(&settings.before);
+    let f = |x: &[f64; STATES], u: f64| -> [f64; STATES] {
+        std::array::from_fn(|i| (0..STATES).map(|j| a[i][j] * x[j]).sum::<f64>() + b[i] * u)
+    };
+    let mut plant = Plant::new(settings);
+    let mut x = [0.0; STATES];
+    let sub = 2000;
+    let h = settings.sample_period_s / sub as f64;
+    let (mut worst, mut peak) = (0.0f64, 0.0f64);
+    for k in 0..60 {
+        let u = [1.0, -1.0, 0.5, 0.0, 2.0][k % 5];
+        for _ in 0..sub {
+            let k1 = f(&x, u);
+            let k2 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]), u);
+            let k3 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]), u);
+            let k4 = f(&std::array::from_fn(|i| x[i] + h * k3[i]), u);
+            x = std::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+        }
+        plant.advance(u);
+        let y_ref: f64 = c.iter().zip(x.iter()).map(|(ci, xi)| ci * xi).sum();
+        worst = worst.max((plant.output_um() - y_ref).abs());
+        peak = peak.max(y_ref.abs());
+    }
+    // RK4 at h = 5e-8 s against the fastest pole (sensor, 6.3e5 rad/s): (w h)^4 / 120 ~ 8e-9 per step.
+    assert!(worst < 1e-7 * peak, "worst {worst:e} of peak {peak:e}");
+}
+
+/// Amplitude of `|Y/U|` at `f_hz` through the real pipeline and the simulated board: a stepped sine, settled, then
+/// demodulated over a whole number of periods.
+fn gain_at(board: BoardSettings, f_hz: f64) -> f64 {
+    let pipeline = PipelineSettings { excitation: ExcitationDesign::sine(f_hz, 0.5), ..PipelineSettings::default() };
+    let mut sim = Simulation::new(board, &pipeline, ()).unwrap();
+    // 0.3 s is 11 time constants 1/(zeta w0) of the payload mode: the start transient is below 2e-5.
+    for _ in 0..3000 {
+        sim.step();
+    }
+    let periods = (0.3 * f_hz).round();
+    let n = (periods * 10_000.0 / f_hz).round() as usize;
+    let (mut yc, mut ys, mut uc, mut us) = (0.0, 0.0, 0.0, 0.0);
+    for i in 0..n {
+        let (r, _) = sim.step();
+        let w = 2.0 * std::f64::consts::PI * f_hz * i as f64 / 10_000.0;
+        yc += r.y_um * w.cos();
+        ys += r.y_um * w.sin();
+        uc += r.u_v * w.cos();
+        us += r.u_v * w.sin();
+    }
+    (yc * yc + ys * ys).sqrt() / (uc * uc + us * us).sqrt()
+}
+
+fn resonance_from_sweep(board: BoardSettings) -> f64 {
+    let coarse: Vec<f64> = (0..=40).map(|i| 350.0 + 5.0 * i as f64).collect();
+    let best = coarse.iter().copied().map(|f| (f, gain_at(board, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    let fine: Vec<(f64, f64)> = (-16..=16).map(|i| best.0 + 0.25 * i as f64).map(|f| (f, gain_at(board, f))).collect();
+    let i = (1..fine.len() - 1).max_by(|&a, &b| fine[a].1.total_cmp(&fine[b].1)).unwrap();
+    // Parabola through the log-magnitudes of the top three points.
+    let (l0, l1, l2) = (fine[i - 1].1.ln(), fine[i].1.ln(), fine[i + 1].1.ln());
+    fine[i].0 + 0.25 * 0.5 * (l0 - l2) / (l0 - 2.0 * l1 + l2)
+}
+
+#[test]
+fn simulated_stage_resonates_at_423_hz_with_and_at_483_hz_without_payload() {
+    // The full board: both 1 kHz filters, amplifier and sensor bandwidth, second mode, converters, 1.25 nm noise.
+    // The peak of |G| sits at f0 sqrt(1 - 2 zeta^2) (0.09 Hz below f0) and the filters' slope moves it by ~0.01 Hz.
+    for (params, paper_hz) in [(StageParams::PAYLOAD, 423.0), (StageParams::NO_PAYLOAD, 483.0)] {
+        let mut board = BoardSettings::default();
+        board.plant.before = params;
+        let peak = resonance_from_sweep(board);
+        assert!((peak - params.f0_hz()).abs() < 1.0, "peak {peak} Hz, f0 {} Hz", params.f0_hz());
+        assert!((peak - paper_hz).abs() < 1.0, "peak {peak} Hz, paper {paper_hz} Hz");
+        eprintln!("resonance {peak:.2} Hz (f0 {:.2} Hz)", params.f0_hz());
+    }
+}
+
+#[test]
+fn payload_change_switches_parameters_and_kicks_the_stage() {
+    let mut s = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, 10);
+    s.bump_um_per_s = 300.0;
+    let mut with_bump = Plant::new(s);
+    s.bump_um_per_s = 0.0;
+    let mut without = Plant::new(s);
+    for _ in 0..10 {
+        assert_eq!(with_bump.params(), StageParams::PAYLOAD);
+        with_bump.advance(0.0);
+        without.advance(0.0);
+    }
+    assert_eq!(with_bump.params(), StageParams::NO_PAYLOAD);
+    with_bump.advance(0.0);
+    without.advance(0.0);
+    // One sample after a 300 um/s kick at rest: x1 ~ 300 um/s * 1e-4 s = 30 nm (less the spring's pull).
+    let dx = with_bump.stage_x1_um() - without.stage_x1_um();
+    assert!((dx - 0.03).abs() < 0.001, "{dx}");
+}
+
+#[test]
+fn hysteresis_makes_the_static_response_depend_on_the_path() {
+    let settings = PlantSettings {
+        hysteresis: Some(hal_sim::plant::Hysteresis::default()),
+        ..PlantSettings::ideal(StageParams::PAYLOAD, StageParams::PAYLOAD, u64::MAX)
+    };
+    let settle = |plant: &mut Plant, u: f64| {
+        for _ in 0..20_000 {
+            plant.advance(u);
+        }
+        plant.output_um()
+    };
+    let mut up = Plant::new(settings);
+    settle(&mut up, -1.0);
+    let from_below = settle(&mut up, 0.0);
+    let mut down = Plant::new(settings);
+    settle(&mut down, 1.0);
+    let from_above = settle(&mut down, 0.0);
+    // 10 % of the drive through plays up to 0.5 V wide: at 0 V the two branches differ by about
+    // 0.1 * mean play width * 2 * DC gain = 0.1 * 0.28 * 2 * 0.114 um ~ 6.5 nm.
+    assert!(from_above - from_below > 0.005, "{from_above} vs {from_below}");
+    let linear = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::PAYLOAD, u64::MAX);
+    let (mut a, mut b) = (Plant::new(linear), Plant::new(linear));
+    settle(&mut a, -1.0);
+    settle(&mut b, 1.0);
+    assert!((settle(&mut a, 0.0) - settle(&mut b, 0.0)).abs() < 1e-9);
+}
