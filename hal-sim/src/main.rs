@@ -67,6 +67,10 @@ fn main() -> ExitCode {
             let _ = e.print();
             return ExitCode::SUCCESS;
         }
+        Err(e) if e.kind() == clap::error::ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            eprintln!("nanopos-sim: no command given (try 'nanopos-sim simulate --help' or 'nanopos-sim --help')");
+            return ExitCode::from(2);
+        }
         Err(e) => {
             // clap's message spans several lines (usage, hints); keep the substance on one.
             let text = e.render().to_string();
