@@ -37,7 +37,13 @@ pub struct AdcModel {
 
 impl Default for AdcModel {
     fn default() -> Self {
-        AdcModel { native_bits: 12, oversampling: 256, shift: 4, vref_v: 3.3, conversion_noise_lsb: 1.0 }
+        AdcModel {
+            native_bits: 12,
+            oversampling: 256,
+            shift: 4,
+            vref_v: 3.3,
+            conversion_noise_lsb: 1.0,
+        }
     }
 }
 
@@ -45,7 +51,10 @@ impl AdcModel {
     /// The delivered code's format.
     pub fn format(&self) -> ConverterFormat {
         let bits = self.native_bits as u32 + self.oversampling.trailing_zeros() - self.shift as u32;
-        ConverterFormat { bits: bits as u8, full_scale_v: self.vref_v }
+        ConverterFormat {
+            bits: bits as u8,
+            full_scale_v: self.vref_v,
+        }
     }
 }
 
@@ -60,14 +69,20 @@ pub struct DacModel {
 
 impl Default for DacModel {
     fn default() -> Self {
-        DacModel { bits: 12, vref_v: 3.3 }
+        DacModel {
+            bits: 12,
+            vref_v: 3.3,
+        }
     }
 }
 
 impl DacModel {
     /// The code format.
     pub fn format(&self) -> ConverterFormat {
-        ConverterFormat { bits: self.bits, full_scale_v: self.vref_v }
+        ConverterFormat {
+            bits: self.bits,
+            full_scale_v: self.vref_v,
+        }
     }
 }
 
@@ -156,7 +171,8 @@ impl SimBoard {
         let adc = &self.settings.adc;
         let native_lsb_um = adc.vref_v / (1u64 << adc.native_bits) as f64 / self.adc_v_per_um();
         let out_lsb_um = self.settings.adc.format().volts_per_code() / self.adc_v_per_um();
-        let conversion = adc.conversion_noise_lsb * native_lsb_um / (adc.oversampling as f64).sqrt();
+        let conversion =
+            adc.conversion_noise_lsb * native_lsb_um / (adc.oversampling as f64).sqrt();
         let quantisation = out_lsb_um / 12f64.sqrt();
         (self.settings.noise_um_rms.powi(2) + conversion.powi(2) + quantisation.powi(2)).sqrt()
     }
@@ -176,14 +192,17 @@ impl StageBoard for SimBoard {
     }
 
     fn read_probe(&mut self) -> u32 {
-        let y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let y_um =
+            self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
         let adc = &self.settings.adc;
         let format = adc.format();
         let v = self.settings.probe.adc_offset_v + self.adc_v_per_um() * y_um;
         let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
         let noise_v = adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt();
         let v = v + noise_v * self.adc_noise.next_normal();
-        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code() as f64) as u32;
+        let code = (v / format.volts_per_code())
+            .round()
+            .clamp(0.0, format.max_code() as f64) as u32;
         self.forced_probe_code.unwrap_or(code)
     }
 

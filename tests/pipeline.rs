@@ -1,0 +1,234 @@
+//! The per-sample pipeline through the HAL trait, on the simulated board.
+
+use hal_sim::board::{BoardSettings, SimBoard};
+use hal_sim::sim::{Scenario, Simulation};
+use nanopos_id::estimator::{Adaptation, Estimator, EstimatorBank, FilteredSample, Health};
+use nanopos_id::excitation::ExcitationDesign;
+use nanopos_id::filters::BiquadState;
+use nanopos_id::hal::{run_sample, StageBoard};
+use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
+use nanopos_id::{Real, StageParams};
+
+/// A test double that records what the pipeline feeds it.
+#[derive(Default)]
+struct Recorder<T> {
+    seen: Vec<FilteredSample<T>>,
+    resets: u32,
+}
+
+impl<T: Real> Estimator<T> for Recorder<T> {
+    const NAME: &'static str = "recorder";
+    fn update(&mut self, s: &FilteredSample<T>) {
+        self.seen.push(*s);
+    }
+    fn params(&self) -> StageParams<T> {
+        StageParams::INITIAL.cast()
+    }
+    fn param_covariance(&self) -> [[T; 3]; 3] {
+        [[T::zero(); 3]; 3]
+    }
+    fn reset(&mut self) {
+        self.resets += 1;
+    }
+    fn set_adapting(&mut self, _: bool) {}
+    fn health(&self) -> Health {
+        Health {
+            adaptation: Adaptation::Adapting,
+            numeric_resets: 0,
+            rejected_samples: 0,
+            changes_detected: 0,
+        }
+    }
+}
+
+fn paper_sim<E: EstimatorBank<f64>>(estimators: E) -> Simulation<E> {
+    let (board, pipeline) = Scenario::Prbs.settings(2.0, 1);
+    Simulation::new(board, &pipeline, estimators).unwrap()
+}
+
+#[test]
+fn every_estimator_in_the_bank_sees_every_sample_and_the_replica_of_the_output() {
+    let mut sim = paper_sim((Recorder::<f64>::default(), Recorder::<f64>::default()));
+    let mut outputs = Vec::new();
+    for _ in 0..500 {
+        outputs.push(sim.step().1);
+    }
+    let (a, b) = &sim.pipeline.estimators;
+    assert_eq!(a.seen.len(), 500);
+    assert_eq!(a.seen, b.seen);
+    // u' is the DAC's actual output through the reconstruction and anti-aliasing replicas, recomputed here.
+    let (mut rc, mut aa) = (BiquadState::default(), BiquadState::default());
+    for (out, seen) in outputs.iter().zip(&a.seen) {
+        let expect = sim
+            .config
+            .antialias
+            .update(&mut aa, sim.config.reconstruction.update(&mut rc, out.u_v));
+        assert_eq!(seen.u, expect);
+        assert_eq!(seen.y, out.y_um);
+    }
+    EstimatorBank::<f64>::reset(&mut sim.pipeline.estimators);
+    assert_eq!(
+        (
+            sim.pipeline.estimators.0.resets,
+            sim.pipeline.estimators.1.resets
+        ),
+        (1, 1)
+    );
+}
+
+#[test]
+fn an_over_range_probe_stops_the_excitation_and_the_estimators_until_cleared() {
+    let mut sim = paper_sim((Recorder::<f64>::default(),));
+    for _ in 0..100 {
+        sim.step();
+    }
+    let before = sim.pipeline.estimators.0.seen.len();
+    let u_before = sim.pipeline.command_v();
+    sim.board.forced_probe_code = Some(0xFFFF);
+    let (_, out) = sim.step();
+    assert!(out.faults.contains(Faults::PROBE_OVER_RANGE));
+    assert!(out.estimator_input.is_none());
+    // The output returns to the safe value (0 V) through the slew limit (2.5 V per sample), not in a jump.
+    let step = (out.u_v - u_before).abs();
+    assert!(step <= 2.5 + 0.005, "{step}");
+    sim.board.forced_probe_code = None;
+    for _ in 0..10 {
+        let (_, out) = sim.step();
+        assert!(out.faults.contains(Faults::PROBE_OVER_RANGE), "latched");
+    }
+    // 0 V is DAC code 2048 exactly: the output sits at 0.
+    assert_eq!(sim.pipeline.command_v(), 0.0);
+    assert_eq!(sim.pipeline.estimators.0.seen.len(), before);
+    assert_eq!(sim.pipeline.fault_counters().probe_over_range, 1);
+    sim.pipeline.clear_faults();
+    let (_, out) = sim.step();
+    assert!(out.faults.is_empty());
+    assert_eq!(sim.pipeline.estimators.0.seen.len(), before + 1);
+}
+
+#[test]
+fn a_stuck_probe_is_detected_only_while_the_command_moves() {
+    let mut sim = paper_sim(());
+    sim.board.forced_probe_code = Some(32_768);
+    let stuck_after = sim.config.stuck_samples as usize;
+    for k in 0..stuck_after + 5 {
+        let (_, out) = sim.step();
+        assert_eq!(
+            out.faults.contains(Faults::PROBE_STUCK),
+            k + 1 >= stuck_after,
+            "sample {k}"
+        );
+    }
+    assert_eq!(sim.pipeline.fault_counters().probe_stuck, 1);
+
+    // No excitation: a constant reading is legitimate.
+    let (board, mut settings) = Scenario::Prbs.settings(2.0, 1);
+    settings.excitation = ExcitationDesign::OFF;
+    let mut quiet = Simulation::new(board, &settings, ()).unwrap();
+    quiet.board.forced_probe_code = Some(32_768);
+    for _ in 0..3 * stuck_after {
+        assert!(quiet.step().1.faults.is_empty());
+    }
+}
+
+#[test]
+fn the_command_is_clamped_and_slew_limited() {
+    let board = BoardSettings::default();
+    let settings = PipelineSettings {
+        excitation: ExcitationDesign::constant(15.0),
+        limits: OutputLimits {
+            min_v: -2.0,
+            max_v: 3.0,
+            max_slew_v_per_s: 10_000.0,
+            safe_v: 0.0,
+        },
+        ..PipelineSettings::default()
+    };
+    let mut sim = Simulation::new(board, &settings, ()).unwrap();
+    let u: Vec<f64> = (0..6).map(|_| sim.step().1.u_v).collect();
+    // 1 V per sample towards 15 V, clamped at 3 V; each value is the DAC's nearest code (4.9 mV steps).
+    for (got, want) in u.iter().zip([1.0, 2.0, 3.0, 3.0, 3.0, 3.0]) {
+        assert!((got - want).abs() < 0.0025, "{u:?}");
+    }
+}
+
+#[test]
+fn unusable_settings_are_rejected_with_what_was_wrong() {
+    let board = SimBoard::new(BoardSettings::default());
+    let (adc, dac) = (board.probe_format(), board.amplifier_format());
+    let ok = PipelineSettings::default();
+    let check = |s: PipelineSettings, want: SettingsError| {
+        assert_eq!(s.design::<f32>(adc, dac).unwrap_err(), want)
+    };
+    check(
+        PipelineSettings {
+            sample_rate_hz: 0.0,
+            ..ok
+        },
+        SettingsError::SampleRate,
+    );
+    let mut s = ok;
+    s.reconstruction.prewarp_hz = 6000.0;
+    check(s, SettingsError::FilterFrequency("reconstruction replica"));
+    let mut s = ok;
+    s.prefilter.zeta_p = 0.0;
+    check(s, SettingsError::PrefilterDamping);
+    let mut s = ok;
+    s.limits.safe_v = 11.0;
+    check(s, SettingsError::Limits);
+    let mut s = ok;
+    s.probe.um_per_v = 0.0;
+    check(s, SettingsError::FrontEnd("probe"));
+    let mut s = ok;
+    s.excitation = ExcitationDesign::sine(7000.0, 1.0);
+    check(s, SettingsError::Excitation);
+    assert!(ok.design::<f32>(adc, dac).is_ok());
+    let mut bad_adc = adc;
+    bad_adc.bits = 0;
+    assert_eq!(
+        ok.design::<f32>(bad_adc, dac).unwrap_err(),
+        SettingsError::Converter
+    );
+    assert!(SettingsError::Limits.to_string().contains("min_v"));
+}
+
+#[test]
+fn f32_pipeline_drives_the_same_dac_codes_as_f64_and_filters_alike() {
+    // The target runs f32: same design, rounded once. On the same readings both must command the same codes and
+    // produce pre-filtered signals that agree to single-precision accuracy.
+    let (board_settings, settings) = Scenario::Prbs.settings(2.0, 1);
+    let mut board = SimBoard::new(board_settings);
+    let cfg64 = settings
+        .design::<f64>(board.probe_format(), board.amplifier_format())
+        .unwrap();
+    let cfg32 = settings
+        .design::<f32>(board.probe_format(), board.amplifier_format())
+        .unwrap();
+    let mut p64 = Pipeline::new(&cfg64, ());
+    let mut p32 = Pipeline::new(&cfg32, ());
+    let (mut worst, mut peak) = (0.0f64, 0.0f64);
+    for _ in 0..20_000 {
+        let code = board.read_probe();
+        let (a, b) = (p64.step(&cfg64, code), p32.step(&cfg32, code));
+        assert_eq!(a.dac_code, b.dac_code);
+        board.write_amplifier(a.dac_code);
+        let (fa, fb) = (a.estimator_input.unwrap(), b.estimator_input.unwrap());
+        worst = worst.max((fa.y_f.d2 - fb.y_f.d2 as f64).abs());
+        peak = peak.max(fa.y_f.d2.abs());
+    }
+    // d2 is a difference of terms ~w_p^2 y: its f32 error is a few ulps of those terms, well under 1e-5 of its peak.
+    assert!(worst < 1e-5 * peak, "{worst:e} of {peak:e}");
+}
+
+#[test]
+fn run_sample_reads_steps_and_writes_once_per_sample() {
+    let (board, settings) = Scenario::Triangle.settings(1.0, 2);
+    let mut sim = Simulation::new(board, &settings, ()).unwrap();
+    for k in 0..10 {
+        assert_eq!(sim.board.plant().sample(), k);
+        let out = run_sample(&mut sim.board, &mut sim.pipeline, &sim.config);
+        // The board decodes the code on its own (an independent formula): equal to rounding.
+        assert!((sim.board.last_u_v() - out.u_v).abs() < 1e-12);
+    }
+    assert_eq!(sim.pipeline.samples(), 10);
+}
