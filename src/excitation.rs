@@ -61,43 +61,25 @@ pub struct ExcitationDesign {
 
 impl ExcitationDesign {
     /// The paper's PRBS: 1 V, bits held 5 samples at 10 kHz.
-    pub const PAPER_PRBS: Self = ExcitationDesign {
-        waveform: Waveform::Prbs { hold: 5 },
-        amplitude_v: 1.0,
-        offset_v: 0.0,
-    };
+    pub const PAPER_PRBS: Self =
+        ExcitationDesign { waveform: Waveform::Prbs { hold: 5 }, amplitude_v: 1.0, offset_v: 0.0 };
     /// The paper's smoothed triangle: 10 Hz, 1 V, harmonics to 1 kHz.
     pub const PAPER_TRIANGLE: Self = ExcitationDesign {
-        waveform: Waveform::Triangle {
-            freq_hz: 10.0,
-            max_hz: 1000.0,
-        },
+        waveform: Waveform::Triangle { freq_hz: 10.0, max_hz: 1000.0 },
         amplitude_v: 1.0,
         offset_v: 0.0,
     };
     /// Nothing.
-    pub const OFF: Self = ExcitationDesign {
-        waveform: Waveform::Off,
-        amplitude_v: 0.0,
-        offset_v: 0.0,
-    };
+    pub const OFF: Self = ExcitationDesign { waveform: Waveform::Off, amplitude_v: 0.0, offset_v: 0.0 };
 
     /// A sine of `amplitude_v` at `freq_hz`.
     pub fn sine(freq_hz: f64, amplitude_v: f64) -> Self {
-        ExcitationDesign {
-            waveform: Waveform::Sine { freq_hz },
-            amplitude_v,
-            offset_v: 0.0,
-        }
+        ExcitationDesign { waveform: Waveform::Sine { freq_hz }, amplitude_v, offset_v: 0.0 }
     }
 
     /// A constant `v`.
     pub fn constant(v: f64) -> Self {
-        ExcitationDesign {
-            waveform: Waveform::Off,
-            amplitude_v: 0.0,
-            offset_v: v,
-        }
+        ExcitationDesign { waveform: Waveform::Off, amplitude_v: 0.0, offset_v: v }
     }
 
     /// The generator's configuration for sample rate `fs_hz`.
@@ -114,9 +96,7 @@ impl ExcitationDesign {
             Waveform::Sine { freq_hz } => (Kind::Sine, phase_step(freq_hz), 0),
             Waveform::Triangle { freq_hz, max_hz } => {
                 let mut count = 0;
-                while count < MAX_HARMONICS
-                    && (2 * count + 1) as f64 * freq_hz <= max_hz * (1.0 + 1e-12)
-                {
+                while count < MAX_HARMONICS && (2 * count + 1) as f64 * freq_hz <= max_hz * (1.0 + 1e-12) {
                     let n = (2 * count + 1) as f64;
                     let sign = if count % 2 == 0 { 1.0 } else { -1.0 };
                     let pi = core::f64::consts::PI;
@@ -167,12 +147,7 @@ pub struct ExcitationState {
 
 impl Default for ExcitationState {
     fn default() -> Self {
-        ExcitationState {
-            lfsr: 0x7FFF,
-            bit_high: false,
-            hold_left: 0,
-            phase: 0,
-        }
+        ExcitationState { lfsr: 0x7FFF, bit_high: false, hold_left: 0, phase: 0 }
     }
 }
 
@@ -240,9 +215,7 @@ mod tests {
     fn prbs_starts_like_the_reference_and_has_the_maximal_period() {
         let gen = ExcitationDesign::PAPER_PRBS.design::<f64>(10_000.0);
         let mut s = ExcitationState::default();
-        let bits: std::vec::Vec<f64> = (0..(PRBS_PERIOD_BITS as usize + 3) * 5)
-            .map(|_| gen.next(&mut s))
-            .collect();
+        let bits: std::vec::Vec<f64> = (0..(PRBS_PERIOD_BITS as usize + 3) * 5).map(|_| gen.next(&mut s)).collect();
         // Reference: first bit b = (1 ^ 1) & 1 = 0 -> -1 V, held for 5 samples.
         assert_eq!(&bits[..5], &[-1.0; 5]);
         let period = PRBS_PERIOD_BITS as usize * 5;
@@ -312,12 +285,7 @@ mod tests {
     fn off_and_constant_emit_their_offset() {
         let mut s = ExcitationState::default();
         assert_eq!(ExcitationDesign::OFF.design::<f32>(1e4).next(&mut s), 0.0);
-        assert_eq!(
-            ExcitationDesign::constant(0.25)
-                .design::<f32>(1e4)
-                .next(&mut s),
-            0.25
-        );
+        assert_eq!(ExcitationDesign::constant(0.25).design::<f32>(1e4).next(&mut s), 0.25);
         assert!(!ExcitationDesign::OFF.design::<f32>(1e4).is_active());
     }
 }

@@ -34,27 +34,36 @@ impl ConverterFormat {
     }
 }
 
+/// What the pipeline must know of a board: its converters and its timing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct BoardDescription {
+    /// Format of the probe ADC's code.
+    pub probe: ConverterFormat,
+    /// Format of the amplifier DAC's code.
+    pub amplifier: ConverterFormat,
+    /// Samples between writing a DAC code and the DAC output changing, 0 or 1. The G474 firmware loads the DAC from
+    /// the sample timer (TIM2 TRGO), so a code written during sample `k` appears exactly at `t_(k+1)`: one sample,
+    /// without jitter. A board that writes the DAC directly from the interrupt would be 0 (plus the interrupt's
+    /// latency, which this model cannot express: avoid).
+    pub actuation_delay_samples: u8,
+}
+
 /// One sample of a stage's board.
 pub trait StageBoard {
     /// The hardware sample rate, Hz.
     fn sample_rate_hz(&self) -> f64;
-    /// Format of the probe ADC's code.
-    fn probe_format(&self) -> ConverterFormat;
-    /// Format of the amplifier DAC's code.
-    fn amplifier_format(&self) -> ConverterFormat;
+    /// Converters and timing.
+    fn description(&self) -> BoardDescription;
     /// The probe conversion of this sample (converted at the sample instant).
     fn read_probe(&mut self) -> u32;
-    /// The amplifier command for the coming sample period.
+    /// The amplifier command; it takes effect `actuation_delay_samples` sample instants later.
     fn write_amplifier(&mut self, code: u32);
 }
 
 /// One sample, end to end: read the probe, run the pipeline, write the amplifier.
 #[inline]
-pub fn run_sample<B, T, E>(
-    board: &mut B,
-    pipeline: &mut Pipeline<T, E>,
-    cfg: &PipelineConfig<T>,
-) -> SampleOutput<T>
+pub fn run_sample<B, T, E>(board: &mut B, pipeline: &mut Pipeline<T, E>, cfg: &PipelineConfig<T>) -> SampleOutput<T>
 where
     B: StageBoard + ?Sized,
     T: Real,

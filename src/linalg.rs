@@ -51,9 +51,7 @@ pub fn identity<const N: usize>() -> Mat<N> {
 }
 
 fn norm1<const N: usize>(a: &Mat<N>) -> f64 {
-    (0..N)
-        .map(|j| (0..N).map(|i| libm::fabs(a[i][j])).sum::<f64>())
-        .fold(0.0, f64::max)
+    (0..N).map(|j| (0..N).map(|i| libm::fabs(a[i][j])).sum::<f64>()).fold(0.0, f64::max)
 }
 
 /// Exact ZOH discretisation over `t` seconds: returns `(Phi, Psi)` with `Phi = e^{A t}` and
@@ -62,9 +60,7 @@ fn norm1<const N: usize>(a: &Mat<N>) -> f64 {
 pub fn zoh<const N: usize>(a: &Mat<N>, t: f64) -> (Mat<N>, Mat<N>) {
     let (ab, d) = balance(a);
     let (phi, psi) = zoh_balanced(&ab, t);
-    let unbalance = |m: Mat<N>| -> Mat<N> {
-        core::array::from_fn(|i| core::array::from_fn(|j| m[i][j] * d[i] / d[j]))
-    };
+    let unbalance = |m: Mat<N>| -> Mat<N> { core::array::from_fn(|i| core::array::from_fn(|j| m[i][j] * d[i] / d[j])) };
     (unbalance(phi), unbalance(psi))
 }
 

@@ -40,44 +40,24 @@ impl<T: Real> StageParams<T> {
 
     /// The same parameters in another scalar.
     pub fn cast<U: Real>(&self) -> StageParams<U> {
-        StageParams {
-            a0: U::of(self.a0.as_f64()),
-            a1: U::of(self.a1.as_f64()),
-            b0: U::of(self.b0.as_f64()),
-        }
+        StageParams { a0: U::of(self.a0.as_f64()), a1: U::of(self.a1.as_f64()), b0: U::of(self.b0.as_f64()) }
     }
 
     /// Build from the physical description: natural frequency (Hz), damping ratio and DC gain (um/V).
     pub fn from_modal(f0_hz: T, damping_ratio: T, dc_gain: T) -> Self {
         let w0 = T::of(2.0) * T::PI() * f0_hz;
         let a0 = w0 * w0;
-        StageParams {
-            a0,
-            a1: T::of(2.0) * damping_ratio * w0,
-            b0: dc_gain * a0,
-        }
+        StageParams { a0, a1: T::of(2.0) * damping_ratio * w0, b0: dc_gain * a0 }
     }
 }
 
 impl StageParams<f64> {
     /// The reference stage with the 24.75 g payload (paper Table I).
-    pub const PAYLOAD: Self = StageParams {
-        a0: 7.06e6,
-        a1: 77.6,
-        b0: 0.808e6,
-    };
+    pub const PAYLOAD: Self = StageParams { a0: 7.06e6, a1: 77.6, b0: 0.808e6 };
     /// The reference stage without payload (paper Table I).
-    pub const NO_PAYLOAD: Self = StageParams {
-        a0: 9.21e6,
-        a1: 86.8,
-        b0: 1.07e6,
-    };
+    pub const NO_PAYLOAD: Self = StageParams { a0: 9.21e6, a1: 86.8, b0: 1.07e6 };
     /// Where every estimator starts (paper Section V-C): `[b0, a1, a0] = [5e5, 70, 6e6]`.
-    pub const INITIAL: Self = StageParams {
-        a0: 6.0e6,
-        a1: 70.0,
-        b0: 5.0e5,
-    };
+    pub const INITIAL: Self = StageParams { a0: 6.0e6, a1: 70.0, b0: 5.0e5 };
 }
 
 #[cfg(test)]

@@ -12,8 +12,10 @@
 //! apart from the [`Pipeline`] state: the interrupt owns the state and reads the configuration; a new configuration
 //! is swapped in whole between two samples.
 //!
-//! The command fed to the replicas is the one the DAC really outputs (after clamp, slew limit and quantisation,
-//! decoded back to volts), so the estimators see the drive the stage received.
+//! The command fed to the replicas is the one the DAC really outputs during the current sample period (after clamp,
+//! slew limit and quantisation, decoded back to volts, and after the board's actuation delay), so the estimators
+//! see the drive the stage received: `u_v` of sample `k` acts over `[t_k, t_(k+1))`, and `y_um` of sample `k`
+//! responds to the drive up to `t_k`.
 //!
 //! ## Faults
 //! A probe code at either end of the ADC range (within a margin) is an over-range; the same code for
@@ -26,7 +28,7 @@ use crate::estimator::{EstimatorBank, FilteredSample};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::ReplicaDesign;
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
-use crate::hal::ConverterFormat;
+use crate::hal::BoardDescription;
 use crate::Real;
 
 /// Probe side of the analog front end: sensor -> divider/level shift -> ADC.
@@ -42,11 +44,7 @@ pub struct ProbeFrontEnd {
 
 impl Default for ProbeFrontEnd {
     fn default() -> Self {
-        ProbeFrontEnd {
-            um_per_v: 5.0,
-            adc_v_per_sensor_v: 3.3 / 20.0,
-            adc_offset_v: 1.65,
-        }
+        ProbeFrontEnd { um_per_v: 5.0, adc_v_per_sensor_v: 3.3 / 20.0, adc_offset_v: 1.65 }
     }
 }
 
@@ -61,10 +59,7 @@ pub struct AmplifierFrontEnd {
 
 impl Default for AmplifierFrontEnd {
     fn default() -> Self {
-        AmplifierFrontEnd {
-            dac_v_per_command_v: 3.3 / 20.0,
-            dac_offset_v: 1.65,
-        }
+        AmplifierFrontEnd { dac_v_per_command_v: 3.3 / 20.0, dac_offset_v: 1.65 }
     }
 }
 
@@ -84,12 +79,7 @@ pub struct OutputLimits {
 
 impl Default for OutputLimits {
     fn default() -> Self {
-        OutputLimits {
-            min_v: -10.0,
-            max_v: 10.0,
-            max_slew_v_per_s: 25_000.0,
-            safe_v: 0.0,
-        }
+        OutputLimits { min_v: -10.0, max_v: 10.0, max_slew_v_per_s: 25_000.0, safe_v: 0.0 }
     }
 }
 
@@ -104,10 +94,7 @@ pub struct FaultSettings {
 
 impl Default for FaultSettings {
     fn default() -> Self {
-        FaultSettings {
-            over_range_margin_codes: 16,
-            stuck_samples: 1000,
-        }
+        FaultSettings { over_range_margin_codes: 16, stuck_samples: 1000 }
     }
 }
 
@@ -166,6 +153,8 @@ pub enum SettingsError {
     FrontEnd(&'static str),
     /// A converter format with 0 or more than 24 bits, or a non-positive full scale.
     Converter,
+    /// An actuation delay other than 0 or 1 sample.
+    ActuationDelay,
     /// Excitation frequency or amplitude out of range.
     Excitation,
 }
@@ -175,10 +164,7 @@ impl core::fmt::Display for SettingsError {
         match self {
             SettingsError::SampleRate => write!(f, "sample rate must be a positive number of Hz"),
             SettingsError::FilterFrequency(which) => {
-                write!(
-                    f,
-                    "{which}: frequencies must be positive and below the Nyquist frequency"
-                )
+                write!(f, "{which}: frequencies must be positive and below the Nyquist frequency")
             }
             SettingsError::PrefilterDamping => {
                 write!(f, "pre-filter damping ratio must be positive")
@@ -189,15 +175,10 @@ impl core::fmt::Display for SettingsError {
             SettingsError::FrontEnd(which) => {
                 write!(f, "{which} front end: gains must be finite and non-zero")
             }
-            SettingsError::Converter => write!(
-                f,
-                "converter format: 1 to 24 bits and a positive full scale"
-            ),
+            SettingsError::Converter => write!(f, "converter format: 1 to 24 bits and a positive full scale"),
+            SettingsError::ActuationDelay => write!(f, "board actuation delay must be 0 or 1 sample"),
             SettingsError::Excitation => {
-                write!(
-                    f,
-                    "excitation: frequencies below Nyquist, finite amplitude and offset"
-                )
+                write!(f, "excitation: frequencies below Nyquist, finite amplitude and offset")
             }
         }
     }
@@ -252,27 +233,26 @@ pub struct PipelineConfig<T> {
     pub safe_v: T,
     /// Stuck-probe threshold, samples.
     pub stuck_samples: u32,
+    /// Samples between writing a DAC code and its output (0 or 1).
+    pub actuation_delay_samples: u8,
     /// Sample period, s.
     pub sample_period_s: f64,
 }
 
 impl PipelineSettings {
     /// Validate and design for the board's converters.
-    pub fn design<T: Real>(
-        &self,
-        probe_adc: ConverterFormat,
-        amplifier_dac: ConverterFormat,
-    ) -> Result<PipelineConfig<T>, SettingsError> {
+    pub fn design<T: Real>(&self, board: &BoardDescription) -> Result<PipelineConfig<T>, SettingsError> {
+        let (probe_adc, amplifier_dac) = (board.probe, board.amplifier);
+        if board.actuation_delay_samples > 1 {
+            return Err(SettingsError::ActuationDelay);
+        }
         let fs = self.sample_rate_hz;
         if !(fs.is_finite() && fs > 0.0) {
             return Err(SettingsError::SampleRate);
         }
         let nyquist = fs / 2.0;
         let in_band = |f: f64| f.is_finite() && f > 0.0 && f < nyquist;
-        for (name, r) in [
-            ("reconstruction replica", self.reconstruction),
-            ("anti-aliasing replica", self.antialias),
-        ] {
+        for (name, r) in [("reconstruction replica", self.reconstruction), ("anti-aliasing replica", self.antialias)] {
             if !(in_band(r.cutoff_hz) && in_band(r.prewarp_hz)) {
                 return Err(SettingsError::FilterFrequency(name));
             }
@@ -284,15 +264,8 @@ impl PipelineSettings {
             return Err(SettingsError::PrefilterDamping);
         }
         let l = &self.limits;
-        let finite = [l.min_v, l.max_v, l.max_slew_v_per_s, l.safe_v]
-            .iter()
-            .all(|x| x.is_finite());
-        if !(finite
-            && l.min_v < l.max_v
-            && l.safe_v >= l.min_v
-            && l.safe_v <= l.max_v
-            && l.max_slew_v_per_s > 0.0)
-        {
+        let finite = [l.min_v, l.max_v, l.max_slew_v_per_s, l.safe_v].iter().all(|x| x.is_finite());
+        if !(finite && l.min_v < l.max_v && l.safe_v >= l.min_v && l.safe_v <= l.max_v && l.max_slew_v_per_s > 0.0) {
             return Err(SettingsError::Limits);
         }
         let nonzero = |x: f64| x.is_finite() && x != 0.0;
@@ -311,9 +284,7 @@ impl PipelineSettings {
         let e = &self.excitation;
         let freq_ok = match e.waveform {
             crate::excitation::Waveform::Sine { freq_hz } => in_band(freq_hz),
-            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => {
-                in_band(freq_hz) && max_hz.is_finite()
-            }
+            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => in_band(freq_hz) && max_hz.is_finite(),
             _ => true,
         };
         if !(freq_ok && e.amplitude_v.is_finite() && e.offset_v.is_finite()) {
@@ -331,10 +302,7 @@ impl PipelineSettings {
             reconstruction: self.reconstruction.design(fs).cast(),
             antialias: self.antialias.design(fs).cast(),
             prefilter: self.prefilter.design(1.0 / fs),
-            probe: Affine {
-                scale: T::of(vpc_in * k_probe),
-                offset: T::of(-p.adc_offset_v * k_probe),
-            },
+            probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
             amplifier: Affine {
                 scale: T::of(a.dac_v_per_command_v / vpc_out),
                 offset: T::of(a.dac_offset_v / vpc_out),
@@ -351,6 +319,7 @@ impl PipelineSettings {
             max_step_v: T::of(l.max_slew_v_per_s / fs),
             safe_v: T::of(l.safe_v),
             stuck_samples: self.faults.stuck_samples.max(2),
+            actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
         })
     }
@@ -400,9 +369,9 @@ pub struct FaultCounters {
 /// What one sample produced.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SampleOutput<T> {
-    /// Code written to the amplifier DAC.
+    /// Code written to the amplifier DAC (it takes effect after the board's actuation delay).
     pub dac_code: u32,
-    /// The command that code outputs, V.
+    /// The command in effect over this sample period, as the DAC outputs it, V.
     pub u_v: T,
     /// The probe reading, um.
     pub y_um: T,
@@ -416,6 +385,8 @@ pub struct SampleOutput<T> {
 #[derive(Clone, Debug)]
 pub struct Pipeline<T, E> {
     excitation: ExcitationState,
+    /// The last command written, V: what the slew limit starts from, and with an actuation delay of one sample, the
+    /// command in effect over the current period.
     command_v: T,
     reconstruction: BiquadState<T>,
     antialias: BiquadState<T>,
@@ -453,32 +424,23 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     #[inline]
     pub fn step(&mut self, cfg: &PipelineConfig<T>, probe_code: u32) -> SampleOutput<T> {
         self.samples = self.samples.wrapping_add(1);
-        let y_um = cfg
-            .probe
-            .apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
+        let y_um = cfg.probe.apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
         self.check_probe(cfg, probe_code);
 
-        let mut target = if self.faults.is_empty() {
-            cfg.excitation.next(&mut self.excitation)
-        } else {
-            cfg.safe_v
-        };
+        let mut target = if self.faults.is_empty() { cfg.excitation.next(&mut self.excitation) } else { cfg.safe_v };
         if !target.is_finite() {
             self.faults |= Faults::COMMAND_NOT_FINITE;
             self.counters.command_not_finite += 1;
             target = cfg.safe_v;
         }
         let clamped = target.max(cfg.min_v).min(cfg.max_v);
-        let step = (clamped - self.command_v)
-            .max(-cfg.max_step_v)
-            .min(cfg.max_step_v);
-        let (dac_code, u_v) = encode(cfg, self.command_v + step);
-        self.command_v = u_v;
+        let step = (clamped - self.command_v).max(-cfg.max_step_v).min(cfg.max_step_v);
+        let (dac_code, written_v) = encode(cfg, self.command_v + step);
+        let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
+        self.command_v = written_v;
 
-        let u_replica = cfg.antialias.update(
-            &mut self.antialias,
-            cfg.reconstruction.update(&mut self.reconstruction, u_v),
-        );
+        let u_replica =
+            cfg.antialias.update(&mut self.antialias, cfg.reconstruction.update(&mut self.reconstruction, u_v));
         let sample = FilteredSample {
             u: u_replica,
             y: y_um,
@@ -491,13 +453,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         } else {
             None
         };
-        SampleOutput {
-            dac_code,
-            u_v,
-            y_um,
-            faults: self.faults,
-            estimator_input,
-        }
+        SampleOutput { dac_code, u_v, y_um, faults: self.faults, estimator_input }
     }
 
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {
@@ -540,7 +496,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         self.samples
     }
 
-    /// The last command, V.
+    /// The last command written, V.
     pub fn command_v(&self) -> T {
         self.command_v
     }
@@ -553,12 +509,8 @@ fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
     let code = if raw <= T::zero() {
         0
     } else {
-        num_traits::cast::<T, u32>(raw)
-            .unwrap_or(cfg.dac_max_code)
-            .min(cfg.dac_max_code)
+        num_traits::cast::<T, u32>(raw).unwrap_or(cfg.dac_max_code).min(cfg.dac_max_code)
     };
-    let back = cfg
-        .amplifier_inverse
-        .apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero));
+    let back = cfg.amplifier_inverse.apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero));
     (code, back)
 }

@@ -44,10 +44,7 @@ fn measured_share(shape: Option<Biquad<f64>>) -> f64 {
         if let Some(f) = &shape {
             u = f.update(&mut shape_state, u);
         }
-        let h = hp
-            .iter()
-            .zip(hp_state.iter_mut())
-            .fold(u, |x, (f, s)| f.update(s, x));
+        let h = hp.iter().zip(hp_state.iter_mut()).fold(u, |x, (f, s)| f.update(s, x));
         // Skip the first period: filter start-up.
         if k >= period {
             high += h * h;
@@ -60,11 +57,7 @@ fn measured_share(shape: Option<Biquad<f64>>) -> f64 {
 #[test]
 fn prbs_power_above_1_khz_is_what_its_hold_predicts_and_small_after_the_reconstruction_filter() {
     let hp = highpass8();
-    let hp_gain = |f: f64| {
-        hp.iter()
-            .map(|s| s.response(f, 1.0 / FS).abs().powi(2))
-            .product::<f64>()
-    };
+    let hp_gain = |f: f64| hp.iter().map(|s| s.response(f, 1.0 / FS).abs().powi(2)).product::<f64>();
     let rc = butterworth_lowpass2(1000.0, 1000.0, FS);
     let rc_gain = |f: f64| rc.response(f, 1.0 / FS).abs().powi(2);
 

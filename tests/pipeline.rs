@@ -32,12 +32,7 @@ impl<T: Real> Estimator<T> for Recorder<T> {
     }
     fn set_adapting(&mut self, _: bool) {}
     fn health(&self) -> Health {
-        Health {
-            adaptation: Adaptation::Adapting,
-            numeric_resets: 0,
-            rejected_samples: 0,
-            changes_detected: 0,
-        }
+        Health { adaptation: Adaptation::Adapting, numeric_resets: 0, rejected_samples: 0, changes_detected: 0 }
     }
 }
 
@@ -59,21 +54,12 @@ fn every_estimator_in_the_bank_sees_every_sample_and_the_replica_of_the_output()
     // u' is the DAC's actual output through the reconstruction and anti-aliasing replicas, recomputed here.
     let (mut rc, mut aa) = (BiquadState::default(), BiquadState::default());
     for (out, seen) in outputs.iter().zip(&a.seen) {
-        let expect = sim
-            .config
-            .antialias
-            .update(&mut aa, sim.config.reconstruction.update(&mut rc, out.u_v));
+        let expect = sim.config.antialias.update(&mut aa, sim.config.reconstruction.update(&mut rc, out.u_v));
         assert_eq!(seen.u, expect);
         assert_eq!(seen.y, out.y_um);
     }
     EstimatorBank::<f64>::reset(&mut sim.pipeline.estimators);
-    assert_eq!(
-        (
-            sim.pipeline.estimators.0.resets,
-            sim.pipeline.estimators.1.resets
-        ),
-        (1, 1)
-    );
+    assert_eq!((sim.pipeline.estimators.0.resets, sim.pipeline.estimators.1.resets), (1, 1));
 }
 
 #[test]
@@ -113,11 +99,7 @@ fn a_stuck_probe_is_detected_only_while_the_command_moves() {
     let stuck_after = sim.config.stuck_samples as usize;
     for k in 0..stuck_after + 5 {
         let (_, out) = sim.step();
-        assert_eq!(
-            out.faults.contains(Faults::PROBE_STUCK),
-            k + 1 >= stuck_after,
-            "sample {k}"
-        );
+        assert_eq!(out.faults.contains(Faults::PROBE_STUCK), k + 1 >= stuck_after, "sample {k}");
     }
     assert_eq!(sim.pipeline.fault_counters().probe_stuck, 1);
 
@@ -136,18 +118,14 @@ fn the_command_is_clamped_and_slew_limited() {
     let board = BoardSettings::default();
     let settings = PipelineSettings {
         excitation: ExcitationDesign::constant(15.0),
-        limits: OutputLimits {
-            min_v: -2.0,
-            max_v: 3.0,
-            max_slew_v_per_s: 10_000.0,
-            safe_v: 0.0,
-        },
+        limits: OutputLimits { min_v: -2.0, max_v: 3.0, max_slew_v_per_s: 10_000.0, safe_v: 0.0 },
         ..PipelineSettings::default()
     };
     let mut sim = Simulation::new(board, &settings, ()).unwrap();
-    let u: Vec<f64> = (0..6).map(|_| sim.step().1.u_v).collect();
-    // 1 V per sample towards 15 V, clamped at 3 V; each value is the DAC's nearest code (4.9 mV steps).
-    for (got, want) in u.iter().zip([1.0, 2.0, 3.0, 3.0, 3.0, 3.0]) {
+    let u: Vec<f64> = (0..7).map(|_| sim.step().1.u_v).collect();
+    // The output starts at the safe 0 V (the first code acts one sample later), then ramps 1 V per sample towards
+    // 15 V and stops at the 3 V clamp; each value is the DAC's nearest code (4.9 mV steps).
+    for (got, want) in u.iter().zip([0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 3.0]) {
         assert!((got - want).abs() < 0.0025, "{u:?}");
     }
 }
@@ -155,18 +133,10 @@ fn the_command_is_clamped_and_slew_limited() {
 #[test]
 fn unusable_settings_are_rejected_with_what_was_wrong() {
     let board = SimBoard::new(BoardSettings::default());
-    let (adc, dac) = (board.probe_format(), board.amplifier_format());
+    let desc = board.description();
     let ok = PipelineSettings::default();
-    let check = |s: PipelineSettings, want: SettingsError| {
-        assert_eq!(s.design::<f32>(adc, dac).unwrap_err(), want)
-    };
-    check(
-        PipelineSettings {
-            sample_rate_hz: 0.0,
-            ..ok
-        },
-        SettingsError::SampleRate,
-    );
+    let check = |s: PipelineSettings, want: SettingsError| assert_eq!(s.design::<f32>(&desc).unwrap_err(), want);
+    check(PipelineSettings { sample_rate_hz: 0.0, ..ok }, SettingsError::SampleRate);
     let mut s = ok;
     s.reconstruction.prewarp_hz = 6000.0;
     check(s, SettingsError::FilterFrequency("reconstruction replica"));
@@ -182,13 +152,13 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     let mut s = ok;
     s.excitation = ExcitationDesign::sine(7000.0, 1.0);
     check(s, SettingsError::Excitation);
-    assert!(ok.design::<f32>(adc, dac).is_ok());
-    let mut bad_adc = adc;
-    bad_adc.bits = 0;
-    assert_eq!(
-        ok.design::<f32>(bad_adc, dac).unwrap_err(),
-        SettingsError::Converter
-    );
+    assert!(ok.design::<f32>(&desc).is_ok());
+    let mut bad = desc;
+    bad.probe.bits = 0;
+    assert_eq!(ok.design::<f32>(&bad).unwrap_err(), SettingsError::Converter);
+    let mut bad = desc;
+    bad.actuation_delay_samples = 2;
+    assert_eq!(ok.design::<f32>(&bad).unwrap_err(), SettingsError::ActuationDelay);
     assert!(SettingsError::Limits.to_string().contains("min_v"));
 }
 
@@ -198,12 +168,8 @@ fn f32_pipeline_drives_the_same_dac_codes_as_f64_and_filters_alike() {
     // produce pre-filtered signals that agree to single-precision accuracy.
     let (board_settings, settings) = Scenario::Prbs.settings(2.0, 1);
     let mut board = SimBoard::new(board_settings);
-    let cfg64 = settings
-        .design::<f64>(board.probe_format(), board.amplifier_format())
-        .unwrap();
-    let cfg32 = settings
-        .design::<f32>(board.probe_format(), board.amplifier_format())
-        .unwrap();
+    let cfg64 = settings.design::<f64>(&board.description()).unwrap();
+    let cfg32 = settings.design::<f32>(&board.description()).unwrap();
     let mut p64 = Pipeline::new(&cfg64, ());
     let mut p32 = Pipeline::new(&cfg32, ());
     let (mut worst, mut peak) = (0.0f64, 0.0f64);

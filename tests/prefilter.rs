@@ -17,19 +17,13 @@ fn continuous_step_response(design: &PrefilterDesign, samples: usize) -> Vec<Pre
         // The second derivative at the instant the input steps: mean of its left (input 0 before k = 0) and right
         // limits, the pre-filter's documented convention.
         let left = if k == 0 { 0.0 } else { 1.0 };
-        out.push(Prefiltered {
-            value: x[1],
-            d1: x[2],
-            d2: 0.5 * (f(x, left)[2] + f(x, 1.0)[2]),
-        });
+        out.push(Prefiltered { value: x[1], d1: x[2], d2: 0.5 * (f(x, left)[2] + f(x, 1.0)[2]) });
         for _ in 0..sub {
             let k1 = f(x, 1.0);
             let k2 = f(std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]), 1.0);
             let k3 = f(std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]), 1.0);
             let k4 = f(std::array::from_fn(|i| x[i] + h * k3[i]), 1.0);
-            x = std::array::from_fn(|i| {
-                x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-            });
+            x = std::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
         }
     }
     out
@@ -44,22 +38,14 @@ fn prefilter_outputs_are_the_exact_samples_of_the_continuous_filter_for_a_held_i
     let (mut peak, mut worst) = ([0.0f64; 3], [0.0f64; 3]);
     for r in &reference {
         let d = filter.update(&mut state, 1.0);
-        for (i, (a, b)) in [(d.value, r.value), (d.d1, r.d1), (d.d2, r.d2)]
-            .into_iter()
-            .enumerate()
-        {
+        for (i, (a, b)) in [(d.value, r.value), (d.d1, r.d1), (d.d2, r.d2)].into_iter().enumerate() {
             peak[i] = peak[i].max(b.abs());
             worst[i] = worst[i].max((a - b).abs());
         }
     }
     // ZOH is exact for a held input; what remains is RK4's error at h = 1e-7 s ((w h)^4 ~ 1e-14) and rounding.
     for i in 0..3 {
-        assert!(
-            worst[i] <= 1e-10 * peak[i],
-            "output {i}: error {:e} of peak {:e}",
-            worst[i],
-            peak[i]
-        );
+        assert!(worst[i] <= 1e-10 * peak[i], "output {i}: error {:e} of peak {:e}", worst[i], peak[i]);
     }
 }
 
@@ -85,16 +71,10 @@ fn prefilter_peaks_where_the_analytic_transfer_function_does() {
     let analog = peak_frequency(|f| design.analog_response(0, f));
     let digital = peak_frequency(|f| filter.response(0, f, T));
     // Analytic: the resonant low-pass peaks at f_p sqrt(1 - 2 zeta^2) = 445.5 Hz; the 100 Hz high-pass tilts that up.
-    assert!(
-        analog > 445.0 && analog < 452.0,
-        "analog peak at {analog} Hz"
-    );
+    assert!(analog > 445.0 && analog < 452.0, "analog peak at {analog} Hz");
     // The ZOH equivalent of a held input adds a sinc(f T) droop and aliasing terms of relative size (wT)^2 / 24
     // ~ 3e-3; its slope across the 90 Hz-wide peak moves the maximum by well under 1 Hz.
-    assert!(
-        (digital - analog).abs() < 1.0,
-        "digital peak {digital} Hz, analog {analog} Hz"
-    );
+    assert!((digital - analog).abs() < 1.0, "digital peak {digital} Hz, analog {analog} Hz");
 }
 
 /// The exact response of the ZOH equivalent of `H(s)` at `f`: the alias sum
@@ -133,10 +113,7 @@ fn prefilter_derivative_outputs_are_s_and_s_squared_times_w_p_sampled_exactly() 
             let exact = zoh_alias_sum(|fk| design.analog_response(order, fk), h_inf, c, f, 20_000);
             let h_d = filter.response(order, f, T);
             // The remaining terms decay as 1/k^3: the tail beyond k = 20 000 is far below 1e-7 relative.
-            assert!(
-                (h_d - exact).abs() <= 1e-7 * exact.abs(),
-                "order {order} at {f} Hz: {h_d:?} vs {exact:?}"
-            );
+            assert!((h_d - exact).abs() <= 1e-7 * exact.abs(), "order {order} at {f} Hz: {h_d:?} vs {exact:?}");
         }
     }
 }
@@ -151,14 +128,8 @@ fn prefilter_outputs_are_the_analytic_ones_delayed_half_a_sample_in_the_resonanc
         let delay = Complex::expj(-std::f64::consts::PI * f * T);
         let w_t = 2.0 * std::f64::consts::PI * f * T;
         for order in 0..3 {
-            let (h_d, h_a) = (
-                filter.response(order, f, T),
-                design.analog_response(order, f) * delay,
-            );
-            assert!(
-                (h_d - h_a).abs() / h_a.abs() < w_t * w_t / 8.0,
-                "order {order} at {f} Hz"
-            );
+            let (h_d, h_a) = (filter.response(order, f, T), design.analog_response(order, f) * delay);
+            assert!((h_d - h_a).abs() / h_a.abs() < w_t * w_t / 8.0, "order {order} at {f} Hz");
         }
     }
 }

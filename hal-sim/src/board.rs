@@ -2,7 +2,10 @@
 //! converters and the analog front end in between.
 //!
 //! - **DAC**: 12 bits over 0-3.3 V; the written code is decoded back to the amplifier-input voltage through the
-//!   front end (0-3.3 V onto +-10 V) and held over the sample period.
+//!   front end (0-3.3 V onto +-10 V) and held over the sample period. Like the firmware's timer-triggered DAC, a
+//!   code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
+//! - **ADC timing**: the firmware centres the oversampling window on the sample instant, so the reading is the
+//!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
 //! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
 //! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
 //!   by `shift`, giving `12 + log2(ratio) - shift` bits (256x and shift 4: 16 bits). Each conversion carries its
@@ -17,7 +20,7 @@
 
 use crate::noise::NormalStream;
 use crate::plant::{Plant, PlantSettings};
-use nanopos_id::hal::{ConverterFormat, StageBoard};
+use nanopos_id::hal::{BoardDescription, ConverterFormat, StageBoard};
 use nanopos_id::pipeline::{AmplifierFrontEnd, ProbeFrontEnd};
 
 /// The G474's ADC in oversampling mode.
@@ -37,13 +40,7 @@ pub struct AdcModel {
 
 impl Default for AdcModel {
     fn default() -> Self {
-        AdcModel {
-            native_bits: 12,
-            oversampling: 256,
-            shift: 4,
-            vref_v: 3.3,
-            conversion_noise_lsb: 1.0,
-        }
+        AdcModel { native_bits: 12, oversampling: 256, shift: 4, vref_v: 3.3, conversion_noise_lsb: 1.0 }
     }
 }
 
@@ -51,10 +48,7 @@ impl AdcModel {
     /// The delivered code's format.
     pub fn format(&self) -> ConverterFormat {
         let bits = self.native_bits as u32 + self.oversampling.trailing_zeros() - self.shift as u32;
-        ConverterFormat {
-            bits: bits as u8,
-            full_scale_v: self.vref_v,
-        }
+        ConverterFormat { bits: bits as u8, full_scale_v: self.vref_v }
     }
 }
 
@@ -69,20 +63,14 @@ pub struct DacModel {
 
 impl Default for DacModel {
     fn default() -> Self {
-        DacModel {
-            bits: 12,
-            vref_v: 3.3,
-        }
+        DacModel { bits: 12, vref_v: 3.3 }
     }
 }
 
 impl DacModel {
     /// The code format.
     pub fn format(&self) -> ConverterFormat {
-        ConverterFormat {
-            bits: self.bits,
-            full_scale_v: self.vref_v,
-        }
+        ConverterFormat { bits: self.bits, full_scale_v: self.vref_v }
     }
 }
 
@@ -103,6 +91,8 @@ pub struct BoardSettings {
     pub probe: ProbeFrontEnd,
     /// Amplifier front end.
     pub amplifier: AmplifierFrontEnd,
+    /// Samples between writing a code and the DAC output (0 or 1).
+    pub actuation_delay_samples: u8,
 }
 
 impl Default for BoardSettings {
@@ -115,6 +105,7 @@ impl Default for BoardSettings {
             dac: DacModel::default(),
             probe: ProbeFrontEnd::default(),
             amplifier: AmplifierFrontEnd::default(),
+            actuation_delay_samples: 1,
         }
     }
 }
@@ -127,6 +118,7 @@ pub struct SimBoard {
     probe_noise: NormalStream,
     adc_noise: NormalStream,
     last_u_v: f64,
+    pending_code: Option<u32>,
     /// A probe code to return instead of the measurement (fault injection).
     pub forced_probe_code: Option<u32>,
 }
@@ -140,6 +132,7 @@ impl SimBoard {
             // A separate stream, so switching the ADC noise off leaves the probe noise sample-for-sample the same.
             adc_noise: NormalStream::new(settings.seed ^ 0xADC0_ADC0_ADC0_ADC0),
             last_u_v: 0.0,
+            pending_code: None,
             forced_probe_code: None,
             settings,
         }
@@ -155,7 +148,7 @@ impl SimBoard {
         &self.settings
     }
 
-    /// The amplifier-input voltage the last written code produced, V.
+    /// The amplifier-input voltage over the sample period just simulated, V.
     pub fn last_u_v(&self) -> f64 {
         self.last_u_v
     }
@@ -171,8 +164,7 @@ impl SimBoard {
         let adc = &self.settings.adc;
         let native_lsb_um = adc.vref_v / (1u64 << adc.native_bits) as f64 / self.adc_v_per_um();
         let out_lsb_um = self.settings.adc.format().volts_per_code() / self.adc_v_per_um();
-        let conversion =
-            adc.conversion_noise_lsb * native_lsb_um / (adc.oversampling as f64).sqrt();
+        let conversion = adc.conversion_noise_lsb * native_lsb_um / (adc.oversampling as f64).sqrt();
         let quantisation = out_lsb_um / 12f64.sqrt();
         (self.settings.noise_um_rms.powi(2) + conversion.powi(2) + quantisation.powi(2)).sqrt()
     }
@@ -183,31 +175,33 @@ impl StageBoard for SimBoard {
         1.0 / self.settings.plant.sample_period_s
     }
 
-    fn probe_format(&self) -> ConverterFormat {
-        self.settings.adc.format()
-    }
-
-    fn amplifier_format(&self) -> ConverterFormat {
-        self.settings.dac.format()
+    fn description(&self) -> BoardDescription {
+        BoardDescription {
+            probe: self.settings.adc.format(),
+            amplifier: self.settings.dac.format(),
+            actuation_delay_samples: self.settings.actuation_delay_samples,
+        }
     }
 
     fn read_probe(&mut self) -> u32 {
-        let y_um =
-            self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
         let adc = &self.settings.adc;
         let format = adc.format();
         let v = self.settings.probe.adc_offset_v + self.adc_v_per_um() * y_um;
         let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
         let noise_v = adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt();
         let v = v + noise_v * self.adc_noise.next_normal();
-        let code = (v / format.volts_per_code())
-            .round()
-            .clamp(0.0, format.max_code() as f64) as u32;
+        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code() as f64) as u32;
         self.forced_probe_code.unwrap_or(code)
     }
 
     fn write_amplifier(&mut self, code: u32) {
         let dac = self.settings.dac.format();
+        let code = match self.settings.actuation_delay_samples {
+            0 => code,
+            // The DAC's holding register: the previous code goes out now (mid-scale before the first write).
+            _ => self.pending_code.replace(code).unwrap_or(1 << (dac.bits - 1)),
+        };
         let code = code.min(dac.max_code());
         let v_dac = code as f64 * dac.volts_per_code();
         let a = &self.settings.amplifier;

@@ -8,11 +8,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
-#[command(
-    name = "nanopos-sim",
-    version,
-    about = "Simulated nanopositioning stage and host tools for nanopos-id"
-)]
+#[command(name = "nanopos-sim", version, about = "Simulated nanopositioning stage and host tools for nanopos-id")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -56,18 +52,8 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate {
-            scenario,
-            duration,
-            seed,
-            out,
-        } => {
-            let args = simulate::SimulateArgs {
-                scenario: scenario.into(),
-                duration_s: duration,
-                seed,
-                out: &out,
-            };
+        Command::Simulate { scenario, duration, seed, out } => {
+            let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
             simulate::run(&args).map(|_| ())
         }
     }
@@ -91,16 +77,9 @@ fn main() -> ExitCode {
             let line: Vec<&str> = text
                 .lines()
                 .map(str::trim)
-                .filter(|l| {
-                    !l.is_empty()
-                        && !l.starts_with("Usage:")
-                        && !l.starts_with("For more information")
-                })
+                .filter(|l| !l.is_empty() && !l.starts_with("Usage:") && !l.starts_with("For more information"))
                 .collect();
-            eprintln!(
-                "nanopos-sim: {}",
-                line.join(" ").trim_start_matches("error: ")
-            );
+            eprintln!("nanopos-sim: {}", line.join(" ").trim_start_matches("error: "));
             return ExitCode::from(2);
         }
     };

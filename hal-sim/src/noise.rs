@@ -23,16 +23,11 @@ pub struct NormalStream {
 impl NormalStream {
     /// Stream `seed`, from its first value.
     pub fn new(seed: u64) -> Self {
-        NormalStream {
-            seed,
-            next_index: 0,
-            spare: None,
-        }
+        NormalStream { seed, next_index: 0, spare: None }
     }
 
     fn uniform(&self, i: u64) -> f64 {
-        (mix(self.seed.wrapping_add((i + 1).wrapping_mul(GAMMA))) >> 11) as f64
-            * (1.0 / 9_007_199_254_740_992.0)
+        (mix(self.seed.wrapping_add((i + 1).wrapping_mul(GAMMA))) >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0)
     }
 
     /// The next standard-normal value.

@@ -39,11 +39,7 @@ impl Default for SecondMode {
     /// Illustrative: the paper's Fig. 3 shows a second mode above the first but gives no numbers. 1.9 kHz, 2 %
     /// damping, 3.5 % of the first mode's static gain: visible in a sweep, 20 dB down after the 1 kHz filters.
     fn default() -> Self {
-        SecondMode {
-            f0_hz: 1900.0,
-            damping_ratio: 0.02,
-            dc_gain_um_per_v: 0.004,
-        }
+        SecondMode { f0_hz: 1900.0, damping_ratio: 0.02, dc_gain_um_per_v: 0.004 }
     }
 }
 
@@ -58,10 +54,7 @@ pub struct Hysteresis {
 
 impl Default for Hysteresis {
     fn default() -> Self {
-        Hysteresis {
-            fraction: 0.1,
-            width_v: 0.5,
-        }
+        Hysteresis { fraction: 0.1, width_v: 0.5 }
     }
 }
 
@@ -146,28 +139,23 @@ impl PlantSettings {
         };
         let mut a = [[0.0; STATES]; STATES];
         let mut b = [0.0; STATES];
-        let drive =
-            |a: &mut Mat<STATES>, b: &mut [f64; STATES], row: usize, gain: f64, s: Signal| {
-                for (aj, cj) in a[row].iter_mut().zip(s.c.iter()) {
-                    *aj += gain * cj;
-                }
-                b[row] += gain * s.d;
-            };
-        let w = |f_hz: f64| 2.0 * std::f64::consts::PI * f_hz;
-        let butterworth =
-            |a: &mut Mat<STATES>, b: &mut [f64; STATES], first: usize, fc: f64, input: Signal| {
-                let wc = w(fc);
-                a[first][first + 1] = 1.0;
-                a[first + 1][first] = -wc * wc;
-                a[first + 1][first + 1] = -std::f64::consts::SQRT_2 * wc;
-                drive(a, b, first + 1, wc * wc, input);
-                state(first)
-            };
-
-        let mut sig = Signal {
-            c: [0.0; STATES],
-            d: 1.0,
+        let drive = |a: &mut Mat<STATES>, b: &mut [f64; STATES], row: usize, gain: f64, s: Signal| {
+            for (aj, cj) in a[row].iter_mut().zip(s.c.iter()) {
+                *aj += gain * cj;
+            }
+            b[row] += gain * s.d;
         };
+        let w = |f_hz: f64| 2.0 * std::f64::consts::PI * f_hz;
+        let butterworth = |a: &mut Mat<STATES>, b: &mut [f64; STATES], first: usize, fc: f64, input: Signal| {
+            let wc = w(fc);
+            a[first][first + 1] = 1.0;
+            a[first + 1][first] = -wc * wc;
+            a[first + 1][first + 1] = -std::f64::consts::SQRT_2 * wc;
+            drive(a, b, first + 1, wc * wc, input);
+            state(first)
+        };
+
+        let mut sig = Signal { c: [0.0; STATES], d: 1.0 };
         if let Some(fc) = self.reconstruction_hz {
             sig = butterworth(&mut a, &mut b, 0, fc, sig);
         }
@@ -205,11 +193,7 @@ impl PlantSettings {
     fn discrete(&self, p: &StageParams<f64>) -> Discrete {
         let (a, b, c) = self.continuous(p);
         let (phi, psi) = zoh(&a, self.sample_period_s);
-        Discrete {
-            phi,
-            gam: mat_vec(&psi, &b),
-            c,
-        }
+        Discrete { phi, gam: mat_vec(&psi, &b), c }
     }
 }
 

@@ -4,9 +4,7 @@ use crate::board::{BoardSettings, SimBoard};
 use nanopos_id::estimator::EstimatorBank;
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::hal::{run_sample, StageBoard};
-use nanopos_id::pipeline::{
-    Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError,
-};
+use nanopos_id::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
 use nanopos_id::StageParams;
 
 /// The paper's experiments.
@@ -37,10 +35,7 @@ impl Scenario {
 
     /// Board and pipeline of the paper's experiment: payload on, removed at half of `duration_s`.
     pub fn settings(self, duration_s: f64, seed: u64) -> (BoardSettings, PipelineSettings) {
-        let mut board = BoardSettings {
-            seed,
-            ..BoardSettings::default()
-        };
+        let mut board = BoardSettings { seed, ..BoardSettings::default() };
         let samples = (duration_s / board.plant.sample_period_s).round() as u64;
         board.plant.change_at_sample = samples / 2;
         let pipeline = PipelineSettings {
@@ -59,7 +54,7 @@ impl Scenario {
 pub struct Record {
     /// Time of the sample, s.
     pub t_s: f64,
-    /// The command output this sample, V.
+    /// The command in effect over this sample period, V.
     pub u_v: f64,
     /// The probe reading this sample, um.
     pub y_um: f64,
@@ -79,18 +74,10 @@ pub struct Simulation<E> {
 
 impl<E: EstimatorBank<f64>> Simulation<E> {
     /// Design the pipeline for the board's converters and put both at rest.
-    pub fn new(
-        board: BoardSettings,
-        pipeline: &PipelineSettings,
-        estimators: E,
-    ) -> Result<Self, SettingsError> {
+    pub fn new(board: BoardSettings, pipeline: &PipelineSettings, estimators: E) -> Result<Self, SettingsError> {
         let board = SimBoard::new(board);
-        let config = pipeline.design(board.probe_format(), board.amplifier_format())?;
-        Ok(Simulation {
-            pipeline: Pipeline::new(&config, estimators),
-            board,
-            config,
-        })
+        let config = pipeline.design(&board.description())?;
+        Ok(Simulation { pipeline: Pipeline::new(&config, estimators), board, config })
     }
 
     /// One sample.
@@ -98,12 +85,7 @@ impl<E: EstimatorBank<f64>> Simulation<E> {
         let k = self.board.plant().sample();
         let truth = self.board.plant().params();
         let out = run_sample(&mut self.board, &mut self.pipeline, &self.config);
-        let record = Record {
-            t_s: k as f64 * self.config.sample_period_s,
-            u_v: out.u_v,
-            y_um: out.y_um,
-            truth,
-        };
+        let record = Record { t_s: k as f64 * self.config.sample_period_s, u_v: out.u_v, y_um: out.y_um, truth };
         (record, out)
     }
 }

@@ -4,73 +4,38 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("run nanopos-sim")
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
 }
 
 fn assert_clean_failure(out: &Output, must_mention: &str) {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "exit code; stderr: {stderr}");
-    assert_eq!(
-        stderr.trim_end().lines().count(),
-        1,
-        "one line expected, got: {stderr:?}"
-    );
-    assert!(
-        stderr.contains(must_mention),
-        "{stderr:?} should mention {must_mention:?}"
-    );
+    assert_eq!(stderr.trim_end().lines().count(), 1, "one line expected, got: {stderr:?}");
+    assert!(stderr.contains(must_mention), "{stderr:?} should mention {must_mention:?}");
     assert!(!stderr.contains("panicked"), "{stderr}");
     assert!(out.stdout.is_empty());
 }
 
 fn no_stray_files(dir: &Path) {
-    let names: Vec<_> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name())
-        .collect();
+    let names: Vec<_> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert!(names.is_empty(), "left behind: {names:?}");
 }
 
 #[test]
 fn simulate_writes_the_documented_columns_with_the_truth() {
     let dir = tempfile::tempdir().unwrap();
-    let out = nanopos_sim(
-        &[
-            "simulate",
-            "--scenario",
-            "prbs",
-            "--duration",
-            "0.01",
-            "--out",
-            "a.csv",
-        ],
-        dir.path(),
-    );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "0.01", "--out", "a.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = std::fs::read_to_string(dir.path().join("a.csv")).unwrap();
     let lines: Vec<&str> = text.lines().collect();
     assert_eq!(lines[0], "t,u,y,a0,a1,b0");
     assert_eq!(lines.len(), 1 + 100);
     // Payload on for the first half (paper Table I), off after.
-    assert!(
-        lines[1].starts_with("0.0000,") && lines[1].ends_with(",7060000,77.6,808000"),
-        "{}",
-        lines[1]
-    );
-    assert!(
-        lines[51].starts_with("0.0050,") && lines[51].ends_with(",9210000,86.8,1070000"),
-        "{}",
-        lines[51]
-    );
-    for line in &lines[1..] {
+    assert!(lines[1].starts_with("0.0000,") && lines[1].ends_with(",7060000,77.6,808000"), "{}", lines[1]);
+    assert!(lines[51].starts_with("0.0050,") && lines[51].ends_with(",9210000,86.8,1070000"), "{}", lines[51]);
+    // The DAC is loaded by the sample timer: the first command acts one sample later, at mid-scale (0 V) before.
+    assert!(lines[1].starts_with("0.0000,0.0,"), "{}", lines[1]);
+    for line in &lines[2..] {
         let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
         assert_eq!(v.len(), 6);
         // PRBS of 1 V through a 12-bit DAC over +-10 V: +-1 V to within half a code (2.4 mV).
@@ -82,17 +47,7 @@ fn simulate_writes_the_documented_columns_with_the_truth() {
 fn same_seed_gives_the_same_file_and_another_seed_does_not() {
     let dir = tempfile::tempdir().unwrap();
     for (name, seed) in [("a.csv", "5"), ("b.csv", "5"), ("c.csv", "6")] {
-        let args = [
-            "simulate",
-            "--scenario",
-            "triangle",
-            "--duration",
-            "0.2",
-            "--seed",
-            seed,
-            "--out",
-            name,
-        ];
+        let args = ["simulate", "--scenario", "triangle", "--duration", "0.2", "--seed", seed, "--out", name];
         assert!(nanopos_sim(&args, dir.path()).status.success());
     }
     let read = |n: &str| std::fs::read(dir.path().join(n)).unwrap();
@@ -103,142 +58,21 @@ fn same_seed_gives_the_same_file_and_another_seed_does_not() {
 #[test]
 fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
     let cases: &[(&[&str], &str)] = &[
-        (
-            &["simulate", "--scenario", "sawtooth", "--out", "x.csv"],
-            "sawtooth",
-        ),
+        (&["simulate", "--scenario", "sawtooth", "--out", "x.csv"], "sawtooth"),
         (&["simulate", "--out", "x.csv"], "--scenario"),
         (&["simulate", "--scenario", "prbs"], "--out"),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "0",
-                "--out",
-                "x.csv",
-            ],
-            "--duration",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "-3",
-                "--out",
-                "x.csv",
-            ],
-            "--duration",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "NaN",
-                "--out",
-                "x.csv",
-            ],
-            "--duration",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "inf",
-                "--out",
-                "x.csv",
-            ],
-            "--duration",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "ten",
-                "--out",
-                "x.csv",
-            ],
-            "ten",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "1e9",
-                "--out",
-                "x.csv",
-            ],
-            "--duration",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--duration",
-                "0.00001",
-                "--out",
-                "x.csv",
-            ],
-            "two samples",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--seed",
-                "-1",
-                "--out",
-                "x.csv",
-            ],
-            "-1",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--seed",
-                "x",
-                "--out",
-                "x.csv",
-            ],
-            "--seed",
-        ),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--out",
-                "no/such/dir/x.csv",
-            ],
-            "no/such/dir/x.csv",
-        ),
+        (&["simulate", "--scenario", "prbs", "--duration", "0", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "-3", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "NaN", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "inf", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "ten", "--out", "x.csv"], "ten"),
+        (&["simulate", "--scenario", "prbs", "--duration", "1e9", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "0.00001", "--out", "x.csv"], "two samples"),
+        (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
+        (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
+        (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),
         (&["simulate", "--scenario", "prbs", "--out", "."], "."),
-        (
-            &[
-                "simulate",
-                "--scenario",
-                "prbs",
-                "--bogus",
-                "--out",
-                "x.csv",
-            ],
-            "--bogus",
-        ),
+        (&["simulate", "--scenario", "prbs", "--bogus", "--out", "x.csv"], "--bogus"),
         (&["frobnicate"], "frobnicate"),
         (&[], "no command given"),
     ];
@@ -254,23 +88,9 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
 fn a_failed_run_leaves_an_existing_output_untouched() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("keep.csv"), "precious").unwrap();
-    let out = nanopos_sim(
-        &[
-            "simulate",
-            "--scenario",
-            "prbs",
-            "--duration",
-            "-1",
-            "--out",
-            "keep.csv",
-        ],
-        dir.path(),
-    );
+    let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "-1", "--out", "keep.csv"], dir.path());
     assert_clean_failure(&out, "--duration");
-    assert_eq!(
-        std::fs::read_to_string(dir.path().join("keep.csv")).unwrap(),
-        "precious"
-    );
+    assert_eq!(std::fs::read_to_string(dir.path().join("keep.csv")).unwrap(), "precious");
 }
 
 #[test]

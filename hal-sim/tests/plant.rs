@@ -45,13 +45,7 @@ const TRIANGLE_SEG100: Fingerprint = Fingerprint {
     excitation: ExcitationDesign::PAPER_TRIANGLE,
     seed: 2,
     segment_samples: 1_000_000,
-    u_first5: [
-        0.0,
-        0.003976180515826248,
-        0.007961460501146928,
-        0.01196146456481152,
-        0.015976194060673722,
-    ],
+    u_first5: [0.0, 0.003976180515826248, 0.007961460501146928, 0.01196146456481152, 0.015976194060673722],
     y_first5: [
         -8.932528350125886e-06,
         -0.0016718988040809587,
@@ -68,11 +62,7 @@ const TRIANGLE_SEG100: Fingerprint = Fingerprint {
 fn regenerate_and_compare(fp: &Fingerprint) {
     let gen = fp.excitation.design::<f64>(10_000.0);
     let mut ex = ExcitationState::default();
-    let mut plant = Plant::new(PlantSettings::ideal(
-        StageParams::PAYLOAD,
-        StageParams::NO_PAYLOAD,
-        fp.segment_samples,
-    ));
+    let mut plant = Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, fp.segment_samples));
     let mut noise = NormalStream::new(fp.seed);
     let (mut u_sum, mut y_sum, mut y_sumsq) = (0.0, 0.0, 0.0);
     for k in 0..2 * fp.segment_samples {
@@ -80,10 +70,7 @@ fn regenerate_and_compare(fp: &Fingerprint) {
         let u = gen.next(&mut ex);
         if k < 5 {
             // The triangle's recurrence and the reference's direct sum round differently in the last bit.
-            assert!(
-                (u - fp.u_first5[k as usize]).abs() < 1e-15,
-                "u[{k}] = {u:e}"
-            );
+            assert!((u - fp.u_first5[k as usize]).abs() < 1e-15, "u[{k}] = {u:e}");
             // Same formula, same order of operations up to the matrix exponential (scipy's Pade vs our Taylor):
             // agreement to a few ulps of the noise term.
             assert!(
@@ -108,21 +95,9 @@ fn regenerate_and_compare(fp: &Fingerprint) {
         }
     }
     // u: PRBS sums are exact integers; the triangle's sum of 2e6 values of size 1 carries ~1e-10 of rounding.
-    assert!(
-        (u_sum - fp.u_sum).abs() < 1e-9,
-        "u_sum {u_sum} vs {}",
-        fp.u_sum
-    );
-    assert!(
-        (y_sum / fp.y_sum - 1.0).abs() < 1e-9,
-        "y_sum {y_sum} vs {}",
-        fp.y_sum
-    );
-    assert!(
-        (y_sumsq / fp.y_sumsq - 1.0).abs() < 1e-10,
-        "y_sumsq {y_sumsq} vs {}",
-        fp.y_sumsq
-    );
+    assert!((u_sum - fp.u_sum).abs() < 1e-9, "u_sum {u_sum} vs {}", fp.u_sum);
+    assert!((y_sum / fp.y_sum - 1.0).abs() < 1e-9, "y_sum {y_sum} vs {}", fp.y_sum);
+    assert!((y_sumsq / fp.y_sumsq - 1.0).abs() < 1e-10, "y_sumsq {y_sumsq} vs {}", fp.y_sumsq);
 }
 
 #[test]
@@ -155,9 +130,7 @@ fn zoh_plant_matches_a_finely_integrated_analog_chain() {
             let k2 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]), u);
             let k3 = f(&std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]), u);
             let k4 = f(&std::array::from_fn(|i| x[i] + h * k3[i]), u);
-            x = std::array::from_fn(|i| {
-                x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-            });
+            x = std::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
         }
         plant.advance(u);
         let y_ref: f64 = c.iter().zip(x.iter()).map(|(ci, xi)| ci * xi).sum();
@@ -171,10 +144,7 @@ fn zoh_plant_matches_a_finely_integrated_analog_chain() {
 /// Amplitude of `|Y/U|` at `f_hz` through the real pipeline and the simulated board: a stepped sine, settled, then
 /// demodulated over a whole number of periods.
 fn gain_at(board: BoardSettings, f_hz: f64) -> f64 {
-    let pipeline = PipelineSettings {
-        excitation: ExcitationDesign::sine(f_hz, 0.5),
-        ..PipelineSettings::default()
-    };
+    let pipeline = PipelineSettings { excitation: ExcitationDesign::sine(f_hz, 0.5), ..PipelineSettings::default() };
     let mut sim = Simulation::new(board, &pipeline, ()).unwrap();
     // 0.3 s is 11 time constants 1/(zeta w0) of the payload mode: the start transient is below 2e-5.
     for _ in 0..3000 {
@@ -196,18 +166,10 @@ fn gain_at(board: BoardSettings, f_hz: f64) -> f64 {
 
 fn resonance_from_sweep(board: BoardSettings) -> f64 {
     let coarse: Vec<f64> = (0..=40).map(|i| 350.0 + 5.0 * i as f64).collect();
-    let best = coarse
-        .iter()
-        .copied()
-        .map(|f| (f, gain_at(board, f)))
-        .fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
-    let fine: Vec<(f64, f64)> = (-16..=16)
-        .map(|i| best.0 + 0.25 * i as f64)
-        .map(|f| (f, gain_at(board, f)))
-        .collect();
-    let i = (1..fine.len() - 1)
-        .max_by(|&a, &b| fine[a].1.total_cmp(&fine[b].1))
-        .unwrap();
+    let best =
+        coarse.iter().copied().map(|f| (f, gain_at(board, f))).fold((0.0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    let fine: Vec<(f64, f64)> = (-16..=16).map(|i| best.0 + 0.25 * i as f64).map(|f| (f, gain_at(board, f))).collect();
+    let i = (1..fine.len() - 1).max_by(|&a, &b| fine[a].1.total_cmp(&fine[b].1)).unwrap();
     // Parabola through the log-magnitudes of the top three points.
     let (l0, l1, l2) = (fine[i - 1].1.ln(), fine[i].1.ln(), fine[i + 1].1.ln());
     fine[i].0 + 0.25 * 0.5 * (l0 - l2) / (l0 - 2.0 * l1 + l2)
@@ -217,22 +179,12 @@ fn resonance_from_sweep(board: BoardSettings) -> f64 {
 fn simulated_stage_resonates_at_423_hz_with_and_at_483_hz_without_payload() {
     // The full board: both 1 kHz filters, amplifier and sensor bandwidth, second mode, converters, 1.25 nm noise.
     // The peak of |G| sits at f0 sqrt(1 - 2 zeta^2) (0.09 Hz below f0) and the filters' slope moves it by ~0.01 Hz.
-    for (params, paper_hz) in [
-        (StageParams::PAYLOAD, 423.0),
-        (StageParams::NO_PAYLOAD, 483.0),
-    ] {
+    for (params, paper_hz) in [(StageParams::PAYLOAD, 423.0), (StageParams::NO_PAYLOAD, 483.0)] {
         let mut board = BoardSettings::default();
         board.plant.before = params;
         let peak = resonance_from_sweep(board);
-        assert!(
-            (peak - params.f0_hz()).abs() < 1.0,
-            "peak {peak} Hz, f0 {} Hz",
-            params.f0_hz()
-        );
-        assert!(
-            (peak - paper_hz).abs() < 1.0,
-            "peak {peak} Hz, paper {paper_hz} Hz"
-        );
+        assert!((peak - params.f0_hz()).abs() < 1.0, "peak {peak} Hz, f0 {} Hz", params.f0_hz());
+        assert!((peak - paper_hz).abs() < 1.0, "peak {peak} Hz, paper {paper_hz} Hz");
         eprintln!("resonance {peak:.2} Hz (f0 {:.2} Hz)", params.f0_hz());
     }
 }
@@ -277,10 +229,7 @@ fn hysteresis_makes_the_static_response_depend_on_the_path() {
     let from_above = settle(&mut down, 0.0);
     // 10 % of the drive through plays up to 0.5 V wide: at 0 V the two branches differ by about
     // 0.1 * mean play width * 2 * DC gain = 0.1 * 0.28 * 2 * 0.114 um ~ 6.5 nm.
-    assert!(
-        from_above - from_below > 0.005,
-        "{from_above} vs {from_below}"
-    );
+    assert!(from_above - from_below > 0.005, "{from_above} vs {from_below}");
     let linear = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::PAYLOAD, u64::MAX);
     let (mut a, mut b) = (Plant::new(linear), Plant::new(linear));
     settle(&mut a, -1.0);

@@ -43,18 +43,13 @@ impl<T: Real> BiquadState<T> {
 impl<T: Real> Biquad<T> {
     /// The identity section.
     pub fn passthrough() -> Self {
-        Biquad {
-            b: [T::one(), T::zero(), T::zero()],
-            a: [T::zero(), T::zero()],
-        }
+        Biquad { b: [T::one(), T::zero(), T::zero()], a: [T::zero(), T::zero()] }
     }
 
     /// One sample.
     #[inline]
     pub fn update(&self, s: &mut BiquadState<T>, x: T) -> T {
-        let y = self.b[0] * x + self.b[1] * s.x[0] + self.b[2] * s.x[1]
-            - self.a[0] * s.y[0]
-            - self.a[1] * s.y[1];
+        let y = self.b[0] * x + self.b[1] * s.x[0] + self.b[2] * s.x[1] - self.a[0] * s.y[0] - self.a[1] * s.y[1];
         s.x = [x, s.x[0]];
         s.y = [y, s.y[0]];
         y
@@ -68,10 +63,7 @@ impl<T: Real> Biquad<T> {
     /// The same section in another scalar.
     pub fn cast<U: Real>(&self) -> Biquad<U> {
         let c = |x: T| U::of(x.as_f64());
-        Biquad {
-            b: [c(self.b[0]), c(self.b[1]), c(self.b[2])],
-            a: [c(self.a[0]), c(self.a[1])],
-        }
+        Biquad { b: [c(self.b[0]), c(self.b[1]), c(self.b[2])], a: [c(self.a[0]), c(self.a[1])] }
     }
 
     /// Frequency response at `f_hz` for sample period `t_s`.
@@ -89,28 +81,21 @@ mod tests {
 
     #[test]
     fn difference_equation_is_direct_form_one() {
-        let f = Biquad {
-            b: [0.5, 0.25, 0.125],
-            a: [-0.5, 0.25],
-        };
+        let f = Biquad { b: [0.5, 0.25, 0.125], a: [-0.5, 0.25] };
         let mut s = BiquadState::default();
         let x = [1.0, 0.0, 0.0, 2.0];
         let mut y_ref = [0.0f64; 4];
         for n in 0..4 {
             let xm = |k: usize| if n >= k { x[n - k] } else { 0.0 };
             let ym = |k: usize, y: &[f64; 4]| if n >= k { y[n - k] } else { 0.0 };
-            y_ref[n] = 0.5 * xm(0) + 0.25 * xm(1) + 0.125 * xm(2) + 0.5 * ym(1, &y_ref)
-                - 0.25 * ym(2, &y_ref);
+            y_ref[n] = 0.5 * xm(0) + 0.25 * xm(1) + 0.125 * xm(2) + 0.5 * ym(1, &y_ref) - 0.25 * ym(2, &y_ref);
             assert_eq!(f.update(&mut s, x[n]), y_ref[n]);
         }
     }
 
     #[test]
     fn settled_state_outputs_the_dc_response_at_once() {
-        let f: Biquad<f64> = Biquad {
-            b: [0.2, 0.3, 0.1],
-            a: [-0.6, 0.2],
-        };
+        let f: Biquad<f64> = Biquad { b: [0.2, 0.3, 0.1], a: [-0.6, 0.2] };
         let mut s = BiquadState::default();
         s.settle(&f, 2.0);
         let y = f.update(&mut s, 2.0);

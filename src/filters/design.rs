@@ -22,10 +22,7 @@ pub struct ReplicaDesign {
 
 impl Default for ReplicaDesign {
     fn default() -> Self {
-        ReplicaDesign {
-            cutoff_hz: 1000.0,
-            prewarp_hz: 450.0,
-        }
+        ReplicaDesign { cutoff_hz: 1000.0, prewarp_hz: 450.0 }
     }
 }
 
@@ -46,18 +43,9 @@ pub fn prewarp_constant(prewarp_hz: f64, fs_hz: f64) -> f64 {
 /// Use [`bilinear1`] for first-order sections: here they would gain a pole-zero pair at `z = -1`.
 pub fn bilinear2(num: [f64; 3], den: [f64; 3], k: f64) -> Biquad<f64> {
     let k2 = k * k;
-    let map = |c: [f64; 3]| {
-        [
-            c[0] + c[1] * k + c[2] * k2,
-            2.0 * (c[0] - c[2] * k2),
-            c[0] - c[1] * k + c[2] * k2,
-        ]
-    };
+    let map = |c: [f64; 3]| [c[0] + c[1] * k + c[2] * k2, 2.0 * (c[0] - c[2] * k2), c[0] - c[1] * k + c[2] * k2];
     let (b, a) = (map(num), map(den));
-    Biquad {
-        b: [b[0] / a[0], b[1] / a[0], b[2] / a[0]],
-        a: [a[1] / a[0], a[2] / a[0]],
-    }
+    Biquad { b: [b[0] / a[0], b[1] / a[0], b[2] / a[0]], a: [a[1] / a[0], a[2] / a[0]] }
 }
 
 /// Map the analog section `(n0 + n1 s) / (d0 + d1 s)` to a first-order digital section (as a biquad with
@@ -65,20 +53,13 @@ pub fn bilinear2(num: [f64; 3], den: [f64; 3], k: f64) -> Biquad<f64> {
 pub fn bilinear1(num: [f64; 2], den: [f64; 2], k: f64) -> Biquad<f64> {
     let (b0, b1) = (num[0] + num[1] * k, num[0] - num[1] * k);
     let (a0, a1) = (den[0] + den[1] * k, den[0] - den[1] * k);
-    Biquad {
-        b: [b0 / a0, b1 / a0, 0.0],
-        a: [a1 / a0, 0.0],
-    }
+    Biquad { b: [b0 / a0, b1 / a0, 0.0], a: [a1 / a0, 0.0] }
 }
 
 /// 2nd-order Butterworth low-pass `wc^2 / (s^2 + sqrt(2) wc s + wc^2)`, bilinear, pre-warped at `prewarp_hz`.
 pub fn butterworth_lowpass2(cutoff_hz: f64, prewarp_hz: f64, fs_hz: f64) -> Biquad<f64> {
     let wc = 2.0 * core::f64::consts::PI * cutoff_hz;
-    bilinear2(
-        [wc * wc, 0.0, 0.0],
-        [wc * wc, core::f64::consts::SQRT_2 * wc, 1.0],
-        prewarp_constant(prewarp_hz, fs_hz),
-    )
+    bilinear2([wc * wc, 0.0, 0.0], [wc * wc, core::f64::consts::SQRT_2 * wc, 1.0], prewarp_constant(prewarp_hz, fs_hz))
 }
 
 /// 1st-order high-pass `s / (s + wc)`, bilinear, pre-warped at `prewarp_hz`.
@@ -107,11 +88,7 @@ mod tests {
         let f = butterworth_lowpass2(1000.0, 1000.0, FS);
         let h = f.response(1000.0, T);
         // Pre-warping makes the match exact at the pre-warp frequency: only rounding remains.
-        assert!(
-            (h.db() - (-10.0 * libm::log10(2.0))).abs() < 1e-9,
-            "{} dB",
-            h.db()
-        );
+        assert!((h.db() - (-10.0 * libm::log10(2.0))).abs() < 1e-9, "{} dB", h.db());
         assert!((h.arg() + FRAC_PI_2).abs() < 1e-9, "{} rad", h.arg());
         assert!((f.dc_gain() - 1.0).abs() < 1e-12);
     }
@@ -128,24 +105,14 @@ mod tests {
         for f_hz in [423.0, 483.0] {
             let (hd, ha) = (f.response(f_hz, T), analog_butterworth(f_hz, 1000.0));
             let warp = PI * PI / 3.0 * (f_hz * f_hz - 450.0 * 450.0) / (FS * FS);
-            assert!(
-                (hd.arg() - ha.arg()).abs() < 1.2 * 0.80 * warp.abs(),
-                "{f_hz} Hz phase"
-            );
-            assert!(
-                (hd.abs() / ha.abs() - 1.0).abs() < 1.2 * 0.105 * warp.abs(),
-                "{f_hz} Hz magnitude"
-            );
+            assert!((hd.arg() - ha.arg()).abs() < 1.2 * 0.80 * warp.abs(), "{f_hz} Hz phase");
+            assert!((hd.abs() / ha.abs() - 1.0).abs() < 1.2 * 0.105 * warp.abs(), "{f_hz} Hz magnitude");
         }
         // At the 1 kHz corner the warp is 2.6 % and the magnitude log-slope -1: 0.23 dB below -3 dB.
         let h = f.response(1000.0, T);
         let warp = PI * PI / 3.0 * (1000.0f64.powi(2) - 450.0f64.powi(2)) / (FS * FS);
         let expect_db = -3.0103 + 20.0 * libm::log10(1.0 - warp);
-        assert!(
-            (h.db() - expect_db).abs() < 0.02,
-            "{} dB, expected {expect_db}",
-            h.db()
-        );
+        assert!((h.db() - expect_db).abs() < 0.02, "{} dB, expected {expect_db}", h.db());
     }
 
     #[test]

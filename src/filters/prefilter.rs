@@ -51,11 +51,7 @@ pub struct PrefilterDesign {
 
 impl Default for PrefilterDesign {
     fn default() -> Self {
-        PrefilterDesign {
-            f_lc_hz: 100.0,
-            f_p_hz: 450.0,
-            zeta_p: 0.1,
-        }
+        PrefilterDesign { f_lc_hz: 100.0, f_p_hz: 450.0, zeta_p: 0.1 }
     }
 }
 
@@ -159,8 +155,7 @@ impl<T: Real> Prefilter<T> {
         });
         let g: [Complex; 3] = self.gam.map(|x| x.as_f64().into());
         let det3 = |m: &[[Complex; 3]; 3]| {
-            m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-                - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
                 + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
         };
         let det = det3(&m);

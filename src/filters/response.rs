@@ -58,28 +58,20 @@ impl Sub for Complex {
 impl Mul for Complex {
     type Output = Self;
     fn mul(self, o: Self) -> Self {
-        Complex::new(
-            self.re * o.re - self.im * o.im,
-            self.re * o.im + self.im * o.re,
-        )
+        Complex::new(self.re * o.re - self.im * o.im, self.re * o.im + self.im * o.re)
     }
 }
 impl Div for Complex {
     type Output = Self;
     fn div(self, o: Self) -> Self {
         let d = o.re * o.re + o.im * o.im;
-        Complex::new(
-            (self.re * o.re + self.im * o.im) / d,
-            (self.im * o.re - self.re * o.im) / d,
-        )
+        Complex::new((self.re * o.re + self.im * o.im) / d, (self.im * o.re - self.re * o.im) / d)
     }
 }
 
 /// Evaluate the polynomial `c[0] + c[1] x + c[2] x^2 + ...` at `x` (Horner).
 pub fn polyval(c: &[f64], x: Complex) -> Complex {
-    c.iter()
-        .rev()
-        .fold(Complex::new(0.0, 0.0), |acc, &ci| acc * x + ci.into())
+    c.iter().rev().fold(Complex::new(0.0, 0.0), |acc, &ci| acc * x + ci.into())
 }
 
 /// `j 2 pi f`, the Laplace variable on the imaginary axis at `f_hz`.

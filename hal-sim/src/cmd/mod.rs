@@ -37,26 +37,11 @@ pub struct OutputFile {
 impl OutputFile {
     /// Start writing `path`.
     pub fn create(path: &Path) -> Result<Self, CliError> {
-        let name = path
-            .file_name()
-            .ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
-        let temp = path.with_file_name(format!(
-            ".{}.partial-{}",
-            name.to_string_lossy(),
-            std::process::id()
-        ));
-        let file = File::create(&temp).map_err(|e| {
-            CliError(format!(
-                "{}: cannot create: {}",
-                path.display(),
-                io_reason(&e)
-            ))
-        })?;
-        Ok(OutputFile {
-            path: path.to_path_buf(),
-            temp,
-            writer: Some(BufWriter::with_capacity(1 << 20, file)),
-        })
+        let name = path.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
+        let temp = path.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
+        let file = File::create(&temp)
+            .map_err(|e| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e))))?;
+        Ok(OutputFile { path: path.to_path_buf(), temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
     }
 
     /// The buffered writer.
@@ -66,28 +51,17 @@ impl OutputFile {
 
     /// A write error, named after the final path.
     pub fn write_error(&self, e: std::io::Error) -> CliError {
-        CliError(format!(
-            "{}: cannot write: {}",
-            self.path.display(),
-            io_reason(&e)
-        ))
+        CliError(format!("{}: cannot write: {}", self.path.display(), io_reason(&e)))
     }
 
     /// Flush and move into place.
     pub fn commit(mut self) -> Result<(), CliError> {
         let mut w = self.writer.take().expect("commit once");
         w.flush().map_err(|e| self.write_error(e))?;
-        let file = w
-            .into_inner()
-            .map_err(|e| self.write_error(e.into_error()))?;
+        let file = w.into_inner().map_err(|e| self.write_error(e.into_error()))?;
         file.sync_all().map_err(|e| self.write_error(e))?;
-        std::fs::rename(&self.temp, &self.path).map_err(|e| {
-            CliError(format!(
-                "{}: cannot move into place: {}",
-                self.path.display(),
-                io_reason(&e)
-            ))
-        })
+        std::fs::rename(&self.temp, &self.path)
+            .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
     }
 }
 
@@ -119,12 +93,7 @@ pub struct Progress {
 impl Progress {
     /// Progress over `total` steps.
     pub fn new(label: &'static str, total: u64) -> Self {
-        Progress {
-            label,
-            total: total.max(1),
-            shown_percent: u64::MAX,
-            enabled: std::io::stderr().is_terminal(),
-        }
+        Progress { label, total: total.max(1), shown_percent: u64::MAX, enabled: std::io::stderr().is_terminal() }
     }
 
     /// Report that `done` steps are done.

@@ -28,28 +28,18 @@ pub struct SimulateArgs<'a> {
 /// Run it; returns the number of rows written.
 pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     if !(args.duration_s.is_finite() && args.duration_s > 0.0) {
-        return fail(format!(
-            "--duration {}: must be a positive number of seconds",
-            args.duration_s
-        ));
+        return fail(format!("--duration {}: must be a positive number of seconds", args.duration_s));
     }
     if args.duration_s > MAX_DURATION_S {
-        return fail(format!(
-            "--duration {}: longer than the {MAX_DURATION_S} s limit",
-            args.duration_s
-        ));
+        return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", args.duration_s));
     }
     let seed = args.seed.unwrap_or(args.scenario.default_seed());
     let (board, pipeline) = args.scenario.settings(args.duration_s, seed);
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
-        return fail(format!(
-            "--duration {}: shorter than two samples",
-            args.duration_s
-        ));
+        return fail(format!("--duration {}: shorter than two samples", args.duration_s));
     }
-    let mut sim =
-        Simulation::new(board, &pipeline, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+    let mut sim = Simulation::new(board, &pipeline, ()).map_err(|e| CliError(format!("settings: {e}")))?;
     let decimals = (-(sim.config.sample_period_s.log10())).ceil().max(0.0) as usize;
 
     let mut out = OutputFile::create(args.out)?;
