@@ -27,7 +27,7 @@ pub struct FilteredSample<T> {
 
 /// Whether an estimator is adapting its parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub enum Adaptation {
     /// Parameters follow the data.
     Adapting,
@@ -39,7 +39,7 @@ pub enum Adaptation {
 
 /// An estimator's health report.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct Health {
     /// Adapting or frozen, and why.
     pub adaptation: Adaptation,

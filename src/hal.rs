@@ -15,7 +15,7 @@ use crate::Real;
 
 /// A converter's code range and the voltage it spans: code `c` is `c * full_scale_v / 2^bits` volts.
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct ConverterFormat {
     /// Resolution of the delivered code (for an oversampling ADC: after accumulation and shift).
     pub bits: u8,
@@ -36,7 +36,7 @@ impl ConverterFormat {
 
 /// What the pipeline must know of a board: its converters and its timing.
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct BoardDescription {
     /// Format of the probe ADC's code.
     pub probe: ConverterFormat,

@@ -12,7 +12,7 @@ use crate::Real;
 
 /// Parameters of the second-order stage model (paper eq. (1)).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct StageParams<T> {
     /// Stiffness over mass, 1/s^2.
     pub a0: T,

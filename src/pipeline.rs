@@ -139,7 +139,7 @@ impl Default for PipelineSettings {
 
 /// A setting that cannot be designed, with what was wrong.
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub enum SettingsError {
     /// Sample rate not finite and positive.
     SampleRate,
@@ -327,7 +327,7 @@ impl PipelineSettings {
 
 /// Fault bits. A latched fault stops the excitation until cleared.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct Faults(pub u8);
 
 impl Faults {
@@ -356,7 +356,7 @@ impl core::ops::BitOrAssign for Faults {
 
 /// Counts of fault events since start.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct FaultCounters {
     /// Samples with an over-range probe code.
     pub probe_over_range: u32,

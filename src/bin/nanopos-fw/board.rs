@@ -1,0 +1,192 @@
+//! Everything specific to the NUCLEO-G474RE, in one place: clocks, pins, the sample clock, the probe ADC, the
+//! amplifier DAC, and the safe output. Moving to another STM32 with an ADC and a DAC means rewriting this file.
+//!
+//! ## Wiring
+//! | Signal | Pin | Nucleo header | Goes to |
+//! |---|---|---|---|
+//! | probe in (ADC1_IN1) | PA0 | A0 (CN8 pin 1) | anti-aliasing filter output, through the +-10 V -> 0-3.3 V divider |
+//! | amplifier out (DAC1_OUT1) | PA4 | A2 (CN8 pin 3) | reconstruction filter input, then 0-3.3 V -> +-10 V level shift |
+//! | ground | GND | CN8 | analog ground of filters and instruments |
+//!
+//! ## Clocks
+//! HSI16 / 4 * 85 / 2 = 170 MHz SYSCLK (PLL R, range-1 boost), APB1/APB2 at 170 MHz, so TIM2 counts at 170 MHz.
+//! ADC12 kernel clock = SYSCLK; embassy's ADC driver divides it by 4 to 42.5 MHz (limit 60 MHz).
+//!
+//! ## Sample clock (10 kHz), all in hardware
+//! TIM2 counts 0..16 999 (170 MHz / 17 000 = 10 kHz).
+//! - Its update event (TRGO, `t_k`) loads DAC1 channel 1 from its holding register: the code written during sample
+//!   `k-1` appears exactly at `t_k`, with no interrupt jitter (`actuation_delay_samples = 1`).
+//! - Its channel 2 (PWM mode 2, rising at CCR2) triggers ADC1 half an oversampling window before `t_k`, so the
+//!   window is centred on `t_k`: 64 conversions of 6.5 + 12.5 ADC cycles = 28.6 us at 42.5 MHz, accumulated and shifted
+//!   right by 2 to a 16-bit code. A centred boxcar adds no delay; its droop at 450 Hz is 0.03 %.
+//! - ADC1's end of conversion (at `t_k` + 14.3 us) raises ADC1_2, the highest-priority interrupt, which reads the
+//!   code, runs one sample of the pipeline and writes the next DAC code. Deadline: the next TIM2 update, 85.7 us
+//!   (14 570 cycles) after the conversion ends. Crossing it is detected (TIM2 update flag set again before the
+//!   interrupt returns) and counted; so is an ADC overrun.
+
+use embassy_stm32::pac;
+use embassy_stm32::pac::adc::vals::{Exten, Ovrmod, Rovsm, SampleTime, Trovs};
+use embassy_stm32::pac::timer::vals::{Mms, Ocm};
+use embassy_stm32::Peripherals;
+use nanopos_id::hal::{BoardDescription, ConverterFormat, StageBoard};
+
+/// Sample rate, Hz.
+pub const SAMPLE_RATE_HZ: u32 = 10_000;
+/// Timer clock, Hz.
+const TIMER_HZ: u32 = 170_000_000;
+/// Timer ticks per sample.
+pub const TICKS_PER_SAMPLE: u32 = TIMER_HZ / SAMPLE_RATE_HZ;
+/// ADC1 channel of PA0.
+const PROBE_CHANNEL: u8 = 1;
+/// Oversampling: 2^(OVSR + 1) = 64 conversions, shifted right by 2: 12 + 6 - 2 = 16-bit codes.
+const OVERSAMPLING_RATIO_CODE: u8 = 5;
+const OVERSAMPLING_SHIFT: u8 = 2;
+/// Conversion window: 64 * (6.5 + 12.5) ADC cycles at 42.5 MHz, in timer ticks (170 MHz: 4 ticks per ADC cycle).
+const WINDOW_TICKS: u32 = 64 * 19 * 4;
+/// ADC12 EXTSEL code of TIM2_CC2 (RM0440, ADC1/2 external triggers: EXT3).
+const ADC_TRIGGER_TIM2_CC2: u8 = 3;
+/// DAC TSEL code of TIM2_TRGO (RM0440, DAC1 triggers: 4).
+const DAC_TRIGGER_TIM2_TRGO: u8 = 4;
+/// DAC code of the safe output: mid-scale, 1.65 V, which the level shift makes 0 V at the amplifier.
+pub const SAFE_DAC_CODE: u16 = 2048;
+
+/// The clock tree above.
+pub fn clocks() -> embassy_stm32::Config {
+    use embassy_stm32::rcc::*;
+    let mut config = embassy_stm32::Config::default();
+    config.rcc.hsi = true;
+    config.rcc.pll = Some(Pll {
+        source: PllSource::HSI,
+        prediv: PllPreDiv::DIV4,
+        mul: PllMul::MUL85,
+        divp: None,
+        divq: None,
+        divr: Some(PllRDiv::DIV2),
+    });
+    config.rcc.sys = Sysclk::PLL1_R;
+    config.rcc.boost = true;
+    config.rcc.mux.adc12sel = mux::Adcsel::SYS;
+    config
+}
+
+/// The board's converters and timing, as the pipeline needs them.
+pub const DESCRIPTION: BoardDescription = BoardDescription {
+    probe: ConverterFormat { bits: 16, full_scale_v: 3.3 },
+    amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
+    actuation_delay_samples: 1,
+};
+
+/// Set up DAC, ADC and the sample timer. The timer is left stopped: [`start_sample_clock`] starts it.
+pub fn init(p: Peripherals) {
+    // DAC1 channel 1 on PA4: the driver enables the clock, selects the high-frequency interface mode for a
+    // 170 MHz AHB and the buffered external output, and sets PA4 analog. The trigger is set on the registers below,
+    // so the driver is forgotten (dropping it would disable the channel).
+    let dac = embassy_stm32::dac::DacChannel::new_blocking(p.DAC1, p.PA4);
+    core::mem::forget(dac);
+    let dac = pac::DAC1;
+    dac.cr().modify(|w| w.set_en(0, false));
+    dac.dhr12r(0).write(|w| w.set_dhr(SAFE_DAC_CODE));
+    dac.cr().modify(|w| {
+        w.set_tsel(0, DAC_TRIGGER_TIM2_TRGO);
+        w.set_ten(0, true);
+    });
+    dac.cr().modify(|w| w.set_en(0, true));
+
+    // ADC1: the driver powers up, calibrates and enables it with 64x oversampling; channel, trigger and interrupt are
+    // set here. PA0 is in analog mode out of reset on the G4.
+    let adc = embassy_stm32::adc::Adc::new(
+        p.ADC1,
+        embassy_stm32::adc::AdcConfig {
+            oversampling_ratio: Some(OVERSAMPLING_RATIO_CODE),
+            oversampling_shift: Some(OVERSAMPLING_SHIFT),
+            oversampling_mode: Some((Rovsm::CONTINUED, Trovs::AUTOMATIC, true)),
+            ..Default::default()
+        },
+    );
+    core::mem::forget(adc);
+    let adc = pac::ADC1;
+    adc.smpr().modify(|w| w.set_smp(PROBE_CHANNEL as usize, SampleTime::CYCLES6_5));
+    adc.sqr1().modify(|w| {
+        w.set_l(0);
+        w.set_sq(0, PROBE_CHANNEL);
+    });
+    adc.cfgr().modify(|w| {
+        w.set_cont(false);
+        w.set_extsel(ADC_TRIGGER_TIM2_CC2);
+        w.set_exten(Exten::RISING_EDGE);
+        w.set_ovrmod(Ovrmod::OVERWRITE);
+    });
+    adc.isr().write(|w| {
+        w.set_eoc(true);
+        w.set_ovr(true);
+    });
+    adc.ier().modify(|w| w.set_eocie(true));
+    adc.cr().modify(|w| w.set_adstart(true));
+
+    // TIM2: 10 kHz, TRGO on update (DAC), CH2 in PWM mode 2 rising half a window before the update (ADC).
+    embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
+    let tim = pac::TIM2;
+    tim.psc().write_value(0);
+    tim.arr().write_value(TICKS_PER_SAMPLE - 1);
+    tim.ccr(1).write_value(TICKS_PER_SAMPLE - WINDOW_TICKS / 2);
+    tim.ccmr_output(0).modify(|w| w.set_ocm(1, Ocm::PWM_MODE2));
+    tim.ccer().modify(|w| w.set_cce(1, true));
+    tim.cr2().modify(|w| w.set_mms(Mms::UPDATE));
+    tim.egr().write(|w| w.set_ug(true));
+    tim.sr().write_value(Default::default());
+}
+
+/// Start the sample clock.
+pub fn start_sample_clock() {
+    pac::TIM2.cr1().modify(|w| w.set_cen(true));
+}
+
+/// Drive the amplifier to its safe value and keep it there: usable from a fault handler. The timer keeps running
+/// in hardware, so the next update (within 100 us) loads the safe code.
+pub fn force_safe_output() {
+    pac::DAC1.dhr12r(0).write(|w| w.set_dhr(SAFE_DAC_CODE));
+}
+
+/// The board seen from the sample interrupt.
+pub struct G474Board;
+
+impl G474Board {
+    /// Called first in the interrupt: acknowledge the end of conversion, report an ADC overrun (a conversion lost
+    /// because the previous one was not read in time), and arm the deadline check.
+    #[inline(always)]
+    pub fn begin_sample(&mut self) -> bool {
+        let isr = pac::ADC1.isr().read();
+        pac::ADC1.isr().write(|w| {
+            w.set_eoc(true);
+            w.set_ovr(isr.ovr());
+        });
+        pac::TIM2.sr().write(|w| w.set_uif(false));
+        isr.ovr()
+    }
+
+    /// Called last: true if the next sample instant passed while this sample ran (the DAC loaded a stale code).
+    #[inline(always)]
+    pub fn deadline_missed(&self) -> bool {
+        pac::TIM2.sr().read().uif()
+    }
+}
+
+impl StageBoard for G474Board {
+    fn sample_rate_hz(&self) -> f64 {
+        SAMPLE_RATE_HZ as f64
+    }
+
+    fn description(&self) -> BoardDescription {
+        DESCRIPTION
+    }
+
+    #[inline(always)]
+    fn read_probe(&mut self) -> u32 {
+        pac::ADC1.dr().read().rdata() as u32
+    }
+
+    #[inline(always)]
+    fn write_amplifier(&mut self, code: u32) {
+        pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code.min(4095) as u16));
+    }
+}
