@@ -8,15 +8,19 @@
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
 //! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
 //! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
-//!   by `shift`, giving `12 + log2(ratio) - shift` bits (256x and shift 4: 16 bits). Each conversion carries its
+//!   by `shift`, giving `12 + log2(ratio) - shift` bits (the firmware's 64x and shift 2: 16 bits). Each conversion
+//!   carries its
 //!   own input-referred noise (`conversion_noise_lsb`, in 12-bit LSB RMS; 1 LSB assumed); averaging divides it by
 //!   `sqrt(ratio)`, and it dithers the 12-bit quantisation so the average resolves below one 12-bit code. The model
 //!   draws the averaged noise directly (one normal per sample, not `ratio`) and rounds to the output code.
 //!
 //! Effective resolution with the defaults (probe +-10 V = +-50 um onto 0-3.3 V): one 12-bit code is 24.4 nm, one
-//! 16-bit code 1.53 nm; averaged conversion noise 1 LSB12 / 16 = 1.53 nm RMS, output quantisation 1.53 / sqrt(12) =
-//! 0.44 nm RMS; with the probe's 1.25 nm the floor is sqrt(1.25^2 + 1.53^2 + 0.44^2) = 2.0 nm RMS
-//! ([`SimBoard::noise_floor_um`]; measured by the `noise_floor` test).
+//! 16-bit code 1.53 nm; averaged conversion noise 1 LSB12 / sqrt(64) = 3.05 nm RMS, output quantisation
+//! 1.53 / sqrt(12) = 0.44 nm RMS; with the probe's 1.25 nm the floor is sqrt(1.25^2 + 3.05^2 + 0.44^2) = 3.3 nm RMS
+//! ([`SimBoard::noise_floor_um`]; measured by the `noise_floor_at_rest_is_the_modelled_one` test). The ADC, not
+//! the probe, sets it: 256x oversampling would give 2.0 nm but fills 90 us of each 100 us period (a 2.5-cycle
+//! sampling time, which needs a buffered source), and an external 16-18-bit ADC over a narrower range is the way
+//! to the probe's own 1.25 nm.
 
 use crate::noise::NormalStream;
 use crate::plant::{Plant, PlantSettings};
@@ -34,13 +38,14 @@ pub struct AdcModel {
     pub shift: u8,
     /// Reference voltage, V.
     pub vref_v: f64,
-    /// Input-referred noise of one conversion, native LSB RMS.
+    /// Input-referred noise of one conversion, native LSB RMS (an assumption: about what a G4 ADC reaches with a
+    /// quiet reference and layout).
     pub conversion_noise_lsb: f64,
 }
 
 impl Default for AdcModel {
     fn default() -> Self {
-        AdcModel { native_bits: 12, oversampling: 256, shift: 4, vref_v: 3.3, conversion_noise_lsb: 1.0 }
+        AdcModel { native_bits: 12, oversampling: 64, shift: 2, vref_v: 3.3, conversion_noise_lsb: 1.0 }
     }
 }
 

@@ -236,3 +236,28 @@ fn hysteresis_makes_the_static_response_depend_on_the_path() {
     settle(&mut b, 1.0);
     assert!((settle(&mut a, 0.0) - settle(&mut b, 0.0)).abs() < 1e-9);
 }
+
+#[test]
+fn noise_floor_at_rest_is_the_modelled_one() {
+    use nanopos_id::hal::StageBoard;
+    // Stage at rest, output at the safe code: the readings' spread is the probe noise, the averaged ADC noise and
+    // the 16-bit quantisation, which SimBoard::noise_floor_um adds up (3.3 nm with the defaults).
+    let mut board = hal_sim::board::SimBoard::new(BoardSettings::default());
+    let settings = PipelineSettings { excitation: ExcitationDesign::OFF, ..PipelineSettings::default() };
+    let cfg = settings.design::<f64>(&board.description()).unwrap();
+    let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
+    let n = 200_000;
+    let (mut s1, mut s2) = (0.0, 0.0);
+    for _ in 0..n {
+        let y = nanopos_id::hal::run_sample(&mut board, &mut pipeline, &cfg).y_um;
+        s1 += y;
+        s2 += y * y;
+    }
+    let rms = (s2 / n as f64 - (s1 / n as f64).powi(2)).sqrt();
+    let model = board.noise_floor_um();
+    eprintln!("noise floor: measured {:.3} nm, model {:.3} nm", rms * 1e3, model * 1e3);
+    assert!((model * 1e3 - 3.33).abs() < 0.01);
+    // The quantisation term assumes a uniform error, which the 1-code-RMS dither makes nearly exact; the sample
+    // estimate of an RMS from 2e5 values has a 0.2 % standard error.
+    assert!((rms / model - 1.0).abs() < 0.01, "measured {rms}, model {model}");
+}
