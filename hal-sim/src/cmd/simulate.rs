@@ -40,7 +40,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
         return fail(format!("--duration {}: shorter than two samples", args.duration_s));
     }
     let mut sim = Simulation::new(board, &pipeline, ()).map_err(|e| CliError(format!("settings: {e}")))?;
-    let decimals = (-(sim.config.sample_period_s.log10())).ceil().max(0.0) as usize;
+    let time = TimeColumn::new(sim.config.sample_period_s);
 
     let mut out = OutputFile::create(args.out)?;
     let mut progress = Progress::new("simulate", samples);
@@ -56,7 +56,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
                 truth_text = format!("{},{},{}\n", r.truth.a0, r.truth.a1, r.truth.b0);
                 truth_of = Some(r.truth);
             }
-            write!(w, "{:.*},", decimals, r.t_s)?;
+            time.write(w, k, r.t_s)?;
             w.write_all(fmt.format(r.u_v).as_bytes())?;
             w.write_all(b",")?;
             w.write_all(fmt.format(r.y_um).as_bytes())?;
@@ -73,4 +73,45 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     result.map_err(|e| out.write_error(e))?;
     out.commit()?;
     Ok(samples)
+}
+
+/// Writes the time column. When the sample period is a power of ten (1e-4 s at 10 kHz) the time of sample `k` is
+/// printed exactly from `k` with integer arithmetic (`k / 10^d`, `.`, `k % 10^d`), which is also several times faster
+/// than float formatting; otherwise the shortest round-trip representation of `k T`.
+struct TimeColumn {
+    decimals: Option<u32>,
+}
+
+impl TimeColumn {
+    fn new(period_s: f64) -> Self {
+        let decimals = (0..=9u32).find(|&d| (period_s * 10f64.powi(d as i32) - 1.0).abs() < 1e-12);
+        TimeColumn { decimals }
+    }
+
+    fn write(&self, w: &mut impl Write, k: u64, t_s: f64) -> std::io::Result<()> {
+        match self.decimals {
+            Some(d) => {
+                let scale = 10u64.pow(d);
+                let mut int = itoa::Buffer::new();
+                w.write_all(int.format(k / scale).as_bytes())?;
+                if d > 0 {
+                    let frac = k % scale;
+                    let mut digits = [b'0'; 9];
+                    let mut f = frac;
+                    for i in (0..d as usize).rev() {
+                        digits[i] = b'0' + (f % 10) as u8;
+                        f /= 10;
+                    }
+                    w.write_all(b".")?;
+                    w.write_all(&digits[..d as usize])?;
+                }
+                w.write_all(b",")
+            }
+            None => {
+                let mut fmt = ryu::Buffer::new();
+                w.write_all(fmt.format(t_s).as_bytes())?;
+                w.write_all(b",")
+            }
+        }
+    }
 }
