@@ -49,6 +49,16 @@ pub struct BoardDescription {
     pub actuation_delay_samples: u8,
 }
 
+/// What went wrong on the board during one sample (counted by the pipeline, reported by telemetry).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
+pub struct BoardFaults {
+    /// A probe conversion was lost: the previous one was not read before the next completed.
+    pub adc_overrun: bool,
+    /// The next sample instant passed before this sample's command was written: the DAC output a stale code.
+    pub deadline_missed: bool,
+}
+
 /// One sample of a stage's board.
 pub trait StageBoard {
     /// The hardware sample rate, Hz.
@@ -59,6 +69,8 @@ pub trait StageBoard {
     fn read_probe(&mut self) -> u32;
     /// The amplifier command; it takes effect `actuation_delay_samples` sample instants later.
     fn write_amplifier(&mut self, code: u32);
+    /// The faults of this sample, read after the command was written (so a late write is seen).
+    fn sample_faults(&mut self) -> BoardFaults;
 }
 
 /// One sample, end to end: read the probe, run the pipeline, write the amplifier.
@@ -70,7 +82,9 @@ where
     E: EstimatorBank<T>,
 {
     let code = board.read_probe();
-    let out = pipeline.step(cfg, code);
+    let mut out = pipeline.step(cfg, code);
     board.write_amplifier(out.dac_code);
+    out.board_faults = board.sample_faults();
+    pipeline.count_board_faults(out.board_faults);
     out
 }

@@ -65,6 +65,7 @@ pub fn zoh<const N: usize>(a: &Mat<N>, t: f64) -> (Mat<N>, Mat<N>) {
 }
 
 /// Parlett-Reinsch balancing with powers of two: returns `A_b = D^-1 A D` and the diagonal of `D`.
+#[allow(clippy::needless_range_loop)] // row i and column i are read together: indices say it best
 fn balance<const N: usize>(a: &Mat<N>) -> (Mat<N>, [f64; N]) {
     let mut m = *a;
     let mut d = [1.0; N];

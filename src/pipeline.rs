@@ -28,7 +28,7 @@ use crate::estimator::{EstimatorBank, FilteredSample};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::ReplicaDesign;
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
-use crate::hal::BoardDescription;
+use crate::hal::{BoardDescription, BoardFaults};
 use crate::Real;
 
 /// Probe side of the analog front end: sensor -> divider/level shift -> ADC.
@@ -364,6 +364,10 @@ pub struct FaultCounters {
     pub probe_stuck: u32,
     /// Non-finite commands replaced by the safe value.
     pub command_not_finite: u32,
+    /// Samples whose command was written after the next sample instant (board-reported).
+    pub deadline_misses: u32,
+    /// Lost probe conversions (board-reported).
+    pub adc_overruns: u32,
 }
 
 /// What one sample produced.
@@ -379,6 +383,8 @@ pub struct SampleOutput<T> {
     pub faults: Faults,
     /// What the estimators were fed (`None` while a fault is latched).
     pub estimator_input: Option<FilteredSample<T>>,
+    /// The board's faults of this sample (filled in by [`crate::hal::run_sample`]).
+    pub board_faults: BoardFaults,
 }
 
 /// The per-sample state.
@@ -453,7 +459,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         } else {
             None
         };
-        SampleOutput { dac_code, u_v, y_um, faults: self.faults, estimator_input }
+        SampleOutput { dac_code, u_v, y_um, faults: self.faults, estimator_input, board_faults: BoardFaults::default() }
     }
 
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {
@@ -473,6 +479,12 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             self.same_code_run = 0;
         }
         self.last_probe_code = code;
+    }
+
+    /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
+    pub fn count_board_faults(&mut self, f: BoardFaults) {
+        self.counters.deadline_misses += f.deadline_missed as u32;
+        self.counters.adc_overruns += f.adc_overrun as u32;
     }
 
     /// Latched faults.

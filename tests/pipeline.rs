@@ -5,7 +5,7 @@ use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Adaptation, Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::filters::BiquadState;
-use nanopos_id::hal::{run_sample, StageBoard};
+use nanopos_id::hal::{run_sample, BoardFaults, StageBoard};
 use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
 
@@ -197,4 +197,19 @@ fn run_sample_reads_steps_and_writes_once_per_sample() {
         assert!((sim.board.last_u_v() - out.u_v).abs() < 1e-12);
     }
     assert_eq!(sim.pipeline.samples(), 10);
+}
+
+#[test]
+fn board_faults_are_counted_without_stopping_the_stage() {
+    let mut sim = paper_sim(());
+    sim.board.inject_faults = Some(BoardFaults { adc_overrun: false, deadline_missed: true });
+    let (_, out) = sim.step();
+    assert!(out.board_faults.deadline_missed);
+    sim.board.inject_faults = Some(BoardFaults { adc_overrun: true, deadline_missed: false });
+    sim.step();
+    let (_, out) = sim.step();
+    let c = sim.pipeline.fault_counters();
+    assert_eq!((c.deadline_misses, c.adc_overruns), (1, 1));
+    // A late sample is reported, not latched: the excitation carries on.
+    assert!(out.faults.is_empty() && out.board_faults == BoardFaults::default());
 }

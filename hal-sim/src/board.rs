@@ -24,7 +24,7 @@
 
 use crate::noise::NormalStream;
 use crate::plant::{Plant, PlantSettings};
-use nanopos_id::hal::{BoardDescription, ConverterFormat, StageBoard};
+use nanopos_id::hal::{BoardDescription, BoardFaults, ConverterFormat, StageBoard};
 use nanopos_id::pipeline::{AmplifierFrontEnd, ProbeFrontEnd};
 
 /// The G474's ADC in oversampling mode.
@@ -126,6 +126,8 @@ pub struct SimBoard {
     pending_code: Option<u32>,
     /// A probe code to return instead of the measurement (fault injection).
     pub forced_probe_code: Option<u32>,
+    /// Board faults to report for the next sample (fault injection; taken once).
+    pub inject_faults: Option<BoardFaults>,
 }
 
 impl SimBoard {
@@ -139,6 +141,7 @@ impl SimBoard {
             last_u_v: 0.0,
             pending_code: None,
             forced_probe_code: None,
+            inject_faults: None,
             settings,
         }
     }
@@ -212,5 +215,10 @@ impl StageBoard for SimBoard {
         let a = &self.settings.amplifier;
         self.last_u_v = (v_dac - a.dac_offset_v) / a.dac_v_per_command_v;
         self.plant.advance(self.last_u_v);
+    }
+
+    fn sample_faults(&mut self) -> BoardFaults {
+        // Simulated time never runs late: only injected faults.
+        self.inject_faults.take().unwrap_or_default()
     }
 }

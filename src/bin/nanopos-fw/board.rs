@@ -28,7 +28,7 @@ use embassy_stm32::pac;
 use embassy_stm32::pac::adc::vals::{Exten, Ovrmod, Rovsm, SampleTime, Trovs};
 use embassy_stm32::pac::timer::vals::{Mms, Ocm};
 use embassy_stm32::Peripherals;
-use nanopos_id::hal::{BoardDescription, ConverterFormat, StageBoard};
+use nanopos_id::hal::{BoardDescription, BoardFaults, ConverterFormat, StageBoard};
 
 /// Sample rate, Hz.
 pub const SAMPLE_RATE_HZ: u32 = 10_000;
@@ -147,27 +147,21 @@ pub fn force_safe_output() {
     pac::DAC1.dhr12r(0).write(|w| w.set_dhr(SAFE_DAC_CODE));
 }
 
-/// The board seen from the sample interrupt.
-pub struct G474Board;
+/// The board seen from the sample interrupt. Reading the probe acknowledges the conversion, notes an ADC overrun
+/// and arms the deadline check (TIM2's update flag, set again only if the next sample instant passes before
+/// [`StageBoard::sample_faults`] looks).
+#[derive(Default)]
+pub struct G474Board {
+    adc_overrun: bool,
+}
 
 impl G474Board {
-    /// Called first in the interrupt: acknowledge the end of conversion, report an ADC overrun (a conversion lost
-    /// because the previous one was not read in time), and arm the deadline check.
-    #[inline(always)]
-    pub fn begin_sample(&mut self) -> bool {
-        let isr = pac::ADC1.isr().read();
+    /// Acknowledge a conversion without using it (the interrupt before the pipeline is installed).
+    pub fn discard_conversion() {
         pac::ADC1.isr().write(|w| {
             w.set_eoc(true);
-            w.set_ovr(isr.ovr());
+            w.set_ovr(true);
         });
-        pac::TIM2.sr().write(|w| w.set_uif(false));
-        isr.ovr()
-    }
-
-    /// Called last: true if the next sample instant passed while this sample ran (the DAC loaded a stale code).
-    #[inline(always)]
-    pub fn deadline_missed(&self) -> bool {
-        pac::TIM2.sr().read().uif()
     }
 }
 
@@ -182,11 +176,24 @@ impl StageBoard for G474Board {
 
     #[inline(always)]
     fn read_probe(&mut self) -> u32 {
-        pac::ADC1.dr().read().rdata() as u32
+        let isr = pac::ADC1.isr().read();
+        let code = pac::ADC1.dr().read().rdata() as u32;
+        pac::ADC1.isr().write(|w| {
+            w.set_eoc(true);
+            w.set_ovr(isr.ovr());
+        });
+        pac::TIM2.sr().write(|w| w.set_uif(false));
+        self.adc_overrun = isr.ovr();
+        code
     }
 
     #[inline(always)]
     fn write_amplifier(&mut self, code: u32) {
         pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code.min(4095) as u16));
+    }
+
+    #[inline(always)]
+    fn sample_faults(&mut self) -> BoardFaults {
+        BoardFaults { adc_overrun: self.adc_overrun, deadline_missed: pac::TIM2.sr().read().uif() }
     }
 }

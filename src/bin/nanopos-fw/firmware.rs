@@ -31,8 +31,6 @@ struct SampleStats {
     window_samples: u32,
     window_cycles: u64,
     window_max_cycles: u32,
-    deadline_misses: u32,
-    adc_overruns: u32,
     y_um: f32,
     u_v: f32,
     faults: Faults,
@@ -62,7 +60,7 @@ async fn main(spawner: Spawner) {
     board::init(p);
     cortex_m::interrupt::free(|cs| {
         TASK.borrow(cs).replace(Some(SampleTask {
-            board: G474Board,
+            board: G474Board::default(),
             pipeline: Pipeline::new(&config, ()),
             config,
             stats: SampleStats::default(),
@@ -87,20 +85,16 @@ fn ADC1_2() {
         let mut task = TASK.borrow(cs).borrow_mut();
         let Some(t) = task.as_mut() else {
             // Not started: acknowledge the conversion and leave the output where it is (safe).
-            G474Board.begin_sample();
+            G474Board::discard_conversion();
             return;
         };
-        let overrun = t.board.begin_sample();
         let out = run_sample(&mut t.board, &mut t.pipeline, &t.config);
-        let missed = t.board.deadline_missed();
         let cycles = DWT::cycle_count().wrapping_sub(start);
         let s = &mut t.stats;
         s.samples += 1;
         s.window_samples += 1;
         s.window_cycles += cycles as u64;
         s.window_max_cycles = s.window_max_cycles.max(cycles);
-        s.deadline_misses += missed as u32;
-        s.adc_overruns += overrun as u32;
         s.y_um = out.y_um;
         s.u_v = out.u_v;
         s.faults = out.faults;
@@ -142,9 +136,10 @@ async fn telemetry() {
             s.counters.probe_over_range,
             s.counters.probe_stuck
         );
-        if s.deadline_misses + s.adc_overruns != reported_misses {
-            reported_misses = s.deadline_misses + s.adc_overruns;
-            defmt::warn!("deadline misses={=u32} adc overruns={=u32}", s.deadline_misses, s.adc_overruns);
+        let (misses, overruns) = (s.counters.deadline_misses, s.counters.adc_overruns);
+        if misses + overruns != reported_misses {
+            reported_misses = misses + overruns;
+            defmt::warn!("deadline misses={=u32} adc overruns={=u32}", misses, overruns);
         }
     }
 }
