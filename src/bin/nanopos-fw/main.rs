@@ -4,7 +4,7 @@
 //! the highest-priority interrupt (`ADC1_2`), and logs over defmt/RTT at 10 Hz. Board specifics (pins, clocks,
 //! triggers) are in `board.rs`; the algorithms are in the library.
 //!
-//! Flash and watch: `cargo flash` (alias for `cargo run --release --target thumbv7em-none-eabihf --bin nanopos-fw`).
+//! Flash and watch: `cargo fw-run` (alias for `cargo run --release --target thumbv7em-none-eabihf --bin nanopos-fw`).
 //!
 //! Deadline: the interrupt starts when the ADC's oversampled conversion ends (`t_k` + 14.3 us) and must write the
 //! next DAC code before the next sample instant loads it (`t_(k+1)`): 85.7 us, 14 570 cycles at 170 MHz. Every
@@ -20,7 +20,7 @@ mod firmware;
 #[cfg(not(target_os = "none"))]
 fn main() {
     eprintln!(
-        "nanopos-fw runs on the NUCLEO-G474RE. Build it with `cargo fw`, flash it with `cargo flash`; \
+        "nanopos-fw runs on the NUCLEO-G474RE. Build it with `cargo fw`, flash it with `cargo fw-run`; \
          on the host, run the simulated stage with `cargo sim simulate --scenario prbs --out run.csv`."
     );
     std::process::exit(2);
