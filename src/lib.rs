@@ -13,6 +13,7 @@
 #![warn(missing_docs)]
 
 pub mod estimator;
+pub mod estimators;
 pub mod excitation;
 pub mod filters;
 pub mod hal;

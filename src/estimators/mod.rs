@@ -1,0 +1,7 @@
+//! The estimators, one file each, and what they share.
+//!
+//! - [`lsq`]: batch and exponentially weighted least squares (textbook 13.2-13.4) by a streaming QR factorisation.
+//! - [`rls`]: discrete recursive least squares, every form of the lecture notes, in Bierman UD form.
+
+pub mod lsq;
+pub mod rls;
