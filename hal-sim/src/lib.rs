@@ -8,6 +8,7 @@
 
 pub mod board;
 pub mod cmd;
+pub mod csv;
 pub mod noise;
 pub mod plant;
 pub mod sim;

@@ -31,6 +31,21 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Batch (weighted) least squares of an ARX model on a recorded run's u and y; prints JSON.
+    Fit {
+        /// CSV with a header naming at least u and y.
+        #[arg(long)]
+        input: PathBuf,
+        /// Orders NA,NB,NK: y(k) = a1 y(k-1)+..+a_NA y(k-NA) + b1 u(k-NK)+..+b_NB u(k-NK-NB+1).
+        #[arg(long, value_name = "NA,NB,NK")]
+        arx: hal_sim::cmd::fit::ArxOrders,
+        /// Use every row, with the signals taken as zero before the first sample.
+        #[arg(long)]
+        zero_initial: bool,
+        /// Weight row k of N by A GAMMA^(N-k).
+        #[arg(long, value_name = "A,GAMMA", allow_hyphen_values = true)]
+        weight: Option<hal_sim::cmd::fit::Weight>,
+    },
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -55,6 +70,11 @@ fn run(cli: Cli) -> Result<(), CliError> {
         Command::Simulate { scenario, duration, seed, out } => {
             let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
             simulate::run(&args).map(|_| ())
+        }
+        Command::Fit { input, arx, zero_initial, weight } => {
+            let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;
+            println!("{}", fit.to_json());
+            Ok(())
         }
     }
 }

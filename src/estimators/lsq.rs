@@ -20,6 +20,8 @@
 //!
 //! Cost per row: `n (n + 3) / 2` rotations' worth of work (about `2 n^2` multiplies) and `n` square roots.
 
+#![allow(clippy::needless_range_loop)] // triangular-matrix loops read best with the indices of the algebra
+
 use crate::Real;
 
 /// A weighted least-squares problem being accumulated.
@@ -155,7 +157,7 @@ impl<T: Real, const MAX: usize> WeightedLs<T, MAX> {
         for j in 0..n {
             let norm = self.col_norm2[j].sqrt();
             let rjj = self.r[j][j].abs();
-            if !(rjj > tol * norm) {
+            if rjj <= tol * norm || rjj.is_nan() {
                 // Which earlier columns explain it: R[..j, ..j] c = R[..j, j].
                 let mut c = [T::zero(); MAX];
                 for i in (0..j).rev() {

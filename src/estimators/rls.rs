@@ -32,6 +32,8 @@
 //! solve over the first `k0` samples ([`DiscreteRls::from_batch`]): `F(k0) = (D'WD)^-1 = R^-1 R^-T` comes straight
 //! from the QR factor `R` of [`WeightedLs`], as `U_ij = r_jj (R^-1)_ij` and `D_j = 1 / r_jj^2`.
 
+#![allow(clippy::needless_range_loop)] // triangular-matrix loops read best with the indices of the algebra
+
 use crate::estimators::lsq::{LsError, WeightedLs};
 use crate::Real;
 

@@ -1,0 +1,169 @@
+//! `nanopos-sim fit --input FILE.csv --arx NA,NB,NK [--zero-initial] [--weight A,GAMMA]`
+//!
+//! Batch (weighted) least squares of the ARX model
+//! `y(k) = a1 y(k-1) + ... + a_NA y(k-NA) + b1 u(k-NK) + ... + b_NB u(k-NK-NB+1)` on the file's `u` and `y`,
+//! by the core's QR solver ([`nanopos_id::estimators::lsq`]). Prints `{"a": [...], "b": [...], "sse": ..., "rows": ...}`.
+//! Rows are those with full history, or with `--zero-initial` every sample, with the signals taken as zero before
+//! the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
+//! present, must be uniformly sampled.
+
+use super::{fail, CliError};
+use crate::csv::{read_columns, Time};
+use nanopos_id::estimators::lsq::{LsError, WeightedLs};
+use std::path::Path;
+
+/// Most parameters a fit may have (`NA + NB`).
+pub const MAX_PARAMETERS: usize = 32;
+
+/// The model orders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ArxOrders {
+    /// Output lags.
+    pub na: usize,
+    /// Input taps.
+    pub nb: usize,
+    /// Input delay.
+    pub nk: usize,
+}
+
+impl std::str::FromStr for ArxOrders {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        let bad = || format!("'{s}': expected NA,NB,NK (three whole numbers, e.g. 2,2,1)");
+        if parts.len() != 3 {
+            return Err(bad());
+        }
+        let n: Vec<usize> = parts.iter().map(|p| p.parse::<usize>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+        let orders = ArxOrders { na: n[0], nb: n[1], nk: n[2] };
+        if orders.na + orders.nb == 0 {
+            return Err(format!("'{s}': the model needs at least one parameter (NA + NB >= 1)"));
+        }
+        if orders.na + orders.nb > MAX_PARAMETERS {
+            return Err(format!("'{s}': at most {MAX_PARAMETERS} parameters (NA + NB)"));
+        }
+        Ok(orders)
+    }
+}
+
+/// Row weights `a gamma^(N-k)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Weight {
+    /// Weight of the newest row, > 0.
+    pub a: f64,
+    /// Discount per row into the past, 0 < gamma <= 1.
+    pub gamma: f64,
+}
+
+impl std::str::FromStr for Weight {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        let bad = || format!("'{s}': expected A,GAMMA with A > 0 and 0 < GAMMA <= 1 (e.g. 0.2,0.8)");
+        if parts.len() != 2 {
+            return Err(bad());
+        }
+        let a: f64 = parts[0].parse().map_err(|_| bad())?;
+        let gamma: f64 = parts[1].parse().map_err(|_| bad())?;
+        if !(a.is_finite() && a > 0.0 && gamma > 0.0 && gamma <= 1.0) {
+            return Err(bad());
+        }
+        Ok(Weight { a, gamma })
+    }
+}
+
+/// The fit's result.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ArxFit {
+    /// Output coefficients `a1..a_NA`.
+    pub a: Vec<f64>,
+    /// Input coefficients `b1..b_NB`.
+    pub b: Vec<f64>,
+    /// Weighted sum of squared residuals.
+    pub sse: f64,
+    /// Rows used.
+    pub rows: u64,
+}
+
+impl ArxFit {
+    /// The JSON the command prints.
+    pub fn to_json(&self) -> String {
+        let list = |v: &[f64]| v.iter().map(|x| format!("{x:?}")).collect::<Vec<_>>().join(", ");
+        format!(
+            "{{\"a\": [{}], \"b\": [{}], \"sse\": {:?}, \"rows\": {}}}",
+            list(&self.a),
+            list(&self.b),
+            self.sse,
+            self.rows
+        )
+    }
+}
+
+fn column_name(o: &ArxOrders, j: usize) -> String {
+    if j < o.na {
+        format!("y(k-{})", j + 1)
+    } else {
+        let lag = o.nk + (j - o.na);
+        if lag == 0 {
+            "u(k)".to_string()
+        } else {
+            format!("u(k-{lag})")
+        }
+    }
+}
+
+/// Fit `orders` to the `u`, `y` of `path`.
+pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<Weight>) -> Result<ArxFit, CliError> {
+    let cols = read_columns(path, &["u", "y"], Time::IfPresent)?;
+    let (u, y) = (&cols.data[0], &cols.data[1]);
+    let n = orders.na + orders.nb;
+    let history = orders.na.max(if orders.nb > 0 { orders.nk + orders.nb - 1 } else { 0 });
+    let first = if zero_initial { 0 } else { history };
+    let samples = y.len();
+    let rows = samples.saturating_sub(first);
+    if rows < n {
+        return fail(format!(
+            "{}: too few rows: {samples} samples give {rows} regression rows{}, {n} parameters need at least {n}",
+            path.display(),
+            if zero_initial { "" } else { " with full history" }
+        ));
+    }
+    let Weight { a, gamma } = weight.unwrap_or(Weight { a: 1.0, gamma: 1.0 });
+    let at = |s: &[f64], k: usize, lag: usize| if k >= lag { s[k - lag] } else { 0.0 };
+    let mut ls = WeightedLs::<f64, MAX_PARAMETERS>::new(n);
+    let mut row = vec![0.0; n];
+    for k in first..samples {
+        for (j, r) in row.iter_mut().enumerate() {
+            *r = if j < orders.na { at(y, k, j + 1) } else { at(u, k, orders.nk + (j - orders.na)) };
+        }
+        if gamma < 1.0 {
+            ls.forget(gamma);
+        }
+        ls.add_row(&row, y[k], a);
+    }
+    match ls.solve() {
+        Ok(s) => {
+            Ok(ArxFit { a: s.theta[..orders.na].to_vec(), b: s.theta[orders.na..n].to_vec(), sse: s.sse, rows: s.rows })
+        }
+        Err(LsError::RankDeficient(r)) => {
+            let others: Vec<String> =
+                (0..r.column).filter(|i| r.combines & (1 << i) != 0).map(|i| column_name(&orders, i)).collect();
+            let what = if others.is_empty() {
+                "is (nearly) zero".to_string()
+            } else {
+                format!("is (nearly) a combination of {}", others.join(", "))
+            };
+            fail(format!(
+                "{}: rank-deficient fit: column {} {what} (independent part {:.1e} of its norm); the input does not \
+                 excite this model{}",
+                path.display(),
+                column_name(&orders, r.column),
+                r.independence,
+                if zero_initial { "" } else { " (a step input, for instance, needs --zero-initial)" }
+            ))
+        }
+        Err(LsError::TooFewRows { rows, parameters }) => {
+            fail(format!("{}: too few rows: {rows} for {parameters} parameters", path.display()))
+        }
+    }
+}

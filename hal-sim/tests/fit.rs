@@ -1,0 +1,131 @@
+//! `nanopos-sim fit`: the textbook's numbers through the command line, exact recovery, and every bad input.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
+}
+
+const TABLE_13_1: [f64; 21] = [
+    0.0, 0.01953, 0.07567, 0.14890, 0.22945, 0.31001, 0.39300, 0.47111, 0.54922, 0.62245, 0.69324, 0.76159, 0.82750,
+    0.89096, 0.95199, 1.00812, 1.06427, 1.11553, 1.16435, 1.21561, 1.26199,
+];
+
+fn write(dir: &Path, name: &str, text: &str) {
+    std::fs::write(dir.join(name), text).unwrap();
+}
+
+fn table_csv() -> String {
+    let mut s = String::from("k,t,u,y\n");
+    for (k, y) in TABLE_13_1.iter().enumerate() {
+        s += &format!("{k},{},1,{y}\n", 0.25 * k as f64);
+    }
+    s
+}
+
+/// Pull the numbers out of `{"a": [..], "b": [..], "sse": x, "rows": n}`.
+fn parse(json: &str) -> (Vec<f64>, Vec<f64>, f64, u64) {
+    let list = |key: &str| -> Vec<f64> {
+        let start = json.find(&format!("\"{key}\": [")).unwrap() + key.len() + 5;
+        let end = start + json[start..].find(']').unwrap();
+        json[start..end].split(',').filter(|s| !s.trim().is_empty()).map(|s| s.trim().parse().unwrap()).collect()
+    };
+    let scalar = |key: &str| -> &str {
+        let start = json.find(&format!("\"{key}\": ")).unwrap() + key.len() + 4;
+        let end = start + json[start..].find([',', '}']).unwrap();
+        json[start..end].trim()
+    };
+    (list("a"), list("b"), scalar("sse").parse().unwrap(), scalar("rows").parse().unwrap())
+}
+
+#[test]
+fn fit_reproduces_example_13_3_from_a_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    write(dir.path(), "t.csv", &table_csv());
+    let out = nanopos_sim(&["fit", "--input", "t.csv", "--arx", "2,2,1", "--zero-initial"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (a, b, sse, rows) = parse(&String::from_utf8(out.stdout).unwrap());
+    let exact = [1.4706942596816603, -0.4908359715216343, 0.01952999999999714, 0.027723581792437734];
+    assert!((a[0] - exact[0]).abs() < 1e-10 && (a[1] - exact[1]).abs() < 1e-10);
+    assert!((b[0] - exact[2]).abs() < 1e-10 && (b[1] - exact[3]).abs() < 1e-10);
+    assert!((sse / 4.596675770259521e-05 - 1.0).abs() < 1e-8);
+    // Every sample is a row with --zero-initial: y(0) with an all-zero regressor included.
+    assert_eq!(rows, 21);
+}
+
+#[test]
+fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
+    // y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.3 u(k-2) + 0.1 u(k-3), driven by a deterministic, rich input.
+    let n = 400;
+    let u: Vec<f64> = (0..n).map(|k| ((k * 7919) % 13) as f64 / 6.0 - 1.0).collect();
+    let mut y = vec![0.0; n];
+    for k in 3..n {
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.3 * u[k - 2] + 0.1 * u[k - 3];
+    }
+    let mut text = String::from("t,u,y\n");
+    for k in 0..n {
+        text += &format!("{},{:?},{:?}\n", k as f64 * 1e-4, u[k], y[k]);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    write(dir.path(), "arx.csv", &text);
+    for extra in [&[][..], &["--weight", "0.5,0.97"][..]] {
+        let mut args = vec!["fit", "--input", "arx.csv", "--arx", "2,2,2"];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let (a, b, sse, rows) = parse(&String::from_utf8(out.stdout).unwrap());
+        for (got, want) in a.iter().chain(&b).zip([1.5, -0.7, 0.3, 0.1]) {
+            assert!((got - want).abs() < 1e-9, "{extra:?}: {got} vs {want}");
+        }
+        assert!(sse < 1e-20);
+        // Full history: rows from k = max(NA, NK + NB - 1) = 3.
+        assert_eq!(rows, n as u64 - 3);
+    }
+}
+
+#[test]
+fn bad_inputs_fail_with_one_line_naming_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    write(d, "t.csv", &table_csv());
+    write(d, "nocol.csv", "t,u,x\n0,1,2\n");
+    write(d, "word.csv", "t,u,y\n0,1,2\n0.1,1,abc\n");
+    write(d, "nan.csv", "t,u,y\n0,1,2\n0.1,NaN,3\n");
+    write(d, "inf.csv", "t,u,y\n0,1,2\n0.1,1,inf\n");
+    write(d, "jump.csv", "t,u,y\n0,1,2\n0.1,1,3\n0.2,1,4\n0.35,1,5\n");
+    write(d, "still.csv", "t,u,y\n0,1,2\n0,1,3\n");
+    write(d, "short.csv", "t,u,y\n0,1,2\n0.1,1,3\n0.2,1,4\n");
+    write(d, "ragged.csv", "t,u,y\n0,1,2\n0.1,1\n");
+    write(d, "empty.csv", "");
+    let cases: &[(&[&str], &str)] = &[
+        (&["fit", "--input", "missing.csv", "--arx", "2,2,1"], "missing.csv: cannot open"),
+        (&["fit", "--input", "nocol.csv", "--arx", "2,2,1"], "nocol.csv:1: no column 'y'"),
+        (&["fit", "--input", "word.csv", "--arx", "1,1,1"], "word.csv:3: column 'y': 'abc' is not a number"),
+        (&["fit", "--input", "nan.csv", "--arx", "1,1,1"], "nan.csv:3: column 'u'"),
+        (&["fit", "--input", "inf.csv", "--arx", "1,1,1"], "inf.csv:3: column 'y'"),
+        (&["fit", "--input", "jump.csv", "--arx", "1,1,1"], "jump.csv:5: time 0.35 breaks the uniform sampling"),
+        (&["fit", "--input", "still.csv", "--arx", "1,1,1"], "still.csv:3: time 0 does not advance"),
+        (&["fit", "--input", "short.csv", "--arx", "2,2,1"], "short.csv: too few rows"),
+        (&["fit", "--input", "ragged.csv", "--arx", "1,1,1"], "ragged.csv:3: 2 fields, the header has 3"),
+        (&["fit", "--input", "empty.csv", "--arx", "1,1,1"], "empty.csv: empty file"),
+        (
+            &["fit", "--input", "t.csv", "--arx", "2,2,1"],
+            "rank-deficient fit: column u(k-2) is (nearly) a combination of u(k-1)",
+        ),
+        (&["fit", "--input", "t.csv", "--arx", "2,2"], "NA,NB,NK"),
+        (&["fit", "--input", "t.csv", "--arx", "0,0,1"], "at least one parameter"),
+        (&["fit", "--input", "t.csv", "--arx", "20,20,1"], "at most 32 parameters"),
+        (&["fit", "--input", "t.csv", "--arx", "2,2,1", "--weight", "0.2,1.5"], "0 < GAMMA <= 1"),
+        (&["fit", "--input", "t.csv", "--arx", "2,2,1", "--weight", "-1,0.9"], "A > 0"),
+        (&["fit", "--arx", "2,2,1"], "--input"),
+    ];
+    for (args, mention) in cases {
+        let out = nanopos_sim(args, d);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert_eq!(stderr.trim_end().lines().count(), 1, "{args:?}: {stderr:?}");
+        assert!(stderr.contains(mention), "{args:?}: {stderr:?} should contain {mention:?}");
+        assert!(out.stdout.is_empty() && !stderr.contains("panicked"));
+    }
+}
