@@ -1,6 +1,6 @@
 //! The least-squares family against the textbook's worked examples (chapter 13) and the lecture notes' forms,
-#![allow(clippy::needless_range_loop, clippy::type_complexity)] // tests index parallel arrays by parameter
 //! with the float64 reference's values (`../shared/golden/textbook-reference.json`, copied where used).
+#![allow(clippy::needless_range_loop, clippy::type_complexity)] // tests index parallel arrays by parameter
 
 use nanopos_id::estimators::lsq::{weighted_fit, LsError, WeightedLs};
 use nanopos_id::estimators::rls::{DiscreteRls, RlsGain};

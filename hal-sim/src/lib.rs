@@ -9,6 +9,7 @@
 pub mod board;
 pub mod cmd;
 pub mod csv;
+pub mod experiment;
 pub mod noise;
 pub mod plant;
 pub mod sim;

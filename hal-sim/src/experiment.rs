@@ -1,0 +1,126 @@
+//! The paper's experiment on the simulated board with one estimator, in f64 and f32 side by side: the board is
+//! driven by the f64 pipeline and the f32 pipeline reads the very same probe codes (its DAC codes are checked to
+//! agree), so the two precisions see identical data. Estimates are sampled at 100 Hz for window means, errors
+//! against the truth and relock times.
+
+use crate::board::BoardSettings;
+use crate::sim::{Scenario, Simulation};
+use nanopos_id::estimator::Estimator;
+use nanopos_id::hal::StageBoard;
+use nanopos_id::pipeline::{Pipeline, PipelineSettings};
+use nanopos_id::StageParams;
+
+/// An estimate at one time.
+#[derive(Clone, Copy, Debug)]
+pub struct Sample {
+    /// Time, s.
+    pub t_s: f64,
+    /// The estimate.
+    pub est: StageParams<f64>,
+    /// The truth.
+    pub truth: StageParams<f64>,
+}
+
+/// The estimate histories of one run, f64 and f32.
+pub struct Histories {
+    /// f64 pipeline.
+    pub f64: Vec<Sample>,
+    /// f32 pipeline on the same readings.
+    pub f32: Vec<Sample>,
+}
+
+/// Called before each sample `k` with the pipeline settings in force; returning new settings swaps both
+/// pipelines' configurations between samples (how the firmware changes excitation or tuning at run time).
+pub type Schedule<'a> = &'a mut dyn FnMut(u64) -> Option<PipelineSettings>;
+
+/// Run `scenario` for `duration_s` (payload removed at half), estimators made by `make64` and `make32`, with an
+/// optional change to the board and pipeline settings.
+pub fn run<E64, E32>(
+    scenario: Scenario,
+    duration_s: f64,
+    seed: u64,
+    make64: impl FnOnce() -> E64,
+    make32: impl FnOnce() -> E32,
+    adjust: impl FnOnce(&mut BoardSettings, &mut PipelineSettings),
+) -> Histories
+where
+    E64: Estimator<f64>,
+    E32: Estimator<f32>,
+{
+    run_scheduled(scenario, duration_s, seed, make64, make32, adjust, &mut |_| None)
+}
+
+/// [`run`] with a [`Schedule`].
+pub fn run_scheduled<E64, E32>(
+    scenario: Scenario,
+    duration_s: f64,
+    seed: u64,
+    make64: impl FnOnce() -> E64,
+    make32: impl FnOnce() -> E32,
+    adjust: impl FnOnce(&mut BoardSettings, &mut PipelineSettings),
+    schedule: Schedule,
+) -> Histories
+where
+    E64: Estimator<f64>,
+    E32: Estimator<f32>,
+{
+    let (mut board, mut settings) = scenario.settings(duration_s, seed);
+    adjust(&mut board, &mut settings);
+    let mut sim = Simulation::new(board, &settings, (make64(),)).expect("valid settings");
+    let mut cfg32 = settings.design::<f32>(&sim.board.description()).expect("valid settings");
+    let mut p32 = Pipeline::new(&cfg32, (make32(),));
+    let samples = (duration_s / sim.config.sample_period_s).round() as u64;
+    let every = (0.01 / sim.config.sample_period_s).round() as u64;
+    let mut h = Histories { f64: Vec::new(), f32: Vec::new() };
+    for k in 0..samples {
+        if let Some(new) = schedule(k) {
+            sim.config = new.design(&sim.board.description()).expect("valid settings");
+            cfg32 = new.design(&sim.board.description()).expect("valid settings");
+        }
+        let truth = sim.board.plant().params();
+        let code = sim.board.read_probe();
+        let out64 = sim.pipeline.step(&sim.config, code);
+        let out32 = p32.step(&cfg32, code);
+        assert_eq!(out64.dac_code, out32.dac_code, "f32 and f64 pipelines must command the same codes");
+        sim.board.write_amplifier(out64.dac_code);
+        if (k + 1) % every == 0 {
+            let t_s = (k + 1) as f64 * sim.config.sample_period_s;
+            h.f64.push(Sample { t_s, est: sim.pipeline.estimators.0.params(), truth });
+            h.f32.push(Sample { t_s, est: p32.estimators.0.params().cast(), truth });
+        }
+    }
+    h
+}
+
+/// Mean estimate over `[t0, t1)` and its truth (the truth at the window's end).
+pub fn window_mean(h: &[Sample], t0: f64, t1: f64) -> (StageParams<f64>, StageParams<f64>) {
+    let w: Vec<&Sample> = h.iter().filter(|s| s.t_s > t0 && s.t_s <= t1).collect();
+    let n = w.len() as f64;
+    let mean = StageParams {
+        a0: w.iter().map(|s| s.est.a0).sum::<f64>() / n,
+        a1: w.iter().map(|s| s.est.a1).sum::<f64>() / n,
+        b0: w.iter().map(|s| s.est.b0).sum::<f64>() / n,
+    };
+    (mean, w.last().expect("non-empty window").truth)
+}
+
+/// Relative errors `(a0, a1, b0)` of `est` against `truth`.
+pub fn rel_errors(est: &StageParams<f64>, truth: &StageParams<f64>) -> [f64; 3] {
+    [est.a0 / truth.a0 - 1.0, est.a1 / truth.a1 - 1.0, est.b0 / truth.b0 - 1.0]
+}
+
+/// Seconds after `t_change` until `a0` and `b0` are within `tol` (relative) of the truth for the rest of the
+/// history, or `None` if they never settle.
+pub fn relock_time(h: &[Sample], t_change: f64, tol: f64) -> Option<f64> {
+    let mut settled_at = None;
+    for s in h.iter().filter(|s| s.t_s > t_change) {
+        let e = rel_errors(&s.est, &s.truth);
+        let ok = e[0].abs() <= tol && e[2].abs() <= tol;
+        match (ok, settled_at) {
+            (true, None) => settled_at = Some(s.t_s),
+            (false, Some(_)) => settled_at = None,
+            _ => {}
+        }
+    }
+    settled_at.map(|t| t - t_change)
+}
