@@ -16,6 +16,7 @@ pub mod estimator;
 pub mod estimators;
 pub mod excitation;
 pub mod filters;
+pub mod fixed;
 pub mod hal;
 pub mod linalg;
 pub mod params;
@@ -23,4 +24,4 @@ pub mod pipeline;
 pub mod scalar;
 
 pub use params::StageParams;
-pub use scalar::Real;
+pub use scalar::{Real, Scalar};

@@ -3,23 +3,44 @@
 //! the working scalar with [`Real::of`], so the f32 and f64 paths differ only by that rounding and by arithmetic.
 
 use core::fmt::Debug;
-use core::ops::{AddAssign, MulAssign, SubAssign};
-use num_traits::{Float, FloatConst};
+use core::ops::{AddAssign, Div, MulAssign, Neg, Sub, SubAssign};
+use num_traits::{Float, FloatConst, One, Zero};
 
-/// A floating-point scalar the core runs in.
-pub trait Real:
-    Float + FloatConst + Default + Debug + AddAssign + SubAssign + MulAssign + Send + Sync + 'static
+/// The arithmetic a kernel needs when it uses nothing but `+ - * /` and comparisons (the biquad, the discrete
+/// RLS): implemented by `f32`, `f64` and the fixed-point [`crate::fixed::Fx`], so one generic implementation serves all.
+pub trait Scalar:
+    Copy
+    + Default
+    + Debug
+    + PartialOrd
+    + Zero
+    + One
+    + Sub<Output = Self>
+    + Div<Output = Self>
+    + Neg<Output = Self>
+    + AddAssign
+    + SubAssign
+    + MulAssign
+    + Send
+    + Sync
+    + 'static
 {
     /// Round an `f64` (a design-time constant) to this scalar.
     fn of(x: f64) -> Self;
     /// Widen to `f64` (reporting, comparison with the reference).
     fn as_f64(self) -> f64;
+    /// The largest representable value (an "unbounded" setting).
+    fn greatest() -> Self;
+}
+
+/// A floating-point scalar the core runs in.
+pub trait Real: Scalar + Float + FloatConst {
     /// A 64-bit phase accumulator as a fraction of a cycle in `[0, 1)`, to the precision this scalar holds
     /// (24 bits for f32, 53 for f64), without a 64-bit float conversion on the target.
     fn phase_fraction(phase: u64) -> Self;
 }
 
-impl Real for f32 {
+impl Scalar for f32 {
     #[inline(always)]
     fn of(x: f64) -> Self {
         x as f32
@@ -28,6 +49,12 @@ impl Real for f32 {
     fn as_f64(self) -> f64 {
         self as f64
     }
+    fn greatest() -> Self {
+        f32::INFINITY
+    }
+}
+
+impl Real for f32 {
     #[inline(always)]
     fn phase_fraction(phase: u64) -> Self {
         // Top 24 bits: exactly representable in f32, and a u32 -> f32 conversion is one VCVT.
@@ -35,7 +62,7 @@ impl Real for f32 {
     }
 }
 
-impl Real for f64 {
+impl Scalar for f64 {
     #[inline(always)]
     fn of(x: f64) -> Self {
         x
@@ -44,6 +71,12 @@ impl Real for f64 {
     fn as_f64(self) -> f64 {
         self
     }
+    fn greatest() -> Self {
+        f64::INFINITY
+    }
+}
+
+impl Real for f64 {
     #[inline(always)]
     fn phase_fraction(phase: u64) -> Self {
         (phase >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0)

@@ -31,9 +31,9 @@
 //! read.
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::rls::{DiscreteRls, RlsGain};
+use crate::estimators::rls::{DiscreteRls, RlsErrors, RlsGain};
 use crate::linalg::zoh;
-use crate::{Real, StageParams};
+use crate::{Real, Scalar, StageParams};
 use core::cell::Cell;
 
 /// The ARX coefficients `[A1, A2, B1, B2]` of a stage, sampled at `t_s` (f64, exact).
@@ -53,7 +53,7 @@ fn stage_of_arx<T: Real>(a1: T, one_plus_a2: T, one_minus_sum: T, b_sum: T, inv_
         return None;
     }
     let disc = T::of(4.0) * r2 - a1 * a1;
-    if !(disc > T::zero()) {
+    if disc <= T::zero() || disc.is_nan() {
         return None;
     }
     let theta = disc.sqrt().atan2(a1);
@@ -63,7 +63,7 @@ fn stage_of_arx<T: Real>(a1: T, one_plus_a2: T, one_minus_sum: T, b_sum: T, inv_
     (p.a0.is_finite() && p.a1.is_finite() && p.b0.is_finite()).then_some(p)
 }
 
-/// The f64 conversion, for reports and tests.
+/// The f64 conversion of plain coefficients `[A1, A2, B1, B2]`, for reports and tests.
 pub fn stage_of_arx_f64(c: &[f64; 4], t_s: f64) -> Option<StageParams<f64>> {
     stage_of_arx(c[0], 1.0 + c[1], 1.0 - c[0] - c[1], c[2] + c[3], 1.0 / t_s)
 }
@@ -103,39 +103,87 @@ pub struct ArxConfig<T> {
     gain: RlsGain<T>,
     f0: [T; 4],
     nominal: [T; 4],
-    nominal_a1: T,
-    nominal_one_plus_a2: T,
-    nominal_one_minus_sum: T,
-    nominal_b_sum: T,
-    inv_t: T,
-    initial: StageParams<T>,
+    /// The nominal ARX coefficients, exact (the small quantities of the conversion are formed from these).
+    nominal64: [f64; 4],
+    sample_period_s: f64,
+    initial: StageParams<f64>,
 }
 
 impl ArxDesign {
-    /// Round to the working scalar.
-    pub fn design<T: Real>(&self) -> ArxConfig<T> {
+    /// Round to the working scalar (float or fixed point).
+    pub fn design<T: Scalar>(&self) -> ArxConfig<T> {
         let n = arx_of_stage(&self.initial, self.sample_period_s);
         ArxConfig {
             gain: RlsGain { lambda1: T::of(self.lambda), lambda2: T::one(), max_trace: T::of(self.max_trace) },
             f0: self.f0_diag.map(T::of),
             nominal: n.map(T::of),
-            nominal_a1: T::of(n[0]),
-            nominal_one_plus_a2: T::of(1.0 + n[1]),
-            nominal_one_minus_sum: T::of(1.0 - n[0] - n[1]),
-            nominal_b_sum: T::of(n[2] + n[3]),
-            inv_t: T::of(1.0 / self.sample_period_s),
-            initial: self.initial.cast(),
+            nominal64: n,
+            sample_period_s: self.sample_period_s,
+            initial: self.initial,
         }
     }
 }
 
-/// The `arx` estimator.
-#[derive(Clone, Debug)]
-pub struct ArxEstimator<T: Copy> {
-    cfg: ArxConfig<T>,
+/// The ARX recursion itself, generic over [`Scalar`] so that it also runs in fixed point: the UD RLS on the
+/// deviations from the nominal coefficients, and the regressor history.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ArxRls<T> {
     rls: DiscreteRls<T, 4>,
     /// `[y(k-1), y(k-2), u(k-1), u(k-2)]`.
     phi: [T; 4],
+}
+
+impl<T: Scalar> ArxRls<T> {
+    /// At the nominal coefficients with covariance `F0`.
+    pub fn new(cfg: &ArxConfig<T>) -> Self {
+        ArxRls { rls: DiscreteRls::new([T::zero(); 4], cfg.f0), phi: [T::zero(); 4] }
+    }
+
+    /// One sample of the pre-filtered input and output; `adapt` false only shifts the history.
+    #[inline]
+    pub fn update(&mut self, cfg: &ArxConfig<T>, u: T, y: T, adapt: bool) -> RlsErrors<T> {
+        let mut e = RlsErrors::default();
+        if adapt {
+            let mut target = y;
+            for (n, p) in cfg.nominal.iter().zip(self.phi.iter()) {
+                target -= *n * *p;
+            }
+            e = self.rls.update(&cfg.gain, &self.phi, target);
+        }
+        self.phi = [y, self.phi[0], u, self.phi[2]];
+        e
+    }
+
+    /// The RLS state (deviations, covariance of the deviations).
+    pub fn rls(&self) -> &DiscreteRls<T, 4> {
+        &self.rls
+    }
+
+    /// The ARX coefficients `[A1, A2, B1, B2]`, in f64.
+    pub fn arx_f64(&self, cfg: &ArxConfig<T>) -> [f64; 4] {
+        let d = self.rls.theta();
+        core::array::from_fn(|i| cfg.nominal64[i] + d[i].as_f64())
+    }
+
+    /// The stage, computed in f64 from the exact nominal small quantities and the deviations (any scalar).
+    pub fn stage_f64(&self, cfg: &ArxConfig<T>) -> Option<StageParams<f64>> {
+        let n = &cfg.nominal64;
+        let d = self.rls.theta().map(|x| x.as_f64());
+        stage_of_arx(
+            n[0] + d[0],
+            (1.0 + n[1]) + d[1],
+            (1.0 - n[0] - n[1]) - d[0] - d[1],
+            n[2] + n[3] + d[2] + d[3],
+            1.0 / cfg.sample_period_s,
+        )
+    }
+}
+
+/// The `arx` estimator (float: it also converts to the stage in its own precision).
+#[derive(Clone, Debug)]
+pub struct ArxEstimator<T: Copy> {
+    cfg: ArxConfig<T>,
+    core: ArxRls<T>,
     adapting: bool,
     health: Health,
     last_valid: Cell<StageParams<T>>,
@@ -145,8 +193,7 @@ impl<T: Real> ArxEstimator<T> {
     /// At the initial parameters.
     pub fn new(cfg: ArxConfig<T>) -> Self {
         ArxEstimator {
-            rls: DiscreteRls::new([T::zero(); 4], cfg.f0),
-            phi: [T::zero(); 4],
+            core: ArxRls::new(&cfg),
             adapting: true,
             health: Health {
                 adaptation: Adaptation::Adapting,
@@ -154,30 +201,30 @@ impl<T: Real> ArxEstimator<T> {
                 rejected_samples: 0,
                 changes_detected: 0,
             },
-            last_valid: Cell::new(cfg.initial),
+            last_valid: Cell::new(cfg.initial.cast()),
             cfg,
         }
     }
 
     /// The RLS state (covariance, deviations).
     pub fn rls(&self) -> &DiscreteRls<T, 4> {
-        &self.rls
+        self.core.rls()
     }
 
     /// The current ARX coefficients `[A1, A2, B1, B2]`.
-    pub fn arx(&self) -> [T; 4] {
-        let d = self.rls.theta();
-        core::array::from_fn(|i| self.cfg.nominal[i] + d[i])
+    pub fn arx(&self) -> [f64; 4] {
+        self.core.arx_f64(&self.cfg)
     }
 
     fn convert(&self) -> Option<StageParams<T>> {
-        let d = self.rls.theta();
+        let n = &self.cfg.nominal64;
+        let d = self.core.rls().theta();
         stage_of_arx(
-            self.cfg.nominal_a1 + d[0],
-            self.cfg.nominal_one_plus_a2 + d[1],
-            self.cfg.nominal_one_minus_sum - d[0] - d[1],
-            self.cfg.nominal_b_sum + d[2] + d[3],
-            self.cfg.inv_t,
+            T::of(n[0]) + d[0],
+            T::of(1.0 + n[1]) + d[1],
+            T::of(1.0 - n[0] - n[1]) - d[0] - d[1],
+            T::of(n[2] + n[3]) + d[2] + d[3],
+            T::of(1.0 / self.cfg.sample_period_s),
         )
     }
 }
@@ -187,24 +234,16 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        let (y, u) = (s.y_f.value, s.u_f.value);
-        if self.adapting {
-            let mut target = y;
-            for (n, p) in self.cfg.nominal.iter().zip(self.phi.iter()) {
-                target -= *n * *p;
-            }
-            let e = self.rls.update(&self.cfg.gain, &self.phi, target);
-            let ok = e.a_priori.is_finite()
-                && self.rls.theta().iter().all(|x| x.is_finite())
-                && self.rls.min_d() > T::zero()
-                && self.rls.trace().is_finite();
-            if !ok {
-                self.reset();
-                self.health.numeric_resets += 1;
-                return;
-            }
+        let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, self.adapting);
+        let rls = self.core.rls();
+        let ok = e.a_priori.is_finite()
+            && rls.theta().iter().all(|x| x.is_finite())
+            && rls.min_d() > T::zero()
+            && rls.trace().is_finite();
+        if !ok {
+            self.reset();
+            self.health.numeric_resets += 1;
         }
-        self.phi = [y, self.phi[0], u, self.phi[2]];
     }
 
     fn params(&self) -> StageParams<T> {
@@ -216,8 +255,8 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     fn param_covariance(&self) -> [[T; 3]; 3] {
         // First-order propagation J F J' with the Jacobian of the conversion by central differences.
-        let f = self.rls.covariance();
-        let base = self.rls.theta();
+        let f = self.core.rls().covariance();
+        let base = self.core.rls().theta();
         let mut jac = [[T::zero(); 4]; 3];
         for k in 0..4 {
             let h = f[k][k].sqrt().max(T::epsilon()) * T::of(1e-3);
@@ -225,7 +264,7 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
                 let mut probe = self.clone();
                 let mut d = *base;
                 d[k] += sign * h;
-                probe.rls.set_theta(d);
+                probe.core.rls.set_theta(d);
                 probe.convert()
             };
             if let (Some(p), Some(m)) = (eval(T::one()), eval(-T::one())) {
@@ -251,9 +290,8 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
     }
 
     fn reset(&mut self) {
-        self.rls = DiscreteRls::new([T::zero(); 4], self.cfg.f0);
-        self.phi = [T::zero(); 4];
-        self.last_valid.set(self.cfg.initial);
+        self.core = ArxRls::new(&self.cfg);
+        self.last_valid.set(self.cfg.initial.cast());
     }
 
     fn set_adapting(&mut self, on: bool) {

@@ -35,7 +35,7 @@
 #![allow(clippy::needless_range_loop)] // triangular-matrix loops read best with the indices of the algebra
 
 use crate::estimators::lsq::{LsError, WeightedLs};
-use crate::Real;
+use crate::{Real, Scalar};
 
 /// The gain settings (configuration).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,10 +48,10 @@ pub struct RlsGain<T> {
     pub max_trace: T,
 }
 
-impl<T: Real> RlsGain<T> {
+impl<T: Scalar> RlsGain<T> {
     /// Ordinary least squares.
     pub fn least_squares() -> Self {
-        RlsGain { lambda1: T::one(), lambda2: T::one(), max_trace: T::infinity() }
+        RlsGain { lambda1: T::one(), lambda2: T::one(), max_trace: T::greatest() }
     }
     /// Least squares with forgetting factor `lambda`.
     pub fn forgetting(lambda: T, max_trace: T) -> Self {
@@ -59,7 +59,7 @@ impl<T: Real> RlsGain<T> {
     }
     /// The textbook's weights `a gamma^(N-k)`: `lambda1 = gamma`, `lambda2 = a`.
     pub fn textbook(a: T, gamma: T) -> Self {
-        RlsGain { lambda1: gamma, lambda2: a, max_trace: T::infinity() }
+        RlsGain { lambda1: gamma, lambda2: a, max_trace: T::greatest() }
     }
 }
 
@@ -81,7 +81,7 @@ pub struct DiscreteRls<T, const N: usize> {
     d: [T; N],
 }
 
-impl<T: Real, const N: usize> DiscreteRls<T, N> {
+impl<T: Scalar, const N: usize> DiscreteRls<T, N> {
     /// Start from `theta0` and a diagonal `F0`.
     pub fn new(theta0: [T; N], f0_diag: [T; N]) -> Self {
         let mut u = [[T::zero(); N]; N];
@@ -92,7 +92,10 @@ impl<T: Real, const N: usize> DiscreteRls<T, N> {
     }
 
     /// Start from a batch least-squares solve (the first `k0` samples accumulated in `ls`).
-    pub fn from_batch<const MAX: usize>(ls: &WeightedLs<T, MAX>) -> Result<Self, LsError> {
+    pub fn from_batch<const MAX: usize>(ls: &WeightedLs<T, MAX>) -> Result<Self, LsError>
+    where
+        T: Real,
+    {
         assert_eq!(ls.parameters(), N, "batch fit and RLS must have the same number of parameters");
         let sol = ls.solve()?;
         let r = ls.r_factor();
@@ -160,7 +163,7 @@ impl<T: Real, const N: usize> DiscreteRls<T, N> {
 
     /// The smallest diagonal entry of `D` (positive definiteness holds while it is positive).
     pub fn min_d(&self) -> T {
-        self.d.iter().fold(T::infinity(), |m, &x| m.min(x))
+        self.d.iter().fold(T::greatest(), |m, &x| if x < m { x } else { m })
     }
 
     /// One sample: regressor `phi`, target `y`.

@@ -13,7 +13,7 @@
 //! Coefficients are `[b0, b1, b2, a1, a2]` with `a0` normalised to 1. Cost per sample: 5 multiplies, 4 adds.
 
 use crate::filters::response::{polyval, z_at, Complex};
-use crate::Real;
+use crate::Scalar;
 
 /// Coefficients of one section (the configuration).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -31,7 +31,7 @@ pub struct BiquadState<T> {
     y: [T; 2],
 }
 
-impl<T: Real> BiquadState<T> {
+impl<T: Scalar> BiquadState<T> {
     /// Set the state to the steady state of a constant input `x` (so a filter can start settled).
     pub fn settle(&mut self, coeffs: &Biquad<T>, x: T) {
         let y = x * coeffs.dc_gain();
@@ -40,7 +40,7 @@ impl<T: Real> BiquadState<T> {
     }
 }
 
-impl<T: Real> Biquad<T> {
+impl<T: Scalar> Biquad<T> {
     /// The identity section.
     pub fn passthrough() -> Self {
         Biquad { b: [T::one(), T::zero(), T::zero()], a: [T::zero(), T::zero()] }
@@ -61,7 +61,7 @@ impl<T: Real> Biquad<T> {
     }
 
     /// The same section in another scalar.
-    pub fn cast<U: Real>(&self) -> Biquad<U> {
+    pub fn cast<U: Scalar>(&self) -> Biquad<U> {
         let c = |x: T| U::of(x.as_f64());
         Biquad { b: [c(self.b[0]), c(self.b[1]), c(self.b[2])], a: [c(self.a[0]), c(self.a[1])] }
     }
