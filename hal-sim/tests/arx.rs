@@ -25,8 +25,15 @@ fn arx_on_the_paper_prbs_experiment() {
                 e[1] * 100.0,
                 e[2] * 100.0
             );
+            // Regression guards, not derived bounds (the measured errors are this test's report): the resonance
+            // frequency within 0.1 % of a0 (what an ARX at the sample rate pins best), damping and gain within
+            // 1.5 % (measured up to 1.16 % and 0.64 %, the residual of the filter replicas and the second mode).
+            assert!(e[0].abs() < 1e-3 && e[1].abs() < 1.5e-2 && e[2].abs() < 1.5e-2, "{name} {t0}-{t1}: {e:?}");
         }
-        eprintln!("arx {name} relock to 1%: {:?} s", relock_time(hist, 100.0, 0.01));
+        let relock = relock_time(hist, 100.0, 0.01);
+        eprintln!("arx {name} relock to 1%: {relock:?} s");
+        // Measured 2.1 s with a 0.5 s memory (lambda = 0.9998); guard at 3 s.
+        assert!(relock.is_some_and(|t| t < 3.0), "{name}: {relock:?}");
     }
 }
 

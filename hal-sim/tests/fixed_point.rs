@@ -81,6 +81,7 @@ fn fixed_point_arx_agrees_with_f64_within_its_q_format_bound_and_repeats_bit_for
             assert!(d[i].abs() <= bound[i], "window {t0}-{t1}, parameter {i}: {:e} > {:e}", d[i], bound[i]);
         }
     }
+    eprintln!("fixed arx relock to 1%: {:?} s", hal_sim::experiment::relock_time(&hfx, 100.0, 0.01));
     // Integer arithmetic: a second run is identical to the last bit.
     let (_, _, again) = fixed_arx_run(200.0);
     assert_eq!(raw, again);
