@@ -1,0 +1,167 @@
+//! The hybrid EKF against the float64 reference, on the reference's own data (ideal ZOH plant, no analog filters).
+
+use hal_sim::noise::NormalStream;
+use hal_sim::plant::{Plant, PlantSettings};
+use nanopos_id::estimator::{Estimator, FilteredSample};
+use nanopos_id::estimators::hekf::{Hekf, HekfDesign};
+use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
+use nanopos_id::filters::{PrefilterDesign, PrefilterState};
+use nanopos_id::{Real, StageParams};
+
+/// Run an estimator on the reference's data (`segment_s` per payload state) and return estimates every 10 ms.
+fn on_reference_data<T: Real, E: Estimator<T>>(
+    mut est: E,
+    excitation: ExcitationDesign,
+    seed: u64,
+    segment_s: f64,
+) -> Vec<(f64, StageParams<f64>)> {
+    let seg = (segment_s * 1e4) as u64;
+    let gen = excitation.design::<f64>(1e4);
+    let mut ex = ExcitationState::default();
+    let mut plant = Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, seg));
+    let mut noise = NormalStream::new(seed);
+    let pre = PrefilterDesign::default().design::<T>(1e-4);
+    let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
+    let mut out = Vec::new();
+    for k in 0..2 * seg {
+        let y = plant.output_um() + 1.25e-3 * noise.next_normal();
+        let u = gen.next(&mut ex);
+        let (uf, yf) = (pre.update(&mut su, T::of(u)), pre.update(&mut sy, T::of(y)));
+        est.update(&FilteredSample { u: T::of(u), y: T::of(y), u_f: uf, y_f: yf });
+        plant.advance(u);
+        if (k + 1) % 100 == 0 {
+            out.push(((k + 1) as f64 * 1e-4, est.params().cast()));
+        }
+    }
+    out
+}
+
+fn window_rel_errors(h: &[(f64, StageParams<f64>)], t0: f64, t1: f64, truth: &StageParams<f64>) -> [f64; 3] {
+    let w: Vec<_> = h.iter().filter(|(t, _)| *t > t0 && *t <= t1).map(|(_, p)| *p).collect();
+    let n = w.len() as f64;
+    let m = |f: fn(&StageParams<f64>) -> f64| w.iter().map(f).sum::<f64>() / n;
+    [m(|p| p.a0) / truth.a0 - 1.0, m(|p| p.a1) / truth.a1 - 1.0, m(|p| p.b0) / truth.b0 - 1.0]
+}
+
+#[test]
+fn hekf_matches_the_reference_on_its_prbs_data() {
+    let h =
+        on_reference_data::<f64, _>(Hekf::new(HekfDesign::default().design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
+    // Reference (variant y_zoh+uf_hold, seg 20 s, windows = last 25 % of each segment):
+    // payload a0 +9.2e-10, a1 -4.17e-5, b0 -4.78e-5; no payload a0 +7.5e-7, a1 -8.3e-6, b0 -2.1e-5.
+    let reference = [
+        [9.205347595298008e-10, -4.1692448505936675e-05, -4.7797053421727576e-05],
+        [7.458991131414905e-07, -8.33855124349192e-06, -2.0850230554314564e-05],
+    ];
+    for (w, (t0, t1, truth)) in
+        [(15.0, 20.0, StageParams::PAYLOAD), (35.0, 40.0, StageParams::NO_PAYLOAD)].into_iter().enumerate()
+    {
+        let e = window_rel_errors(&h, t0, t1, &truth);
+        eprintln!(
+            "hekf f64 {t0}-{t1}: a0 {:+.2e} a1 {:+.2e} b0 {:+.2e} (reference {:+.2e} {:+.2e} {:+.2e})",
+            e[0], e[1], e[2], reference[w][0], reference[w][1], reference[w][2]
+        );
+        // Same algorithm and convention: the errors agree to the difference between a mean of the estimate every
+        // 10 ms (here) and every sample (reference), ~1e-6 for estimates that wander by ~1e-5.
+        for i in 0..3 {
+            assert!(
+                (e[i] - reference[w][i]).abs() < 2e-6,
+                "window {t0}-{t1}, parameter {i}: {} vs {}",
+                e[i],
+                reference[w][i]
+            );
+            // And the paper-experiment goals with room: a0, b0 within 0.1 %, a1 within 1 % (here 1e-4 and below).
+            assert!(e[i].abs() < 1e-4);
+        }
+    }
+}
+
+#[test]
+fn hekf_f32_stays_with_f64_on_the_reference_prbs_data() {
+    let design = HekfDesign::default();
+    let h64 = on_reference_data::<f64, _>(Hekf::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
+    let h32 = on_reference_data::<f32, _>(Hekf::<f32>::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
+    for (t0, t1, truth) in [(15.0, 20.0, StageParams::PAYLOAD), (35.0, 40.0, StageParams::NO_PAYLOAD)] {
+        let (e64, e32) = (window_rel_errors(&h64, t0, t1, &truth), window_rel_errors(&h32, t0, t1, &truth));
+        eprintln!(
+            "hekf f32 - f64 {t0}-{t1}: a0 {:.1e} a1 {:.1e} b0 {:.1e}",
+            e32[0] - e64[0],
+            e32[1] - e64[1],
+            e32[2] - e64[2]
+        );
+        // SPEC 10: converged means of f32 within 1e-4 relative of f64 (reference float32 run: 2e-5).
+        for i in 0..3 {
+            assert!((e32[i] - e64[i]).abs() < 1e-4, "{t0}-{t1} parameter {i}");
+        }
+    }
+}
+
+#[test]
+fn hekf_on_the_full_simulated_board() {
+    use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
+    use hal_sim::sim::Scenario;
+    let design = HekfDesign::default();
+    let h = run(
+        Scenario::Prbs,
+        200.0,
+        1,
+        || Hekf::<f64>::new(design.design()),
+        || Hekf::<f32>::new(design.design()),
+        |_, _| {},
+    );
+    for (name, hist) in [("f64", &h.f64), ("f32", &h.f32)] {
+        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
+            let (m, truth) = window_mean(hist, t0, t1);
+            let e = rel_errors(&m, &truth);
+            eprintln!(
+                "hekf board {name} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%",
+                e[0] * 100.0,
+                e[1] * 100.0,
+                e[2] * 100.0
+            );
+        }
+        eprintln!("hekf board {name} relock to 1%: {:?} s", relock_time(hist, 100.0, 0.01));
+    }
+}
+
+#[test]
+#[ignore = "diagnosis: which board effect biases the estimate (run with --ignored --nocapture)"]
+fn hekf_bias_by_board_effect() {
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    use hal_sim::sim::Scenario;
+    let design = HekfDesign::default();
+    type Adjust = fn(&mut hal_sim::board::BoardSettings, &mut nanopos_id::pipeline::PipelineSettings);
+    let cases: [(&str, Adjust); 6] = [
+        ("all effects", |_, _| {}),
+        ("no amplifier pole", |b, _| b.plant.amplifier_hz = None),
+        ("no sensor pole", |b, _| b.plant.sensor_hz = None),
+        ("no second mode", |b, _| b.plant.second_mode = None),
+        ("no bump", |b, _| b.plant.bump_um_per_s = 0.0),
+        ("replicas at 1 kHz pre-warp", |_, p| {
+            p.reconstruction.prewarp_hz = 1000.0;
+            p.antialias.prewarp_hz = 1000.0
+        }),
+    ];
+    for (name, adjust) in cases {
+        let h = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || Hekf::<f64>::new(design.design()),
+            || Hekf::<f32>::new(design.design()),
+            adjust,
+        );
+        let (m1, t1) = window_mean(&h.f64, 75.0, 100.0);
+        let (m2, t2) = window_mean(&h.f64, 175.0, 200.0);
+        let (e1, e2) = (rel_errors(&m1, &t1), rel_errors(&m2, &t2));
+        eprintln!(
+            "{name:28}: a0 {:+.3}% {:+.3}%  a1 {:+.3}% {:+.3}%  b0 {:+.3}% {:+.3}%",
+            e1[0] * 100.0,
+            e2[0] * 100.0,
+            e1[1] * 100.0,
+            e2[1] * 100.0,
+            e1[2] * 100.0,
+            e2[2] * 100.0
+        );
+    }
+}
