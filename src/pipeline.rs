@@ -26,7 +26,7 @@
 
 use crate::estimator::{EstimatorBank, FilteredSample};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
-use crate::filters::design::ReplicaDesign;
+use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
 use crate::hal::{BoardDescription, BoardFaults};
 use crate::Real;
@@ -111,6 +111,8 @@ pub struct PipelineSettings {
     pub reconstruction: ReplicaDesign,
     /// Replica of the anti-aliasing filter (between probe and ADC).
     pub antialias: ReplicaDesign,
+    /// Replica of the amplifier's and sensor's fast lags (matched in band).
+    pub lags: LagReplica,
     /// The identification pre-filter.
     pub prefilter: PrefilterDesign,
     /// Probe scaling.
@@ -129,6 +131,7 @@ impl Default for PipelineSettings {
             limits: OutputLimits::default(),
             reconstruction: ReplicaDesign::default(),
             antialias: ReplicaDesign::default(),
+            lags: LagReplica::default(),
             prefilter: PrefilterDesign::default(),
             probe: ProbeFrontEnd::default(),
             amplifier: AmplifierFrontEnd::default(),
@@ -209,6 +212,8 @@ pub struct PipelineConfig<T> {
     pub reconstruction: Biquad<T>,
     /// Anti-aliasing-filter replica.
     pub antialias: Biquad<T>,
+    /// Amplifier and sensor lag replica.
+    pub lags: Biquad<T>,
     /// Pre-filter.
     pub prefilter: Prefilter<T>,
     /// Probe code -> um.
@@ -257,6 +262,10 @@ impl PipelineSettings {
                 return Err(SettingsError::FilterFrequency(name));
             }
         }
+        let lags_ok = self.lags.poles_hz.iter().flatten().all(|f| f.is_finite() && *f > 0.0);
+        if !(lags_ok && in_band(self.lags.match_hz)) {
+            return Err(SettingsError::FilterFrequency("lag replica"));
+        }
         if !(in_band(self.prefilter.f_lc_hz) && in_band(self.prefilter.f_p_hz)) {
             return Err(SettingsError::FilterFrequency("pre-filter"));
         }
@@ -301,6 +310,7 @@ impl PipelineSettings {
             excitation: e.design(fs),
             reconstruction: self.reconstruction.design(fs).cast(),
             antialias: self.antialias.design(fs).cast(),
+            lags: self.lags.design(fs).cast(),
             prefilter: self.prefilter.design(1.0 / fs),
             probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
             amplifier: Affine {
@@ -396,6 +406,7 @@ pub struct Pipeline<T, E> {
     command_v: T,
     reconstruction: BiquadState<T>,
     antialias: BiquadState<T>,
+    lags: BiquadState<T>,
     prefilter_u: PrefilterState<T>,
     prefilter_y: PrefilterState<T>,
     last_probe_code: u32,
@@ -415,6 +426,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             command_v: cfg.safe_v,
             reconstruction: BiquadState::default(),
             antialias: BiquadState::default(),
+            lags: BiquadState::default(),
             prefilter_u: PrefilterState::default(),
             prefilter_y: PrefilterState::default(),
             last_probe_code: u32::MAX,
@@ -445,8 +457,9 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;
 
-        let u_replica =
+        let filtered =
             cfg.antialias.update(&mut self.antialias, cfg.reconstruction.update(&mut self.reconstruction, u_v));
+        let u_replica = cfg.lags.update(&mut self.lags, filtered);
         let sample = FilteredSample {
             u: u_replica,
             y: y_um,

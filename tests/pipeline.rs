@@ -51,10 +51,11 @@ fn every_estimator_in_the_bank_sees_every_sample_and_the_replica_of_the_output()
     let (a, b) = &sim.pipeline.estimators;
     assert_eq!(a.seen.len(), 500);
     assert_eq!(a.seen, b.seen);
-    // u' is the DAC's actual output through the reconstruction and anti-aliasing replicas, recomputed here.
-    let (mut rc, mut aa) = (BiquadState::default(), BiquadState::default());
+    // u' is the DAC's actual output through the reconstruction, anti-aliasing and lag replicas, recomputed here.
+    let (mut rc, mut aa, mut lag) = (BiquadState::default(), BiquadState::default(), BiquadState::default());
     for (out, seen) in outputs.iter().zip(&a.seen) {
-        let expect = sim.config.antialias.update(&mut aa, sim.config.reconstruction.update(&mut rc, out.u_v));
+        let c = &sim.config;
+        let expect = c.lags.update(&mut lag, c.antialias.update(&mut aa, c.reconstruction.update(&mut rc, out.u_v)));
         assert_eq!(seen.u, expect);
         assert_eq!(seen.y, out.y_um);
     }

@@ -27,6 +27,8 @@
 //! update a rank-one correction from column 0 of `P`. After each step a non-finite value or a negative diagonal
 //! resets the estimator (counted). Cost per update: 4 x 4 RK4 stages of about 60 flops, plus about 60 for the update.
 
+#![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
+
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::{Real, StageParams};
 
