@@ -1,4 +1,5 @@
-//! `hekf`: the hybrid (continuous-discrete) extended Kalman filter of the paper, Section IV-B.
+//! The paper's extended Kalman filters, one model and core, two filters:
+//! [`Hekf`], the hybrid (continuous-discrete) EKF of Section IV-B, and [`Cekf`], the continuous EKF of Section IV-A.
 //!
 //! State `chi = [x1, x2, a0, a1, b0]` (paper eq. for the augmented system), parameters as random walks:
 //!
@@ -7,10 +8,19 @@
 //! F = [[0, 1, 0, 0, 0], [-a0, -a1, -x1, -x2, u], 0, 0, 0],   H = [1, 0, 0, 0, 0]
 //! ```
 //!
+//! **Hybrid EKF.**
 //! 1. Prediction from `t_(k-1)` to `t_k`: `chi' = f(chi, u_(k-1))`, `P' = F P + P F' + Q`, by RK4 in `substeps`
 //!    steps of `T / substeps` (paper: 4, i.e. 40 kHz).
 //! 2. Update with the sample `y_k`: `K = P H' / (H P H' + R_d)`, `chi += K (y_k - x1)`,
 //!    `P = (I - K H) P (I - K H)' + K R_d K'` (Joseph form), `R_d = R / T`.
+//!
+//! **Continuous EKF.** One RK4 step of `T` per sample of `chi' = f(chi, u) + K (y - x1)`,
+//! `P' = F P + P F' + Q - P H' H P / R`, `K = P H' / R`, with `u` held at `u_(k-1)` and `y` linear between
+//! `y_(k-1)` and `y_k` over the step, plus the curvature the line misses. The measurement is continuous in this
+//! filter; a straight line between samples shrinks the response near resonance by `(w T)^2 / 12` and biased `b0` by
+//! -0.6 % here (as the float64 reference found), holding `y` instead shifts it by half a sample and biases `a1`.
+//! The line misses `x1'' tau (tau - T) / 2`, and the filter's model supplies `x1'' = -a0 x1 - a1 x2 + b0 u`, so
+//! that term is added (from the state at the step's start): the bias drops to `O((w T)^3)`.
 //!
 //! ## Discretisation (SPEC section 6)
 //! The estimator runs on the pre-filtered pair: `u = W_p u'` and `y = W_p y'`, both from the discrete (exact-ZOH)
@@ -25,7 +35,8 @@
 //! twenty: an f32 step of `a0 ~ 7e6` would otherwise be 0.5, a few ulps per update. `P` is stored symmetric
 //! (15 entries); `F` has two non-zero rows, so `F P` costs 2 x 5 dot products instead of 25; `H = e1` makes the
 //! update a rank-one correction from column 0 of `P`. After each step a non-finite value or a negative diagonal
-//! resets the estimator (counted). Cost per update: 4 x 4 RK4 stages of about 60 flops, plus about 60 for the update.
+//! resets the estimator (counted). Cost per update: hybrid, 4 x 4 RK4 stages of about 60 flops plus about 60 for
+//! the update; continuous, 4 stages of about 80 flops.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
 
@@ -39,16 +50,16 @@ const fn idx(i: usize, j: usize) -> usize {
     r * 5 - r * (r + 1) / 2 + c
 }
 
-/// Physical tuning (paper Section V-C).
+/// Physical tuning (paper Section V-C), for either filter.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HekfDesign {
+pub struct EkfDesign {
     /// Process noise `diag(Q)` for `[x1, x2, a0, a1, b0]` in the paper's units.
     pub q_diag: [f64; 5],
     /// Initial covariance `diag(P0)`.
     pub p0_diag: [f64; 5],
     /// Continuous measurement noise `R`, um^2 (the update uses `R / T`).
     pub r: f64,
-    /// RK4 substeps per sample.
+    /// RK4 substeps per sample (the hybrid filter's prediction; the continuous filter takes one step).
     pub substeps: u32,
     /// Where the estimate starts.
     pub initial: StageParams<f64>,
@@ -56,7 +67,7 @@ pub struct HekfDesign {
     pub sample_period_s: f64,
 }
 
-impl HekfDesign {
+impl EkfDesign {
     /// `Q2`, the paper's tuning for PRBS.
     pub const Q2: [f64; 5] = [1e-12, 1e-6, 1.5e9, 2.5e-1, 5.0e8];
     /// `Q1`, the paper's tuning for the smoothed triangle.
@@ -64,7 +75,7 @@ impl HekfDesign {
 
     /// The paper's tuning with process noise `q` (`P0 = 10 Q`, `R = 1.5e-6`, 4 substeps).
     pub fn paper(q: [f64; 5]) -> Self {
-        HekfDesign {
+        EkfDesign {
             q_diag: q,
             p0_diag: q.map(|x| 10.0 * x),
             r: 1.5e-6,
@@ -75,12 +86,13 @@ impl HekfDesign {
     }
 
     /// Normalise and round to the working scalar.
-    pub fn design<T: Real>(&self) -> HekfConfig<T> {
+    pub fn design<T: Real>(&self) -> EkfConfig<T> {
         let p = &self.initial;
         let w = libm::sqrt(p.a0);
         let scale = [1.0, 1.0 / w, 1.0 / p.a0, 1.0 / p.a1, 1.0 / p.b0];
         let h = self.sample_period_s / self.substeps as f64;
-        HekfConfig {
+        EkfConfig {
+            r: T::of(self.r),
             q: core::array::from_fn(|i| T::of(self.q_diag[i] * scale[i] * scale[i])),
             p0: core::array::from_fn(|i| T::of(self.p0_diag[i] * scale[i] * scale[i])),
             r_d: T::of(self.r / self.sample_period_s),
@@ -89,15 +101,13 @@ impl HekfDesign {
             c1: T::of(p.a1),
             c2: T::of(p.b0 / w),
             h: T::of(h),
-            half_h: T::of(h / 2.0),
-            sixth_h: T::of(h / 6.0),
             substeps: self.substeps.max(1),
             initial: *p,
         }
     }
 }
 
-impl Default for HekfDesign {
+impl Default for EkfDesign {
     fn default() -> Self {
         Self::paper(Self::Q2)
     }
@@ -105,7 +115,8 @@ impl Default for HekfDesign {
 
 /// The normalised configuration.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HekfConfig<T> {
+pub struct EkfConfig<T> {
+    r: T,
     q: [T; 5],
     p0: [T; 5],
     r_d: T,
@@ -114,31 +125,83 @@ pub struct HekfConfig<T> {
     c1: T,
     c2: T,
     h: T,
-    half_h: T,
-    sixth_h: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
 
-/// The state of the filter.
-#[derive(Clone, Copy, Debug)]
-pub struct Hekf<T> {
-    cfg: HekfConfig<T>,
-    z: [T; 5],
-    p: [T; 15],
-    u_prev: T,
-    adapting: bool,
-    health: Health,
+/// Which filter: the hybrid or the continuous EKF.
+pub trait EkfKind: Copy + core::fmt::Debug + Default {
+    /// Name in reports.
+    const NAME: &'static str;
+    /// Advance `(z, P)` over one sample period with `u` held and the measurements `y_prev`, `y`.
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T);
 }
 
-impl<T: Real> Hekf<T> {
+/// Section IV-B: RK4 prediction in substeps, then a Joseph-form update.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Hybrid;
+/// Section IV-A: one RK4 step of the continuous filter per sample.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Continuous;
+
+impl EkfKind for Hybrid {
+    const NAME: &'static str = "hekf";
+    #[inline]
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T) {
+        let h = core.cfg.h;
+        for _ in 0..core.cfg.substeps {
+            core.rk4(u, h, None);
+        }
+        core.correct(y);
+    }
+}
+
+impl EkfKind for Continuous {
+    const NAME: &'static str = "ekf";
+    #[inline]
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T) {
+        let h = core.cfg.h * T::of(core.cfg.substeps as f64);
+        // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
+        // x1'' (at the step's start), and the term vanishes at the samples.
+        let c = &core.cfg;
+        let z = &core.z;
+        let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
+        let bow = -x1_dd * h * h * T::of(0.5);
+        core.rk4(u, h, Some((y_prev, y, bow)));
+    }
+}
+
+/// The shared state: normalised `z`, packed `P`, configuration.
+#[derive(Clone, Copy, Debug)]
+pub struct EkfCore<T> {
+    cfg: EkfConfig<T>,
+    z: [T; 5],
+    p: [T; 15],
+}
+
+/// An EKF of kind `K`: [`Hekf`] or [`Cekf`].
+#[derive(Clone, Copy, Debug)]
+pub struct Ekf<T, K> {
+    core: EkfCore<T>,
+    u_prev: T,
+    y_prev: T,
+    adapting: bool,
+    health: Health,
+    kind: K,
+}
+
+/// The hybrid EKF.
+pub type Hekf<T> = Ekf<T, Hybrid>;
+/// The continuous EKF.
+pub type Cekf<T> = Ekf<T, Continuous>;
+
+impl<T: Real, K: EkfKind> Ekf<T, K> {
     /// At the initial parameters, zero states, `P0`.
-    pub fn new(cfg: HekfConfig<T>) -> Self {
-        let mut s = Hekf {
-            cfg,
-            z: [T::zero(); 5],
-            p: [T::zero(); 15],
+    pub fn new(cfg: EkfConfig<T>) -> Self {
+        let mut s = Ekf {
+            core: EkfCore { cfg, z: [T::zero(); 5], p: [T::zero(); 15] },
             u_prev: T::zero(),
+            y_prev: T::zero(),
             adapting: true,
             health: Health {
                 adaptation: Adaptation::Adapting,
@@ -146,20 +209,35 @@ impl<T: Real> Hekf<T> {
                 rejected_samples: 0,
                 changes_detected: 0,
             },
+            kind: K::default(),
         };
         s.reset_state();
         s
     }
 
     fn reset_state(&mut self) {
-        self.z = [T::zero(), T::zero(), T::one(), T::one(), T::one()];
-        self.p = [T::zero(); 15];
+        let c = &mut self.core;
+        c.z = [T::zero(), T::zero(), T::one(), T::one(), T::one()];
+        c.p = [T::zero(); 15];
         for i in 0..5 {
-            self.p[idx(i, i)] = self.cfg.p0[i];
+            c.p[idx(i, i)] = c.cfg.p0[i];
         }
         self.u_prev = T::zero();
+        self.y_prev = T::zero();
     }
 
+    /// The state in the paper's units `[x1, x2, a0, a1, b0]`.
+    pub fn state(&self) -> [f64; 5] {
+        self.core.state()
+    }
+
+    /// The covariance in the paper's units.
+    pub fn covariance(&self) -> [[f64; 5]; 5] {
+        self.core.covariance()
+    }
+}
+
+impl<T: Real> EkfCore<T> {
     /// The state in the paper's units `[x1, x2, a0, a1, b0]`.
     pub fn state(&self) -> [f64; 5] {
         let i = &self.cfg.initial;
@@ -174,11 +252,11 @@ impl<T: Real> Hekf<T> {
         core::array::from_fn(|r| core::array::from_fn(|c| self.p[idx(r, c)].as_f64() * s[r] * s[c]))
     }
 
-    /// `(z', P')` at `(z, P)` with input `u`.
+    /// `(z', P')` at `(z, P)` with input `u`, and for the continuous filter the measurement `y` at that instant.
     #[inline(always)]
-    fn derivative(&self, z: &[T; 5], p: &[T; 15], u: T) -> ([T; 5], [T; 15]) {
+    fn derivative(&self, z: &[T; 5], p: &[T; 15], u: T, y: Option<T>) -> ([T; 5], [T; 15]) {
         let c = &self.cfg;
-        let dz =
+        let mut dz =
             [c.w * z[1], -c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u, T::zero(), T::zero(), T::zero()];
         // The two non-zero rows of F.
         let f1 = [-c.c0 * z[2], -c.c1 * z[3], -c.c0 * z[0], -c.c1 * z[1], c.c2 * u];
@@ -210,26 +288,39 @@ impl<T: Real> Hekf<T> {
                 dp[idx(i, j)] = mij + mji + q;
             }
         }
+        if let Some(y) = y {
+            // Continuous measurement: K = P H' / R, z' += K (y - x1), P' -= P H' H P / R.
+            let inv_r = T::one() / c.r;
+            let innovation = (y - z[0]) * inv_r;
+            for i in 0..5 {
+                dz[i] += p[idx(0, i)] * innovation;
+                for j in i..5 {
+                    dp[idx(i, j)] -= p[idx(0, i)] * p[idx(0, j)] * inv_r;
+                }
+            }
+        }
         (dz, dp)
     }
 
-    fn predict(&mut self, u: T) {
-        let (hh, h, h6) = (self.cfg.half_h, self.cfg.h, self.cfg.sixth_h);
-        for _ in 0..self.cfg.substeps {
-            let (z, p) = (self.z, self.p);
-            let (k1z, k1p) = self.derivative(&z, &p, u);
-            let (z2, p2) = (add(&z, &k1z, hh), add(&p, &k1p, hh));
-            let (k2z, k2p) = self.derivative(&z2, &p2, u);
-            let (z3, p3) = (add(&z, &k2z, hh), add(&p, &k2p, hh));
-            let (k3z, k3p) = self.derivative(&z3, &p3, u);
-            let (z4, p4) = (add(&z, &k3z, h), add(&p, &k3p, h));
-            let (k4z, k4p) = self.derivative(&z4, &p4, u);
-            for i in 0..5 {
-                self.z[i] += h6 * (k1z[i] + T::of(2.0) * (k2z[i] + k3z[i]) + k4z[i]);
-            }
-            for i in 0..15 {
-                self.p[i] += h6 * (k1p[i] + T::of(2.0) * (k2p[i] + k3p[i]) + k4p[i]);
-            }
+    /// One RK4 step of length `h` with `u` held; with `ys = (y_start, y_end, bow)` the continuous measurement,
+    /// `y_start + (y_end - y_start) f + bow f (1 - f)` at the fraction `f` of the step.
+    fn rk4(&mut self, u: T, h: T, ys: Option<(T, T, T)>) {
+        let half = T::of(0.5);
+        let (hh, h6) = (h * half, h / T::of(6.0));
+        let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
+        let (z, p) = (self.z, self.p);
+        let (k1z, k1p) = self.derivative(&z, &p, u, y_at(T::zero()));
+        let (z2, p2) = (add(&z, &k1z, hh), add(&p, &k1p, hh));
+        let (k2z, k2p) = self.derivative(&z2, &p2, u, y_at(half));
+        let (z3, p3) = (add(&z, &k2z, hh), add(&p, &k2p, hh));
+        let (k3z, k3p) = self.derivative(&z3, &p3, u, y_at(half));
+        let (z4, p4) = (add(&z, &k3z, h), add(&p, &k3p, h));
+        let (k4z, k4p) = self.derivative(&z4, &p4, u, y_at(T::one()));
+        for i in 0..5 {
+            self.z[i] += h6 * (k1z[i] + T::of(2.0) * (k2z[i] + k3z[i]) + k4z[i]);
+        }
+        for i in 0..15 {
+            self.p[i] += h6 * (k1p[i] + T::of(2.0) * (k2p[i] + k3p[i]) + k4p[i]);
         }
     }
 
@@ -264,24 +355,26 @@ fn add<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {
     core::array::from_fn(|i| a[i] + h * b[i])
 }
 
-impl<T: Real> Estimator<T> for Hekf<T> {
-    const NAME: &'static str = "hekf";
+impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
+    const NAME: &'static str = K::NAME;
 
     fn update(&mut self, s: &FilteredSample<T>) {
+        let _ = self.kind;
         if self.adapting {
-            self.predict(self.u_prev);
-            self.correct(s.y_f.value);
-            if !self.healthy() {
+            K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value);
+            if !self.core.healthy() {
                 self.reset_state();
                 self.health.numeric_resets += 1;
             }
         }
         self.u_prev = s.u_f.value;
+        self.y_prev = s.y_f.value;
     }
 
     fn params(&self) -> StageParams<T> {
-        let i = &self.cfg.initial;
-        StageParams { a0: self.z[2] * T::of(i.a0), a1: self.z[3] * T::of(i.a1), b0: self.z[4] * T::of(i.b0) }
+        let i = &self.core.cfg.initial;
+        let z = &self.core.z;
+        StageParams { a0: z[2] * T::of(i.a0), a1: z[3] * T::of(i.a1), b0: z[4] * T::of(i.b0) }
     }
 
     fn param_covariance(&self) -> [[T; 3]; 3] {
