@@ -206,3 +206,52 @@ fn cekf_on_the_reference_data_and_on_the_full_board() {
         assert!(relock.is_some_and(|t| t < 1.0), "{name}: {relock:?}");
     }
 }
+
+#[test]
+fn crls_on_the_reference_data() {
+    use nanopos_id::estimators::crls::{Crls, CrlsDesign};
+    let design = CrlsDesign::default();
+    let h = on_reference_data::<f64, _>(Crls::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 100.0);
+    for (t0, t1, truth) in [(75.0, 100.0, StageParams::PAYLOAD), (175.0, 200.0, StageParams::NO_PAYLOAD)] {
+        let e = window_rel_errors(&h, t0, t1, &truth);
+        eprintln!("crls reference data {t0}-{t1}: a0 {:+.2e} a1 {:+.2e} b0 {:+.2e}", e[0], e[1], e[2]);
+        // SPEC 10: the continuous RLS within 1 %; measured a1 -0.13 % and the rest below 1e-4 (the float64
+        // reference's linear interpolation had b0 -0.6 %).
+        assert!(e.iter().all(|x| x.abs() < 5e-3), "{e:?}");
+    }
+}
+
+#[test]
+fn crls_on_the_full_board_in_f64_and_f32() {
+    use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
+    use hal_sim::sim::Scenario;
+    use nanopos_id::estimators::crls::{Crls, CrlsDesign};
+    let design = CrlsDesign::default();
+    let b = run(
+        Scenario::Prbs,
+        200.0,
+        1,
+        || Crls::<f64>::new(design.design()),
+        || Crls::<f32>::new(design.design()),
+        |_, _| {},
+    );
+    for (name, hist) in [("f64", &b.f64), ("f32", &b.f32)] {
+        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
+            let (m, truth) = window_mean(hist, t0, t1);
+            let e = rel_errors(&m, &truth);
+            eprintln!(
+                "crls board {name} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%",
+                e[0] * 100.0,
+                e[1] * 100.0,
+                e[2] * 100.0
+            );
+            assert!(e.iter().all(|x| x.abs() < 1e-2), "{name} {t0}-{t1}: {e:?}");
+        }
+        eprintln!("crls board {name} relock to 1%: {:?} s", relock_time(hist, 100.0, 0.01));
+    }
+    let (m64, _) = window_mean(&b.f64, 175.0, 200.0);
+    let (m32, _) = window_mean(&b.f32, 175.0, 200.0);
+    let d = rel_errors(&m32, &m64);
+    eprintln!("crls f32 - f64 175-200: {d:?}");
+    assert!(d.iter().all(|x| x.abs() < 1e-4), "{d:?}");
+}

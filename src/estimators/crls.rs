@@ -1,0 +1,277 @@
+//! `rls`: the paper's continuous-time recursive least squares with forgetting, normalisation and a covariance
+//! bound (Section III, "modified least squares"):
+//!
+//! ```text
+//! theta = [b0, a1, a0],  phi = [u_f, -y_f', -y_f],  z = y_f''          (all from the pre-filter W_p)
+//! m^2 = 1 + phi' P phi,  eps = (z - theta' phi) / m^2,  theta' = P eps phi
+//! P' = gamma P - P phi phi' P / m^2   while ||P||_F <= R0,  else 0
+//! ```
+//!
+//! with the paper's `gamma = 0.25`, `P(0) = diag(1e6, 1e1, 1e7)` and `R0 = 1e9` (the paper gives none; the float64
+//! reference's choice). One RK4 step of `T` per sample (the bound is evaluated once per step, as in the reference).
+//!
+//! ## Discretisation
+//! The damping term is small (`a1 y' = 2 zeta a0 y`, 3 % of `a0 y` near resonance), so the regressor and target
+//! must satisfy the stage equation to ~1e-4: a 1e-3 inconsistency costs 3 % of `a1`. The sampled derivative outputs of
+//! the pipeline's discrete pre-filter are each accurate to `O((w T)^2)` but not consistent with each other and the
+//! held input to that level (measured on the reference data with the best input timing: `a1` +2 % / +5.5 %).
+//! So this estimator runs its own continuous `W_p` on the replica input `u'` and the measurement `y'`, integrated in
+//! the same RK4 step as `theta` and `P`, every stage seeing one set of signals: `u'` held over
+//! `[t_(k-1), t_k)` (what the stage received) and `y'` the parabola through `y'(k-2), y'(k-1), y'(k)`. A straight
+//! line (the float64 reference's choice) shrinks the response near resonance by `(w T)^2 / 12` and biased `b0` by
+//! -0.6 % there; the parabola adds the curvature the line misses and leaves `O((w T)^3)`.
+//!
+//! ## Numerics
+//! `theta` is normalised by its initial value (`theta_n = theta / theta0`, `P_n = D^-1 P D^-1`, `D = diag(theta0)`),
+//! so the f32 state is of order one; `m^2` and `eps` are invariant. `P` is stored symmetric (6 entries) and
+//! symmetrised by construction. Cost per update: 4 RK4 stages of about 60 flops (9 of them the two filters), plus
+//! the norm check.
+
+use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
+use crate::filters::PrefilterDesign;
+use crate::{Real, StageParams};
+
+/// Physical tuning.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CrlsDesign {
+    /// Forgetting factor `gamma`, 1/s.
+    pub gamma: f64,
+    /// `diag(P(0))` for `[b0, a1, a0]`.
+    pub p0_diag: [f64; 3],
+    /// Bound on `||P||_F` beyond which `P` is frozen.
+    pub r0: f64,
+    /// The pre-filter `W_p` this estimator runs internally.
+    pub prefilter: PrefilterDesign,
+    /// Where the estimate starts.
+    pub initial: StageParams<f64>,
+    /// Sample period, s.
+    pub sample_period_s: f64,
+}
+
+impl Default for CrlsDesign {
+    fn default() -> Self {
+        CrlsDesign {
+            gamma: 0.25,
+            p0_diag: [1e6, 1e1, 1e7],
+            r0: 1e9,
+            prefilter: PrefilterDesign::default(),
+            initial: StageParams::INITIAL,
+            sample_period_s: 1e-4,
+        }
+    }
+}
+
+/// The normalised configuration.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CrlsConfig<T> {
+    gamma: T,
+    p0: [T; 3],
+    /// `theta0` (`[b0, a1, a0]`), the normalisation.
+    scale: [T; 3],
+    r0_sq: T,
+    h: T,
+    /// `[-d0, -d1, -d2]` and `w_p^2` of the pre-filter's realisation.
+    accel: [T; 3],
+    gain: T,
+    initial: StageParams<f64>,
+}
+
+impl CrlsDesign {
+    /// Normalise and round.
+    pub fn design<T: Real>(&self) -> CrlsConfig<T> {
+        let i = &self.initial;
+        let scale = [i.b0, i.a1, i.a0];
+        CrlsConfig {
+            gamma: T::of(self.gamma),
+            p0: core::array::from_fn(|k| T::of(self.p0_diag[k] / (scale[k] * scale[k]))),
+            scale: scale.map(T::of),
+            r0_sq: T::of(self.r0 * self.r0),
+            h: T::of(self.sample_period_s),
+            accel: {
+                let (d, _) = self.prefilter.continuous();
+                [T::of(-d[0]), T::of(-d[1]), T::of(-d[2])]
+            },
+            gain: T::of(self.prefilter.continuous().1),
+            initial: *i,
+        }
+    }
+}
+
+/// Packed symmetric 3 x 3 index.
+#[inline(always)]
+const fn ix(i: usize, j: usize) -> usize {
+    let (r, c) = if i <= j { (i, j) } else { (j, i) };
+    r * 3 - r * (r + 1) / 2 + c
+}
+
+/// The estimator.
+#[derive(Clone, Copy, Debug)]
+pub struct Crls<T> {
+    cfg: CrlsConfig<T>,
+    theta: [T; 3],
+    p: [T; 6],
+    /// Continuous `W_p` states for `u'` and `y'`.
+    xi_u: [T; 3],
+    xi_y: [T; 3],
+    /// `u'` of the previous sample (held over the step) and `y'` of the two previous samples.
+    u_prev: T,
+    y_prev: [T; 2],
+    adapting: bool,
+    health: Health,
+}
+
+impl<T: Real> Crls<T> {
+    /// At `theta0`, `P(0)`.
+    pub fn new(cfg: CrlsConfig<T>) -> Self {
+        let mut s = Crls {
+            cfg,
+            theta: [T::one(); 3],
+            p: [T::zero(); 6],
+            xi_u: [T::zero(); 3],
+            xi_y: [T::zero(); 3],
+            u_prev: T::zero(),
+            y_prev: [T::zero(); 2],
+            adapting: true,
+            health: Health {
+                adaptation: Adaptation::Adapting,
+                numeric_resets: 0,
+                rejected_samples: 0,
+                changes_detected: 0,
+            },
+        };
+        s.reset_state();
+        s
+    }
+
+    fn reset_state(&mut self) {
+        self.theta = [T::one(); 3];
+        self.p = [T::zero(); 6];
+        for k in 0..3 {
+            self.p[ix(k, k)] = self.cfg.p0[k];
+        }
+        self.xi_u = [T::zero(); 3];
+        self.xi_y = [T::zero(); 3];
+        self.u_prev = T::zero();
+        self.y_prev = [T::zero(); 2];
+    }
+
+    /// `||P||_F^2` in the paper's units.
+    fn norm_sq(&self) -> T {
+        let s = &self.cfg.scale;
+        let mut acc = T::zero();
+        for i in 0..3 {
+            for j in 0..3 {
+                let v = self.p[ix(i, j)] * s[i] * s[j];
+                acc += v * v;
+            }
+        }
+        acc
+    }
+
+    /// Derivative of the joint state `[theta (3), P (6), xi_u (3), xi_y (3)]` with input `u` and measurement `y`.
+    #[inline(always)]
+    fn derivative(&self, x: &[T; 15], u: T, y: T, adapt_p: bool) -> [T; 15] {
+        let c = &self.cfg;
+        let (theta, p) = (&x[0..3], &x[3..9]);
+        let (xu, xy) = ([x[9], x[10], x[11]], [x[12], x[13], x[14]]);
+        let xu3 = c.accel[0] * xu[0] + c.accel[1] * xu[1] + c.accel[2] * xu[2] + c.gain * u;
+        let xy3 = c.accel[0] * xy[0] + c.accel[1] * xy[1] + c.accel[2] * xy[2] + c.gain * y;
+        // phi = [W u, -s W y, -W y] (normalised by theta0), z = s^2 W y.
+        let phi = [xu[1] * c.scale[0], -xy[2] * c.scale[1], -xy[1] * c.scale[2]];
+        let z = xy3;
+        let pphi: [T; 3] = core::array::from_fn(|i| p[ix(i, 0)] * phi[0] + p[ix(i, 1)] * phi[1] + p[ix(i, 2)] * phi[2]);
+        let m2 = T::one() + phi[0] * pphi[0] + phi[1] * pphi[1] + phi[2] * pphi[2];
+        let eps = (z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2])) / m2;
+        let mut d = [T::zero(); 15];
+        for i in 0..3 {
+            d[i] = pphi[i] * eps;
+        }
+        if adapt_p {
+            let inv = T::one() / m2;
+            for i in 0..3 {
+                for j in i..3 {
+                    d[3 + ix(i, j)] = c.gamma * p[ix(i, j)] - pphi[i] * pphi[j] * inv;
+                }
+            }
+        }
+        d[9] = xu[1];
+        d[10] = xu[2];
+        d[11] = xu3;
+        d[12] = xy[1];
+        d[13] = xy[2];
+        d[14] = xy3;
+        d
+    }
+}
+
+impl<T: Real> Estimator<T> for Crls<T> {
+    const NAME: &'static str = "rls";
+
+    fn update(&mut self, s: &FilteredSample<T>) {
+        let (u, y_new) = (self.u_prev, s.y);
+        let [y1, y2] = self.y_prev;
+        self.u_prev = s.u;
+        self.y_prev = [y_new, y1];
+        if !self.adapting {
+            return;
+        }
+        // y' over [t_(k-1), t_k] at fraction f: the parabola through y'(k-2), y'(k-1), y'(k).
+        let half = T::of(0.5);
+        let bow = -(y_new - T::of(2.0) * y1 + y2) * half;
+        let y_at = |f: T| y1 + (y_new - y1) * f + bow * f * (T::one() - f);
+        let adapt_p = self.norm_sq() <= self.cfg.r0_sq;
+        let mut x = [T::zero(); 15];
+        x[..3].copy_from_slice(&self.theta);
+        x[3..9].copy_from_slice(&self.p);
+        x[9..12].copy_from_slice(&self.xi_u);
+        x[12..15].copy_from_slice(&self.xi_y);
+        let (h, hh, h6) = (self.cfg.h, self.cfg.h * half, self.cfg.h / T::of(6.0));
+        let k1 = self.derivative(&x, u, y_at(T::zero()), adapt_p);
+        let k2 = self.derivative(&add(&x, &k1, hh), u, y_at(half), adapt_p);
+        let k3 = self.derivative(&add(&x, &k2, hh), u, y_at(half), adapt_p);
+        let k4 = self.derivative(&add(&x, &k3, h), u, y_at(T::one()), adapt_p);
+        let two = T::of(2.0);
+        for i in 0..15 {
+            x[i] += h6 * (k1[i] + two * (k2[i] + k3[i]) + k4[i]);
+        }
+        self.theta.copy_from_slice(&x[..3]);
+        self.p.copy_from_slice(&x[3..9]);
+        self.xi_u.copy_from_slice(&x[9..12]);
+        self.xi_y.copy_from_slice(&x[12..15]);
+        let healthy = x.iter().all(|v| v.is_finite()) && (0..3).all(|i| self.p[ix(i, i)] >= T::zero());
+        if !healthy {
+            self.reset_state();
+            self.health.numeric_resets += 1;
+        }
+    }
+
+    fn params(&self) -> StageParams<T> {
+        let s = &self.cfg.scale;
+        StageParams { b0: self.theta[0] * s[0], a1: self.theta[1] * s[1], a0: self.theta[2] * s[2] }
+    }
+
+    fn param_covariance(&self) -> [[T; 3]; 3] {
+        // Stored order [b0, a1, a0]; reported order (a0, a1, b0).
+        let s = &self.cfg.scale;
+        let map = [2, 1, 0];
+        core::array::from_fn(|r| core::array::from_fn(|c| self.p[ix(map[r], map[c])] * s[map[r]] * s[map[c]]))
+    }
+
+    fn reset(&mut self) {
+        self.reset_state();
+    }
+
+    fn set_adapting(&mut self, on: bool) {
+        self.adapting = on;
+        self.health.adaptation = if on { Adaptation::Adapting } else { Adaptation::Frozen };
+    }
+
+    fn health(&self) -> Health {
+        self.health
+    }
+}
+
+#[inline(always)]
+fn add<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {
+    core::array::from_fn(|i| a[i] + h * b[i])
+}
