@@ -457,15 +457,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;
 
-        let filtered =
-            cfg.antialias.update(&mut self.antialias, cfg.reconstruction.update(&mut self.reconstruction, u_v));
-        let u_replica = cfg.lags.update(&mut self.lags, filtered);
-        let sample = FilteredSample {
-            u: u_replica,
-            y: y_um,
-            u_f: cfg.prefilter.update(&mut self.prefilter_u, u_replica),
-            y_f: cfg.prefilter.update(&mut self.prefilter_y, y_um),
-        };
+        let sample = self.filter(cfg, u_v, y_um);
         let estimator_input = if self.faults.is_empty() {
             self.estimators.update(&sample);
             Some(sample)
@@ -492,6 +484,30 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             self.same_code_run = 0;
         }
         self.last_probe_code = code;
+    }
+
+    /// The command in effect `u_v` through the replicas, and both signals through the pre-filter (this runs every
+    /// sample, faults or not, so the filters never hold stale state).
+    #[inline]
+    fn filter(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
+        let rc = cfg.reconstruction.update(&mut self.reconstruction, u_v);
+        let u_replica = cfg.lags.update(&mut self.lags, cfg.antialias.update(&mut self.antialias, rc));
+        FilteredSample {
+            u: u_replica,
+            y: y_um,
+            u_f: cfg.prefilter.update(&mut self.prefilter_u, u_replica),
+            y_f: cfg.prefilter.update(&mut self.prefilter_y, y_um),
+        }
+    }
+
+    /// One sample of a recording: `u_v` the command in effect over the sample period, `y_um` the reading at its
+    /// start (the convention of `simulate`'s output and of the firmware's recording). The same filters and
+    /// estimators as [`Pipeline::step`], without excitation, limits or fault checks.
+    #[inline]
+    pub fn replay(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
+        let sample = self.filter(cfg, u_v, y_um);
+        self.estimators.update(&sample);
+        sample
     }
 
     /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
