@@ -31,6 +31,27 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Run the firmware's pipeline and estimators on a recorded run (t,u,y); write estimates and a summary.
+    Identify {
+        /// CSV with a header naming at least t, u, y (a0, a1, b0: the truth, optional).
+        #[arg(long)]
+        input: PathBuf,
+        /// Estimators to run.
+        #[arg(long, default_value = "rls,ekf,hekf,arx")]
+        estimators: String,
+        /// Tuning preset: prbs (the paper's Q2, default) or triangle (Q1).
+        #[arg(long, default_value = "prbs")]
+        tuning: String,
+        /// Averaging window T0:T1 in seconds (repeatable) [default: the last quarter of each half].
+        #[arg(long = "window", value_name = "T0:T1")]
+        windows: Vec<hal_sim::cmd::identify::Window>,
+        /// Estimates at 100 Hz: t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Window means and validation RMSE, JSON.
+        #[arg(long)]
+        summary: Option<PathBuf>,
+    },
     /// Batch (weighted) least squares of an ARX model on a recorded run's u and y; prints JSON.
     Fit {
         /// CSV with a header naming at least u and y.
@@ -70,6 +91,24 @@ fn run(cli: Cli) -> Result<(), CliError> {
         Command::Simulate { scenario, duration, seed, out } => {
             let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
             simulate::run(&args).map(|_| ())
+        }
+        Command::Identify { input, estimators, tuning, windows, out, summary } => {
+            use hal_sim::cmd::identify;
+            let tuning = hal_sim::bank::Tuning::preset(&tuning)
+                .ok_or_else(|| CliError(format!("--tuning: unknown preset '{tuning}' (known: prbs, triangle)")))?;
+            let args = identify::IdentifyArgs {
+                input: &input,
+                estimators: identify::parse_estimators(&estimators)?,
+                tuning,
+                windows,
+                out: out.as_deref(),
+                summary: summary.as_deref(),
+            };
+            let result = identify::run(&args)?;
+            if args.summary.is_none() {
+                print!("{}", identify::summary_json(&result));
+            }
+            Ok(())
         }
         Command::Fit { input, arx, zero_initial, weight } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;

@@ -2,6 +2,7 @@
 //! files that appear only when complete, and progress on a terminal.
 
 pub mod fit;
+pub mod identify;
 pub mod simulate;
 
 use std::fmt;

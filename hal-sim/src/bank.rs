@@ -1,0 +1,96 @@
+//! The estimators chosen at run time (`--estimators rls,ekf,hekf,arx`), as one estimator bank for the pipeline,
+//! and their tuning presets.
+
+use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample};
+use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
+use nanopos_id::estimators::crls::{Crls, CrlsDesign};
+use nanopos_id::estimators::ekf::{Cekf, EkfDesign, Hekf};
+use nanopos_id::{Real, StageParams};
+
+/// The estimator names, in report order.
+pub const NAMES: [&str; 4] = ["rls", "ekf", "hekf", "arx"];
+
+/// Tuning of every estimator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tuning {
+    /// Continuous-time RLS.
+    pub rls: CrlsDesign,
+    /// Both EKFs.
+    pub ekf: EkfDesign,
+    /// The ARX RLS.
+    pub arx: ArxDesign,
+}
+
+impl Tuning {
+    /// `prbs`: the paper's Q2 and RLS settings (the default); `triangle`: Q1.
+    pub fn preset(name: &str) -> Option<Self> {
+        let q = match name {
+            "prbs" => EkfDesign::Q2,
+            "triangle" => EkfDesign::Q1,
+            _ => return None,
+        };
+        Some(Tuning { rls: CrlsDesign::default(), ekf: EkfDesign::paper(q), arx: ArxDesign::default() })
+    }
+}
+
+/// Any subset of the four estimators, in one scalar.
+pub struct Bank<T: Real> {
+    /// Continuous-time RLS.
+    pub rls: Option<Crls<T>>,
+    /// Continuous EKF.
+    pub ekf: Option<Cekf<T>>,
+    /// Hybrid EKF.
+    pub hekf: Option<Hekf<T>>,
+    /// ARX.
+    pub arx: Option<ArxEstimator<T>>,
+}
+
+impl<T: Real> Bank<T> {
+    /// The estimators named in `names` (each one of [`NAMES`]).
+    pub fn new(names: &[&str], tuning: &Tuning) -> Self {
+        let on = |n: &str| names.contains(&n);
+        Bank {
+            rls: on("rls").then(|| Crls::new(tuning.rls.design())),
+            ekf: on("ekf").then(|| Cekf::new(tuning.ekf.design())),
+            hekf: on("hekf").then(|| Hekf::new(tuning.ekf.design())),
+            arx: on("arx").then(|| ArxEstimator::new(tuning.arx.design())),
+        }
+    }
+
+    /// `(name, estimate)` of each estimator present, in report order.
+    pub fn estimates(&self) -> impl Iterator<Item = (&'static str, StageParams<T>)> + '_ {
+        [
+            self.rls.as_ref().map(|e| ("rls", e.params())),
+            self.ekf.as_ref().map(|e| ("ekf", e.params())),
+            self.hekf.as_ref().map(|e| ("hekf", e.params())),
+            self.arx.as_ref().map(|e| ("arx", e.params())),
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
+impl<T: Real> EstimatorBank<T> for Bank<T> {
+    const LEN: usize = 4;
+    #[inline]
+    fn update(&mut self, s: &FilteredSample<T>) {
+        if let Some(e) = &mut self.rls {
+            e.update(s);
+        }
+        if let Some(e) = &mut self.ekf {
+            e.update(s);
+        }
+        if let Some(e) = &mut self.hekf {
+            e.update(s);
+        }
+        if let Some(e) = &mut self.arx {
+            e.update(s);
+        }
+    }
+    fn reset(&mut self) {
+        self.rls.as_mut().map(Estimator::reset);
+        self.ekf.as_mut().map(Estimator::reset);
+        self.hekf.as_mut().map(Estimator::reset);
+        self.arx.as_mut().map(Estimator::reset);
+    }
+}

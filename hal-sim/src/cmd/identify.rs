@@ -1,0 +1,301 @@
+//! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json]`
+//!
+//! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
+//! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
+//! start (the convention of `simulate` and of the firmware's recording); `a0,a1,b0` columns, when present, are the
+//! truth and are reported next to the estimates.
+//!
+//! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
+//! - `SUMMARY.json`: per window, each estimator's mean parameters over it and the validation RMSE of SPEC section 7:
+//!   model (1) with those means, simulated exactly (zero-order hold) on the replica input `u'` from zero state one
+//!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`.
+//! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
+
+use super::{fail, CliError, OutputFile, Progress};
+use crate::bank::{Bank, Tuning, NAMES};
+use crate::board::SimBoard;
+use crate::csv::{read_columns, Time};
+use nanopos_id::hal::StageBoard;
+use nanopos_id::linalg::zoh;
+use nanopos_id::pipeline::{Pipeline, PipelineSettings};
+use nanopos_id::StageParams;
+use std::io::Write;
+use std::path::Path;
+
+/// An estimation window `[t0, t1)`, s.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Window {
+    /// Start, s.
+    pub t0: f64,
+    /// End, s.
+    pub t1: f64,
+}
+
+impl std::str::FromStr for Window {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || format!("'{s}': expected T0:T1 in seconds with T0 < T1 (e.g. 75:100)");
+        let (a, b) = s.split_once(':').ok_or_else(bad)?;
+        let (t0, t1): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
+        if !(t0.is_finite() && t1.is_finite() && t0 < t1) {
+            return Err(bad());
+        }
+        Ok(Window { t0, t1 })
+    }
+}
+
+/// One estimator's figures over one window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowFigures {
+    /// Mean estimate.
+    pub mean: StageParams<f64>,
+    /// Validation RMSE, nm.
+    pub rmse_nm: f64,
+}
+
+/// The result of a run.
+pub struct Identified {
+    /// Estimator names, in report order.
+    pub names: Vec<&'static str>,
+    /// Time of each 100 Hz row, s.
+    pub times: Vec<f64>,
+    /// Estimates per row, in `names` order.
+    pub estimates: Vec<Vec<StageParams<f64>>>,
+    /// Truth per row, when the input has it.
+    pub truth: Option<Vec<StageParams<f64>>>,
+    /// Windows and, per window, the figures of each estimator in `names` order.
+    pub windows: Vec<(Window, Vec<WindowFigures>, Option<StageParams<f64>>)>,
+}
+
+/// Parse `--estimators`.
+pub fn parse_estimators(list: &str) -> Result<Vec<&'static str>, CliError> {
+    let mut out = Vec::new();
+    for name in list.split(',').map(str::trim) {
+        match NAMES.iter().find(|n| **n == name) {
+            Some(n) if !out.contains(n) => out.push(*n),
+            Some(_) => return fail(format!("--estimators: '{name}' given twice")),
+            None => return fail(format!("--estimators: unknown estimator '{name}' (known: {})", NAMES.join(","))),
+        }
+    }
+    Ok(out)
+}
+
+/// Identify on columns already read: `t`, `u`, `y` and optionally the truth.
+pub fn identify(
+    source: &str,
+    t: &[f64],
+    u: &[f64],
+    y: &[f64],
+    truth: Option<&[Vec<f64>]>,
+    names: &[&'static str],
+    tuning: &Tuning,
+    windows: &[Window],
+) -> Result<Identified, CliError> {
+    let n = t.len();
+    if n < 4 {
+        return fail(format!("{source}: too few rows ({n}): identification needs a record of at least 4 samples"));
+    }
+    let dt = t[1] - t[0];
+    let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() };
+    let board = SimBoard::new(Default::default());
+    let cfg = settings
+        .design::<f64>(&board.description())
+        .map_err(|e| CliError(format!("{source}: sample period {dt} s: {e}")))?;
+    let mut tuning = *tuning;
+    tuning.rls.sample_period_s = dt;
+    tuning.ekf.sample_period_s = dt;
+    tuning.arx.sample_period_s = dt;
+    let mut pipeline = Pipeline::new(&cfg, Bank::<f64>::new(names, &tuning));
+    let every = ((0.01 / dt).round() as usize).max(1);
+    let names: Vec<&'static str> = pipeline.estimators.estimates().map(|(n, _)| n).collect();
+    let (mut times, mut estimates, mut truth_rows) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut u_rep, mut y_rep) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    let mut progress = Progress::new("identify", n as u64);
+    for k in 0..n {
+        let s = pipeline.replay(&cfg, u[k], y[k]);
+        u_rep.push(s.u);
+        y_rep.push(s.y);
+        if (k + 1) % every == 0 {
+            times.push(t[k]);
+            estimates.push(pipeline.estimators.estimates().map(|(_, p)| p).collect::<Vec<_>>());
+            if let Some(tr) = truth {
+                truth_rows.push(StageParams { a0: tr[0][k], a1: tr[1][k], b0: tr[2][k] });
+            }
+        }
+        if k % 65_536 == 0 {
+            progress.update(k as u64);
+        }
+    }
+    progress.finish();
+
+    let default_windows;
+    let windows = if windows.is_empty() {
+        let (start, end) = (t[0], t[n - 1] + dt);
+        let half = (end - start) / 2.0;
+        default_windows =
+            [Window { t0: start + 0.75 * half, t1: start + half }, Window { t0: start + 1.75 * half, t1: end }];
+        &default_windows[..]
+    } else {
+        windows
+    };
+    let mut summary = Vec::new();
+    for w in windows {
+        let rows: Vec<usize> = (0..times.len()).filter(|&i| times[i] >= w.t0 && times[i] < w.t1).collect();
+        if rows.is_empty() {
+            return fail(format!(
+                "{source}: window {}:{} holds no estimate (the record covers {} to {} s)",
+                w.t0,
+                w.t1,
+                t[0],
+                t[n - 1]
+            ));
+        }
+        let mean_of = |col: usize| -> StageParams<f64> {
+            let m = |f: fn(&StageParams<f64>) -> f64| {
+                rows.iter().map(|&i| f(&estimates[i][col])).sum::<f64>() / rows.len() as f64
+            };
+            StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) }
+        };
+        let figures = (0..names.len())
+            .map(|col| {
+                let mean = mean_of(col);
+                WindowFigures { mean, rmse_nm: validation_rmse_nm(&mean, t, &u_rep, &y_rep, dt, w) }
+            })
+            .collect();
+        let window_truth = truth.map(|_| {
+            let m = |f: fn(&StageParams<f64>) -> f64| {
+                rows.iter().map(|&i| f(&truth_rows[i])).sum::<f64>() / rows.len() as f64
+            };
+            StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) }
+        });
+        summary.push((*w, figures, window_truth));
+    }
+    Ok(Identified { names, times, estimates, truth: truth.map(|_| truth_rows), windows: summary })
+}
+
+/// SPEC section 7: RMSE (nm) between `y'` and model (1) with `p` driven by `u'` over the window.
+pub fn validation_rmse_nm(p: &StageParams<f64>, t: &[f64], u: &[f64], y: &[f64], dt: f64, w: &Window) -> f64 {
+    let (phi, psi) = zoh(&[[0.0, 1.0], [-p.a0, -p.a1]], dt);
+    let gam = [psi[0][1] * p.b0, psi[1][1] * p.b0];
+    let mut x = [0.0f64; 2];
+    let (mut sum, mut count) = (0.0, 0usize);
+    for k in 0..t.len() {
+        if t[k] >= w.t1 {
+            break;
+        }
+        if t[k] >= w.t0 - 1.0 {
+            if t[k] >= w.t0 {
+                sum += (y[k] - x[0]).powi(2);
+                count += 1;
+            }
+            x = [
+                phi[0][0] * x[0] + phi[0][1] * x[1] + gam[0] * u[k],
+                phi[1][0] * x[0] + phi[1][1] * x[1] + gam[1] * u[k],
+            ];
+        }
+    }
+    if count == 0 {
+        return f64::NAN;
+    }
+    1e3 * (sum / count as f64).sqrt()
+}
+
+/// The command line's arguments.
+pub struct IdentifyArgs<'a> {
+    /// Input CSV.
+    pub input: &'a Path,
+    /// Estimators.
+    pub estimators: Vec<&'static str>,
+    /// Tuning.
+    pub tuning: Tuning,
+    /// Windows (empty: the default two).
+    pub windows: Vec<Window>,
+    /// `EST.csv`.
+    pub out: Option<&'a Path>,
+    /// `SUMMARY.json`.
+    pub summary: Option<&'a Path>,
+}
+
+/// Run the command.
+pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
+    let source = args.input.display().to_string();
+    let cols = read_columns(args.input, &["u", "y"], Time::Required)?;
+    let truth_cols = read_columns(args.input, &["a0", "a1", "b0"], Time::IfPresent).ok();
+    let (u, y, t) = (&cols.data[0], &cols.data[1], &cols.data[2]);
+    let truth = truth_cols.as_ref().map(|c| &c.data[..3]);
+    let result = identify(&source, t, u, y, truth, &args.estimators, &args.tuning, &args.windows)?;
+    // Both files are prepared before either is moved into place.
+    let est = args.out.map(|p| write_estimates(p, &result)).transpose()?;
+    let sum = args.summary.map(|p| write_summary(p, &result)).transpose()?;
+    for f in est.into_iter().chain(sum) {
+        f.commit()?;
+    }
+    Ok(result)
+}
+
+fn write_estimates(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
+    let mut f = OutputFile::create(path)?;
+    let res = (|| -> std::io::Result<()> {
+        let w = f.writer();
+        w.write_all(b"t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain\n")?;
+        for (i, t) in r.times.iter().enumerate() {
+            for (name, p) in r.names.iter().zip(&r.estimates[i]) {
+                writeln!(
+                    w,
+                    "{t},{name},{},{},{},{},{},{}",
+                    p.a0,
+                    p.a1,
+                    p.b0,
+                    p.f0_hz(),
+                    p.damping_ratio(),
+                    p.dc_gain()
+                )?;
+            }
+        }
+        Ok(())
+    })();
+    res.map_err(|e| f.write_error(e))?;
+    Ok(f)
+}
+
+fn json_params(p: &StageParams<f64>) -> String {
+    format!(
+        "\"a0\": {:?}, \"a1\": {:?}, \"b0\": {:?}, \"f0_hz\": {:?}, \"zeta\": {:?}, \"dc_gain\": {:?}",
+        p.a0,
+        p.a1,
+        p.b0,
+        p.f0_hz(),
+        p.damping_ratio(),
+        p.dc_gain()
+    )
+}
+
+/// The summary as JSON (SPEC section 9), with the truth per window when known.
+pub fn summary_json(r: &Identified) -> String {
+    let windows: Vec<String> = r
+        .windows
+        .iter()
+        .map(|(w, figs, truth)| {
+            let ests: Vec<String> = r
+                .names
+                .iter()
+                .zip(figs)
+                .map(|(n, f)| {
+                    let rmse = if f.rmse_nm.is_finite() { format!("{:?}", f.rmse_nm) } else { "null".into() };
+                    format!("\"{n}\": {{{}, \"rmse_nm\": {rmse}}}", json_params(&f.mean))
+                })
+                .collect();
+            let truth = truth.map(|p| format!(", \"truth\": {{{}}}", json_params(&p))).unwrap_or_default();
+            format!("{{\"t0\": {:?}, \"t1\": {:?}, \"estimators\": {{{}}}{truth}}}", w.t0, w.t1, ests.join(", "))
+        })
+        .collect();
+    format!("{{\"windows\": [{}]}}\n", windows.join(", "))
+}
+
+fn write_summary(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
+    let mut f = OutputFile::create(path)?;
+    let text = summary_json(r);
+    f.writer().write_all(text.as_bytes()).map_err(|e| f.write_error(e))?;
+    Ok(f)
+}

@@ -1,0 +1,115 @@
+//! `nanopos-sim identify`: the outputs' shape, the validation figure, and bad inputs.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
+}
+
+#[test]
+fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    assert!(nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "4", "--out", "run.csv"], d)
+        .status
+        .success());
+    let out = nanopos_sim(
+        &[
+            "identify",
+            "--input",
+            "run.csv",
+            "--estimators",
+            "hekf,arx",
+            "--window",
+            "1:2",
+            "--window",
+            "3:4",
+            "--out",
+            "est.csv",
+            "--summary",
+            "sum.json",
+        ],
+        d,
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let est = std::fs::read_to_string(d.join("est.csv")).unwrap();
+    let lines: Vec<&str> = est.lines().collect();
+    assert_eq!(lines[0], "t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain");
+    // 100 Hz for 4 s, two estimators.
+    assert_eq!(lines.len() - 1, 400 * 2);
+    assert!(lines[1].contains(",hekf,") && lines[2].contains(",arx,"));
+    let sum = std::fs::read_to_string(d.join("sum.json")).unwrap();
+    for key in [
+        "\"windows\"",
+        "\"t0\": 1.0",
+        "\"t1\": 4.0",
+        "\"hekf\"",
+        "\"arx\"",
+        "\"rmse_nm\"",
+        "\"f0_hz\"",
+        "\"zeta\"",
+        "\"dc_gain\"",
+        "\"truth\"",
+    ] {
+        assert!(sum.contains(key), "{key} missing in {sum}");
+    }
+    assert!(!sum.contains("NaN") && !sum.contains("inf"));
+}
+
+#[test]
+fn validation_rmse_on_noise_only_data_is_the_noise() {
+    // u = 0 and y = white noise of 2 nm RMS: every model predicts 0, so the RMSE is the noise's RMS.
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("t,u,y\n");
+    let mut state = 12345u64;
+    let mut sum2 = 0.0;
+    let n = 30_000;
+    let mut ys = Vec::new();
+    for k in 0..n {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let y = ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2e-3 * 12f64.sqrt();
+        ys.push(y);
+        text += &format!("{},0,{y:?}\n", k as f64 * 1e-4);
+    }
+    for y in &ys[20_000..] {
+        sum2 += y * y;
+    }
+    let rms_nm = 1e3 * (sum2 / 10_000.0).sqrt();
+    std::fs::write(dir.path().join("noise.csv"), text).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "noise.csv", "--estimators", "hekf", "--window", "2:3"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = String::from_utf8(out.stdout).unwrap();
+    let at = json.find("\"rmse_nm\": ").unwrap() + 11;
+    let rmse: f64 = json[at..].split(['}', ',']).next().unwrap().trim().parse().unwrap();
+    assert!((rmse / rms_nm - 1.0).abs() < 1e-9, "{rmse} vs {rms_nm}");
+}
+
+#[test]
+fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(
+        d.join("ok.csv"),
+        (0..100).map(|k| format!("{},0,0\n", k as f64 * 1e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
+    )
+    .unwrap();
+    std::fs::write(d.join("no_t.csv"), "u,y\n0,0\n").unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
+        (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
+        (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
+        (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),
+        (&["identify", "--input", "ok.csv", "--tuning", "fast"], "unknown preset 'fast'"),
+        (&["identify", "--input", "ok.csv", "--window", "5:1"], "T0 < T1"),
+        (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
+    ];
+    for (args, mention) in cases {
+        let out = nanopos_sim(args, d);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert_eq!(stderr.trim_end().lines().count(), 1, "{args:?}: {stderr:?}");
+        assert!(stderr.contains(mention), "{args:?}: {stderr:?}");
+        assert!(!d.join("e.csv").exists(), "no partial output");
+    }
+}
