@@ -81,17 +81,28 @@ pub fn parse_estimators(list: &str) -> Result<Vec<&'static str>, CliError> {
     Ok(out)
 }
 
-/// Identify on columns already read: `t`, `u`, `y` and optionally the truth.
+/// A recorded run, as columns.
+pub struct Recording<'a> {
+    /// Where it came from (for messages).
+    pub source: &'a str,
+    /// Time, s.
+    pub t: &'a [f64],
+    /// Command in effect, V.
+    pub u: &'a [f64],
+    /// Reading, um.
+    pub y: &'a [f64],
+    /// Columns `a0`, `a1`, `b0` of the truth, if known.
+    pub truth: Option<&'a [Vec<f64>]>,
+}
+
+/// Identify on a recording.
 pub fn identify(
-    source: &str,
-    t: &[f64],
-    u: &[f64],
-    y: &[f64],
-    truth: Option<&[Vec<f64>]>,
+    rec: &Recording,
     names: &[&'static str],
     tuning: &Tuning,
     windows: &[Window],
 ) -> Result<Identified, CliError> {
+    let Recording { source, t, u, y, truth } = *rec;
     let n = t.len();
     if n < 4 {
         return fail(format!("{source}: too few rows ({n}): identification needs a record of at least 4 samples"));
@@ -224,7 +235,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let truth_cols = read_columns(args.input, &["a0", "a1", "b0"], Time::IfPresent).ok();
     let (u, y, t) = (&cols.data[0], &cols.data[1], &cols.data[2]);
     let truth = truth_cols.as_ref().map(|c| &c.data[..3]);
-    let result = identify(&source, t, u, y, truth, &args.estimators, &args.tuning, &args.windows)?;
+    let rec = Recording { source: &source, t, u, y, truth };
+    let result = identify(&rec, &args.estimators, &args.tuning, &args.windows)?;
     // Both files are prepared before either is moved into place.
     let est = args.out.map(|p| write_estimates(p, &result)).transpose()?;
     let sum = args.summary.map(|p| write_summary(p, &result)).transpose()?;
