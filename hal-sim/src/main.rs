@@ -52,6 +52,16 @@ enum Command {
         #[arg(long)]
         summary: Option<PathBuf>,
     },
+    /// The paper's whole experiment on the simulated board: PRBS and triangle, every estimator, f64 and f32;
+    /// prints a Table II-style table and writes the summaries.
+    Paper {
+        /// Length of each run, s (payload removed at half).
+        #[arg(long, default_value_t = 200.0, allow_negative_numbers = true)]
+        duration: f64,
+        /// Where to write each input's SUMMARY.json.
+        #[arg(long, default_value = "paper-out")]
+        out_dir: PathBuf,
+    },
     /// Batch (weighted) least squares of an ARX model on a recorded run's u and y; prints JSON.
     Fit {
         /// CSV with a header naming at least u and y.
@@ -108,6 +118,11 @@ fn run(cli: Cli) -> Result<(), CliError> {
             if args.summary.is_none() {
                 print!("{}", identify::summary_json(&result));
             }
+            Ok(())
+        }
+        Command::Paper { duration, out_dir } => {
+            let runs = hal_sim::cmd::paper::run(duration, Some(&out_dir))?;
+            print!("{}", hal_sim::cmd::paper::table(&runs));
             Ok(())
         }
         Command::Fit { input, arx, zero_initial, weight } => {

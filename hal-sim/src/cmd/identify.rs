@@ -95,8 +95,18 @@ pub struct Recording<'a> {
     pub truth: Option<&'a [Vec<f64>]>,
 }
 
-/// Identify on a recording.
+/// Identify on a recording, in f64.
 pub fn identify(
+    rec: &Recording,
+    names: &[&'static str],
+    tuning: &Tuning,
+    windows: &[Window],
+) -> Result<Identified, CliError> {
+    identify_in::<f64>(rec, names, tuning, windows)
+}
+
+/// Identify on a recording with the pipeline and estimators in scalar `T` (f32: the firmware's precision).
+pub fn identify_in<T: nanopos_id::Real>(
     rec: &Recording,
     names: &[&'static str],
     tuning: &Tuning,
@@ -111,25 +121,25 @@ pub fn identify(
     let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() };
     let board = SimBoard::new(Default::default());
     let cfg = settings
-        .design::<f64>(&board.description())
+        .design::<T>(&board.description())
         .map_err(|e| CliError(format!("{source}: sample period {dt} s: {e}")))?;
     let mut tuning = *tuning;
     tuning.rls.sample_period_s = dt;
     tuning.ekf.sample_period_s = dt;
     tuning.arx.sample_period_s = dt;
-    let mut pipeline = Pipeline::new(&cfg, Bank::<f64>::new(names, &tuning));
+    let mut pipeline = Pipeline::new(&cfg, Bank::<T>::new(names, &tuning));
     let every = ((0.01 / dt).round() as usize).max(1);
     let names: Vec<&'static str> = pipeline.estimators.estimates().map(|(n, _)| n).collect();
     let (mut times, mut estimates, mut truth_rows) = (Vec::new(), Vec::new(), Vec::new());
     let (mut u_rep, mut y_rep) = (Vec::with_capacity(n), Vec::with_capacity(n));
     let mut progress = Progress::new("identify", n as u64);
     for k in 0..n {
-        let s = pipeline.replay(&cfg, u[k], y[k]);
-        u_rep.push(s.u);
-        y_rep.push(s.y);
+        let s = pipeline.replay(&cfg, T::of(u[k]), T::of(y[k]));
+        u_rep.push(s.u.as_f64());
+        y_rep.push(s.y.as_f64());
         if (k + 1) % every == 0 {
             times.push(t[k]);
-            estimates.push(pipeline.estimators.estimates().map(|(_, p)| p).collect::<Vec<_>>());
+            estimates.push(pipeline.estimators.estimates().map(|(_, p)| p.cast::<f64>()).collect::<Vec<_>>());
             if let Some(tr) = truth {
                 truth_rows.push(StageParams { a0: tr[0][k], a1: tr[1][k], b0: tr[2][k] });
             }
@@ -310,4 +320,19 @@ fn write_summary(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
     let text = summary_json(r);
     f.writer().write_all(text.as_bytes()).map_err(|e| f.write_error(e))?;
     Ok(f)
+}
+
+impl Identified {
+    /// Seconds after `t_change` until estimator `col` holds a0 and b0 within 1 % of the truth (needs the truth).
+    pub fn relock_s(&self, col: usize, t_change: f64) -> Option<f64> {
+        let truth = self.truth.as_ref()?;
+        let samples: Vec<crate::experiment::Sample> = self
+            .times
+            .iter()
+            .zip(&self.estimates)
+            .zip(truth)
+            .map(|((&t_s, e), tr)| crate::experiment::Sample { t_s, est: e[col], truth: *tr })
+            .collect();
+        crate::experiment::relock_time(&samples, t_change, 0.01)
+    }
 }

@@ -3,6 +3,7 @@
 
 pub mod fit;
 pub mod identify;
+pub mod paper;
 pub mod simulate;
 
 use std::fmt;

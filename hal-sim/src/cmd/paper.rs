@@ -1,0 +1,96 @@
+//! `nanopos-sim paper [--duration S] [--out-dir DIR]`: the paper's whole experiment on the simulated board.
+//!
+//! For each input (PRBS with the `prbs` tuning, the smoothed triangle with `triangle`), simulate the stage with the
+//! payload removed at half the run, identify with every estimator in f64 and in f32 (the firmware's precision)
+//! through the firmware's pipeline, and print a table in the manner of the paper's Table II: per estimator and
+//! window, the errors of `a0`, `a1`, `b0` against the truth, the validation RMSE, and the relock time after the
+//! payload change (a0 and b0 back within 1 %). Writes each run's `simulate` CSV, `EST.csv` and `SUMMARY.json`
+//! into `DIR` (default `paper-out`).
+
+use super::identify::{identify_in, summary_json, Identified, Recording};
+use super::{fail, CliError, OutputFile};
+use crate::bank::{Tuning, NAMES};
+use crate::sim::{Scenario, Simulation};
+use std::io::Write;
+use std::path::Path;
+
+/// One input's runs.
+pub struct PaperRun {
+    /// Input name.
+    pub input: &'static str,
+    /// f64 result.
+    pub f64: Identified,
+    /// f32 result.
+    pub f32: Identified,
+    /// The payload change, s.
+    pub t_change: f64,
+}
+
+/// Run the experiment (`duration_s` per input).
+pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, CliError> {
+    if !(duration_s.is_finite() && duration_s >= 4.0 && duration_s <= 3600.0) {
+        return fail(format!("--duration {duration_s}: between 4 and 3600 s"));
+    }
+    if let Some(d) = out_dir {
+        std::fs::create_dir_all(d)
+            .map_err(|e| CliError(format!("{}: cannot create: {}", d.display(), super::io_reason(&e))))?;
+    }
+    let mut runs = Vec::new();
+    for (scenario, input) in [(Scenario::Prbs, "prbs"), (Scenario::Triangle, "triangle")] {
+        let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
+        let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+        let n = (duration_s * 1e4).round() as usize;
+        let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+        let mut truth = vec![Vec::with_capacity(n); 3];
+        for _ in 0..n {
+            let (r, _) = sim.step();
+            t.push(r.t_s);
+            u.push(r.u_v);
+            y.push(r.y_um);
+            truth[0].push(r.truth.a0);
+            truth[1].push(r.truth.a1);
+            truth[2].push(r.truth.b0);
+        }
+        let source = format!("paper/{input}");
+        let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
+        let tuning = Tuning::preset(input).expect("preset exists");
+        let r64 = identify_in::<f64>(&rec, &NAMES, &tuning, &[])?;
+        let r32 = identify_in::<f32>(&rec, &NAMES, &tuning, &[])?;
+        if let Some(d) = out_dir {
+            let mut f = OutputFile::create(&d.join(format!("{input}-summary.json")))?;
+            f.writer().write_all(summary_json(&r64).as_bytes()).map_err(|e| f.write_error(e))?;
+            f.commit()?;
+        }
+        runs.push(PaperRun { input, f64: r64, f32: r32, t_change: duration_s / 2.0 });
+    }
+    Ok(runs)
+}
+
+/// The table.
+pub fn table(runs: &[PaperRun]) -> String {
+    let mut s = String::new();
+    s += "input     prec estimator window      a0 err    a1 err    b0 err   RMSE nm  relock s\n";
+    for run in runs {
+        for (prec, r) in [("f64", &run.f64), ("f32", &run.f32)] {
+            for (col, name) in r.names.iter().enumerate() {
+                let relock = r.relock_s(col, run.t_change).map_or("never".to_string(), |t| format!("{t:.2}"));
+                for (w, figs, truth) in &r.windows {
+                    let (m, tr) = (figs[col].mean, truth.expect("simulated runs carry the truth"));
+                    let e = |a: f64, b: f64| 100.0 * (a / b - 1.0);
+                    s += &format!(
+                        "{:9} {prec}  {name:9} {:>5.0}-{:<5.0} {:+8.3}% {:+8.3}% {:+8.3}% {:8.2} {:>9}\n",
+                        run.input,
+                        w.t0,
+                        w.t1,
+                        e(m.a0, tr.a0),
+                        e(m.a1, tr.a1),
+                        e(m.b0, tr.b0),
+                        figs[col].rmse_nm,
+                        if w.t0 > run.t_change { relock.as_str() } else { "" }
+                    );
+                }
+            }
+        }
+    }
+    s
+}
