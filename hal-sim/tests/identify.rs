@@ -113,3 +113,21 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         assert!(!d.join("e.csv").exists(), "no partial output");
     }
 }
+
+#[test]
+fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = nanopos_sim(&["paper", "--duration", "4", "--out-dir", "res"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let table = String::from_utf8(out.stdout).unwrap();
+    // Header, then 2 inputs x 2 precisions x 4 estimators x 2 windows.
+    assert_eq!(table.lines().count(), 1 + 32, "{table}");
+    for word in ["prbs", "triangle", "f32", "f64", "rls", "ekf", "hekf", "arx", "RMSE"] {
+        assert!(table.contains(word), "{word}");
+    }
+    for f in ["prbs-summary.json", "triangle-summary.json"] {
+        assert!(dir.path().join("res").join(f).exists(), "{f}");
+    }
+    let bad = nanopos_sim(&["paper", "--duration", "1"], dir.path());
+    assert_eq!(bad.status.code(), Some(2));
+}
