@@ -15,6 +15,20 @@ fn on_reference_data<T: Real, E: Estimator<T>>(
     seed: u64,
     segment_s: f64,
 ) -> Vec<(f64, StageParams<f64>)> {
+    on_reference_data_health(est_owned(est), excitation, seed, segment_s).0
+}
+
+fn est_owned<E>(e: E) -> E {
+    e
+}
+
+/// [`on_reference_data`], also returning the estimator's health at the end.
+fn on_reference_data_health<T: Real, E: Estimator<T>>(
+    mut est: E,
+    excitation: ExcitationDesign,
+    seed: u64,
+    segment_s: f64,
+) -> (Vec<(f64, StageParams<f64>)>, nanopos_id::estimator::Health) {
     let seg = (segment_s * 1e4) as u64;
     let gen = excitation.design::<f64>(1e4);
     let mut ex = ExcitationState::default();
@@ -33,7 +47,7 @@ fn on_reference_data<T: Real, E: Estimator<T>>(
             out.push(((k + 1) as f64 * 1e-4, est.params().cast()));
         }
     }
-    out
+    (out, est.health())
 }
 
 fn window_rel_errors(h: &[(f64, StageParams<f64>)], t0: f64, t1: f64, truth: &StageParams<f64>) -> [f64; 3] {
@@ -254,4 +268,30 @@ fn crls_on_the_full_board_in_f64_and_f32() {
     let d = rel_errors(&m32, &m64);
     eprintln!("crls f32 - f64 175-200: {d:?}");
     assert!(d.iter().all(|x| x.abs() < 1e-4), "{d:?}");
+}
+
+#[test]
+#[ignore = "diagnosis: the triangle on the reference's ideal data (run with --ignored --nocapture)"]
+fn hekf_triangle_on_reference_data() {
+    let design = HekfDesign::paper(HekfDesign::Q1);
+    let (h, health) =
+        on_reference_data_health::<f64, _>(Hekf::new(design.design()), ExcitationDesign::PAPER_TRIANGLE, 2, 100.0);
+    eprintln!("health: {health:?}");
+    for (t0, t1, truth) in [(75.0, 100.0, StageParams::PAYLOAD), (175.0, 200.0, StageParams::NO_PAYLOAD)] {
+        let e = window_rel_errors(&h, t0, t1, &truth);
+        eprintln!("hekf triangle reference data {t0}-{t1}: a0 {:+.2e} a1 {:+.2e} b0 {:+.2e}", e[0], e[1], e[2]);
+    }
+    let samples: Vec<hal_sim::experiment::Sample> = h
+        .iter()
+        .map(|&(t_s, est)| hal_sim::experiment::Sample {
+            t_s,
+            est,
+            truth: if t_s <= 100.0 { StageParams::PAYLOAD } else { StageParams::NO_PAYLOAD },
+        })
+        .collect();
+    eprintln!(
+        "relock 1%: {:?}, 5%: {:?}",
+        hal_sim::experiment::relock_time(&samples, 100.0, 0.01),
+        hal_sim::experiment::relock_time(&samples, 100.0, 0.05)
+    );
 }

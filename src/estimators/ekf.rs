@@ -50,6 +50,9 @@ const fn idx(i: usize, j: usize) -> usize {
     r * 5 - r * (r + 1) / 2 + c
 }
 
+/// Packed indices of the parameter block (rows and columns 2..5).
+const PARAM_BLOCK: [usize; 6] = [idx(2, 2), idx(2, 3), idx(2, 4), idx(3, 3), idx(3, 4), idx(4, 4)];
+
 /// Physical tuning (paper Section V-C), for either filter.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EkfDesign {
@@ -61,6 +64,8 @@ pub struct EkfDesign {
     pub r: f64,
     /// RK4 substeps per sample (the hybrid filter's prediction; the continuous filter takes one step).
     pub substeps: u32,
+    /// Health: the settings of gating, change detection, the PE monitor and the covariance bounds.
+    pub health: EkfHealthDesign,
     /// Where the estimate starts.
     pub initial: StageParams<f64>,
     /// Sample period, s.
@@ -80,6 +85,7 @@ impl EkfDesign {
             p0_diag: q.map(|x| 10.0 * x),
             r: 1.5e-6,
             substeps: 4,
+            health: EkfHealthDesign::default(),
             initial: StageParams::INITIAL,
             sample_period_s: 1e-4,
         }
@@ -91,7 +97,17 @@ impl EkfDesign {
         let w = libm::sqrt(p.a0);
         let scale = [1.0, 1.0 / w, 1.0 / p.a0, 1.0 / p.a1, 1.0 / p.b0];
         let h = self.sample_period_s / self.substeps as f64;
+        let hd = &self.health;
+        let t = self.sample_period_s;
         EkfConfig {
+            gate2: T::of(hd.gate_sigma * hd.gate_sigma),
+            nis_alpha: T::of(t / hd.nis_tau_s),
+            change_samples: hd.change_samples,
+            holdoff_samples: libm::round(hd.holdoff_s / t) as u32,
+            pe_floor: T::of(hd.pe_floor_v2),
+            pe_alpha: T::of(t / hd.pe_tau_s),
+            p_ceiling: core::array::from_fn(|i| T::of(hd.ceiling * self.p0_diag[i] * scale[i] * scale[i])),
+            p_floor: core::array::from_fn(|i| T::of(hd.floor * self.p0_diag[i] * scale[i] * scale[i])),
             r: T::of(self.r),
             q: core::array::from_fn(|i| T::of(self.q_diag[i] * scale[i] * scale[i])),
             p0: core::array::from_fn(|i| T::of(self.p0_diag[i] * scale[i] * scale[i])),
@@ -113,9 +129,68 @@ impl Default for EkfDesign {
     }
 }
 
+/// Health settings of the EKFs.
+///
+/// - **Gating**: a sample whose normalised innovation `nu^2 / S` exceeds `gate_sigma^2` times its running mean
+///   over the accepted samples (time constant `nis_tau_s`, 0.5 s: long enough to average the noise, short enough
+///   to forget the start-up transient within seconds) is not used, and counted. Relative, because the real noise need not match `R`: the
+///   paper's `R_d = R / T` stands for 122 nm per sample where the probe has about 1 nm, so `nu^2 / S` runs near 1e-4.
+/// - **Change detection**: `change_samples` gated samples in a row are not an outlier but a changed plant (the
+///   payload came off): the parameter covariance is reopened to `P0`, the estimates kept, and gating paused for
+///   `holdoff_s` while the filter relocks. Counted. Gating is only active together with change detection: a gate
+///   alone would lock a changed plant out for good.
+/// - **Persistent excitation**: the filtered input's power, averaged over `pe_tau_s`, below `pe_floor_v2` freezes the
+///   parameters (reported as `Starved`): with nothing to learn from they would only drift. 10 ms: an abrupt stop of
+///   the excitation freezes them within about 0.15 s (a 0.1 s average took 1.4 s, and they drifted 0.6 % meanwhile).
+/// - **Covariance bounds**: parameter variances are held between `floor` and `ceiling` times their `P0` (a
+///   diagonal congruence for the ceiling and a diagonal addition for the floor, both keeping `P` positive
+///   semidefinite): no windup, and no collapse that would stop adaptation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EkfHealthDesign {
+    /// Gate, in standard deviations of the innovation relative to its long-run level (`f64::INFINITY`: off).
+    pub gate_sigma: f64,
+    /// Time constant of the long-run normalised innovation, s.
+    pub nis_tau_s: f64,
+    /// Gated samples in a row that mean a plant change (0: change detection off).
+    pub change_samples: u32,
+    /// Gating pause after a detected change, s.
+    pub holdoff_s: f64,
+    /// Filtered input power below which adaptation starves, V^2 (0: monitor off).
+    pub pe_floor_v2: f64,
+    /// Time constant of the input power, s.
+    pub pe_tau_s: f64,
+    /// Parameter variance ceiling, times `P0`.
+    pub ceiling: f64,
+    /// Parameter variance floor, times `P0`.
+    pub floor: f64,
+}
+
+impl Default for EkfHealthDesign {
+    fn default() -> Self {
+        EkfHealthDesign {
+            gate_sigma: 5.0,
+            nis_tau_s: 0.5,
+            change_samples: 20,
+            holdoff_s: 0.5,
+            pe_floor_v2: 1e-6,
+            pe_tau_s: 0.01,
+            ceiling: 100.0,
+            floor: 1e-9,
+        }
+    }
+}
+
 /// The normalised configuration.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EkfConfig<T> {
+    gate2: T,
+    nis_alpha: T,
+    change_samples: u32,
+    holdoff_samples: u32,
+    pe_floor: T,
+    pe_alpha: T,
+    p_ceiling: [T; 5],
+    p_floor: [T; 5],
     r: T,
     q: [T; 5],
     p0: [T; 5],
@@ -133,8 +208,10 @@ pub struct EkfConfig<T> {
 pub trait EkfKind: Copy + core::fmt::Debug + Default {
     /// Name in reports.
     const NAME: &'static str;
-    /// Advance `(z, P)` over one sample period with `u` held and the measurements `y_prev`, `y`.
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T);
+    /// Advance `(z, P)` over one sample period with `u` held and the measurements `y_prev`, `y`; a sample whose
+    /// normalised innovation exceeds `gate_nis` is not used. Returns the normalised innovation and whether the
+    /// sample was used.
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, bool);
 }
 
 /// Section IV-B: RK4 prediction in substeps, then a Joseph-form update.
@@ -147,19 +224,26 @@ pub struct Continuous;
 impl EkfKind for Hybrid {
     const NAME: &'static str = "hekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T) {
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T, gate_nis: T) -> (T, bool) {
         let h = core.cfg.h;
         for _ in 0..core.cfg.substeps {
             core.rk4(u, h, None);
         }
+        // Gate on the a priori innovation.
+        let nu = y - core.z[0];
+        let nis = nu * nu / (core.p[idx(0, 0)] + core.cfg.r_d);
+        if nis > gate_nis {
+            return (nis, false);
+        }
         core.correct(y);
+        (nis, true)
     }
 }
 
 impl EkfKind for Continuous {
     const NAME: &'static str = "ekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T) {
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, bool) {
         let h = core.cfg.h * T::of(core.cfg.substeps as f64);
         // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
         // x1'' (at the step's start), and the term vanishes at the samples.
@@ -167,7 +251,18 @@ impl EkfKind for Continuous {
         let z = &core.z;
         let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
         let bow = -x1_dd * h * h * T::of(0.5);
+        let before = *core;
         core.rk4(u, h, Some((y_prev, y, bow)));
+        // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
+        // step is taken again without the measurement.
+        let nu = y - core.z[0];
+        let nis = nu * nu / (core.p[idx(0, 0)] + core.cfg.r_d);
+        if nis > gate_nis {
+            *core = before;
+            core.rk4(u, h, None);
+            return (nis, false);
+        }
+        (nis, true)
     }
 }
 
@@ -187,6 +282,14 @@ pub struct Ekf<T, K> {
     y_prev: T,
     adapting: bool,
     health: Health,
+    /// Long-run mean of the normalised innovation (the gate's reference).
+    nis_mean: T,
+    /// Gated samples in a row.
+    gated_run: u32,
+    /// Samples left in the gating pause after a change.
+    holdoff: u32,
+    /// Filtered input power.
+    input_power: T,
     kind: K,
 }
 
@@ -209,6 +312,10 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
                 rejected_samples: 0,
                 changes_detected: 0,
             },
+            nis_mean: T::one(),
+            gated_run: 0,
+            holdoff: 0,
+            input_power: T::zero(),
             kind: K::default(),
         };
         s.reset_state();
@@ -222,8 +329,12 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         for i in 0..5 {
             c.p[idx(i, i)] = c.cfg.p0[i];
         }
-        self.u_prev = T::zero();
-        self.y_prev = T::zero();
+        // The previous sample is kept: it is data, not state, and the continuous filter interpolates from it. The
+        // position restarts at it rather than at 0, so a reset in the middle of a run does not start with a jump.
+        self.core.z[0] = self.y_prev;
+        self.nis_mean = T::one();
+        self.gated_run = 0;
+        self.holdoff = 0;
     }
 
     /// The state in the paper's units `[x1, x2, a0, a1, b0]`.
@@ -343,6 +454,58 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
+    /// Hold the parameters: decouple them from the states (block-diagonal `P`, which stays positive semidefinite)
+    /// and return what to restore after the step.
+    fn freeze_parameters(&mut self) -> ([T; 3], [T; 6]) {
+        for i in 0..2 {
+            for j in 2..5 {
+                self.p[idx(i, j)] = T::zero();
+            }
+        }
+        ([self.z[2], self.z[3], self.z[4]], core::array::from_fn(|k| self.p[PARAM_BLOCK[k]]))
+    }
+
+    fn restore_parameters(&mut self, f: &([T; 3], [T; 6])) {
+        self.z[2..5].copy_from_slice(&f.0);
+        for (k, &e) in PARAM_BLOCK.iter().enumerate() {
+            self.p[e] = f.1[k];
+        }
+        for i in 0..2 {
+            for j in 2..5 {
+                self.p[idx(i, j)] = T::zero();
+            }
+        }
+    }
+
+    /// After a detected change: parameter covariance back to `P0`, uncorrelated.
+    fn reopen_parameters(&mut self) {
+        for j in 2..5 {
+            for i in 0..5 {
+                self.p[idx(i, j)] = T::zero();
+            }
+            self.p[idx(j, j)] = self.cfg.p0[j];
+        }
+    }
+
+    /// Parameter variances within their floor and ceiling.
+    fn bound_covariance(&mut self) {
+        for i in 2..5 {
+            let v = self.p[idx(i, i)];
+            if v > self.cfg.p_ceiling[i] {
+                // Congruence with diag(1, .., sqrt(c / v), ..): scales row and column i, keeps P >= 0.
+                let f = (self.cfg.p_ceiling[i] / v).sqrt();
+                for j in 0..5 {
+                    if j != i {
+                        self.p[idx(i, j)] *= f;
+                    }
+                }
+                self.p[idx(i, i)] = self.cfg.p_ceiling[i];
+            } else if v < self.cfg.p_floor[i] {
+                self.p[idx(i, i)] = self.cfg.p_floor[i];
+            }
+        }
+    }
+
     fn healthy(&self) -> bool {
         self.z.iter().all(|x| x.is_finite())
             && self.p.iter().all(|x| x.is_finite())
@@ -360,14 +523,48 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
 
     fn update(&mut self, s: &FilteredSample<T>) {
         let _ = self.kind;
+        let cfg = self.core.cfg;
+        let u = s.u_f.value;
+        if !(u.is_finite() && s.y_f.value.is_finite()) {
+            // Caught at the door: nothing non-finite reaches the state or the stored previous sample.
+            self.reset_state();
+            self.health.numeric_resets += 1;
+            return;
+        }
+        self.input_power += cfg.pe_alpha * (u * u - self.input_power);
+        let starved = self.input_power < cfg.pe_floor;
         if self.adapting {
-            K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value);
-            if !self.core.healthy() {
-                self.reset_state();
-                self.health.numeric_resets += 1;
+            self.health.adaptation = if starved { Adaptation::Starved } else { Adaptation::Adapting };
+        }
+        let freeze = !self.adapting || starved;
+        let frozen = freeze.then(|| self.core.freeze_parameters());
+        let gating = cfg.change_samples > 0 && self.holdoff == 0;
+        let gate = if gating { cfg.gate2 * self.nis_mean.max(T::epsilon()) } else { T::greatest() };
+        let (nis, used) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);
+        if let Some(f) = frozen {
+            self.core.restore_parameters(&f);
+        }
+        self.holdoff = self.holdoff.saturating_sub(1);
+        if used {
+            self.gated_run = 0;
+            self.nis_mean += cfg.nis_alpha * (nis - self.nis_mean);
+        } else {
+            self.gated_run += 1;
+            self.health.rejected_samples += 1;
+            if self.gated_run >= cfg.change_samples {
+                // Not an outlier: the plant changed. Reopen the parameter covariance and let the filter relock.
+                self.core.reopen_parameters();
+                self.health.changes_detected += 1;
+                self.gated_run = 0;
+                self.holdoff = cfg.holdoff_samples;
             }
         }
-        self.u_prev = s.u_f.value;
+        self.core.bound_covariance();
+        if !self.core.healthy() {
+            self.reset_state();
+            self.health.numeric_resets += 1;
+        }
+        self.u_prev = u;
         self.y_prev = s.y_f.value;
     }
 

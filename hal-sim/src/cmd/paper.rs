@@ -28,7 +28,7 @@ pub struct PaperRun {
 
 /// Run the experiment (`duration_s` per input).
 pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, CliError> {
-    if !(duration_s.is_finite() && duration_s >= 4.0 && duration_s <= 3600.0) {
+    if !(4.0..=3600.0).contains(&duration_s) {
         return fail(format!("--duration {duration_s}: between 4 and 3600 s"));
     }
     if let Some(d) = out_dir {
@@ -41,7 +41,7 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
         let n = (duration_s * 1e4).round() as usize;
         let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-        let mut truth = vec![Vec::with_capacity(n); 3];
+        let mut truth: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
         for _ in 0..n {
             let (r, _) = sim.step();
             t.push(r.t_s);

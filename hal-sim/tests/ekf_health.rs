@@ -1,0 +1,157 @@
+//! Health of the EKFs, each fault injected into the estimator's input: outliers, NaN, no excitation, a plant
+//! change. (Raw readings cannot be NaN: the board delivers integer codes and the CSV reader rejects non-finite
+//! values; a raw one-sample glitch is smeared by the band-pass pre-filter into a few nm.)
+
+#![allow(clippy::needless_range_loop)] // covariance indices follow the state layout
+
+use hal_sim::experiment::{relock_time, Sample};
+use hal_sim::noise::NormalStream;
+use hal_sim::plant::{Plant, PlantSettings};
+use nanopos_id::estimator::{Adaptation, Estimator, FilteredSample};
+use nanopos_id::estimators::ekf::{Cekf, Ekf, EkfDesign, EkfKind, Hekf};
+use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
+use nanopos_id::filters::{PrefilterDesign, PrefilterState};
+use nanopos_id::StageParams;
+
+/// Reference-style data (ideal plant, PRBS, payload off at `change_at_s`) into `est`. `input_off(k)` stops the
+/// excitation; `tamper` may alter the estimator's input; `observe` sees the estimator after each sample.
+fn drive<K: EkfKind>(
+    est: &mut Ekf<f64, K>,
+    seconds: f64,
+    change_at_s: f64,
+    input_off: impl Fn(u64) -> bool,
+    mut tamper: impl FnMut(u64, &mut FilteredSample<f64>),
+    mut observe: impl FnMut(u64, &Ekf<f64, K>),
+) {
+    let gen = ExcitationDesign::PAPER_PRBS.design::<f64>(1e4);
+    let mut ex = ExcitationState::default();
+    let mut plant =
+        Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, (change_at_s * 1e4) as u64));
+    let mut noise = NormalStream::new(1);
+    let pre = PrefilterDesign::default().design::<f64>(1e-4);
+    let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
+    for k in 0..(seconds * 1e4) as u64 {
+        let y = plant.output_um() + 1.25e-3 * noise.next_normal();
+        let u = if input_off(k) { 0.0 } else { gen.next(&mut ex) };
+        let mut s = FilteredSample { u, y, u_f: pre.update(&mut su, u), y_f: pre.update(&mut sy, y) };
+        tamper(k, &mut s);
+        est.update(&s);
+        observe(k, est);
+        plant.advance(u);
+    }
+}
+
+fn rel(p: &StageParams<f64>, q: &StageParams<f64>) -> f64 {
+    [(p.a0, q.a0), (p.a1, q.a1), (p.b0, q.b0)].iter().map(|(a, b)| (a / b - 1.0).abs()).fold(0.0, f64::max)
+}
+
+#[test]
+fn gating_rejects_outliers_and_keeps_the_estimate() {
+    let design = EkfDesign::default();
+    let run = |design: EkfDesign, spikes: bool| {
+        let mut est = Hekf::new(design.design());
+        // 0.2 um in the filtered reading (about 50 noise sigmas) once a second after convergence.
+        let tamper = |k: u64, s: &mut FilteredSample<f64>| {
+            if spikes && k > 20_000 && k % 10_000 == 0 {
+                s.y_f.value += 0.2;
+            }
+        };
+        drive(&mut est, 10.0, f64::INFINITY, |_| false, tamper, |_, _| {});
+        est
+    };
+    let clean = run(design, false);
+    let gated = run(design, true);
+    let mut no_gate = design;
+    no_gate.health.change_samples = 0;
+    let ungated = run(no_gate, true);
+    let h = gated.health();
+    let (eg, eu) = (rel(&gated.params(), &clean.params()), rel(&ungated.params(), &clean.params()));
+    eprintln!("outliers: rejected {}, error vs clean: gated {eg:.1e}, ungated {eu:.1e}", h.rejected_samples);
+    assert_eq!(h.rejected_samples, 7, "exactly the 7 outliers (k = 30 000 .. 90 000)");
+    assert_eq!(h.changes_detected, 0);
+    assert!(eg < 0.1 * eu, "gating keeps the estimate ({eg:e} vs {eu:e})");
+}
+
+#[test]
+fn a_nan_resets_the_filter_counts_it_and_the_filter_carries_on() {
+    let mut est = Cekf::new(EkfDesign::default().design());
+    let nan_once = |k: u64, s: &mut FilteredSample<f64>| {
+        if k == 10_000 {
+            s.y_f.value = f64::NAN;
+        }
+    };
+    drive(&mut est, 4.0, f64::INFINITY, |_| false, nan_once, |_, _| {});
+    assert_eq!(est.health().numeric_resets, 1);
+    let p = est.params();
+    // Three seconds after the reset it has converged again.
+    assert!(rel(&p, &StageParams::PAYLOAD) < 5e-3, "{p:?}");
+}
+
+#[test]
+fn without_excitation_the_parameters_freeze_and_the_covariance_stays_bounded() {
+    let mut est = Hekf::new(EkfDesign::default().design());
+    let mut at_freeze = None;
+    let mut before_stop = StageParams::default();
+    drive(
+        &mut est,
+        65.0,
+        f64::INFINITY,
+        |k| k >= 50_000,
+        |_, _| {},
+        |k, e| {
+            if k == 49_999 {
+                before_stop = e.params();
+            }
+            if k >= 50_000 && at_freeze.is_none() && e.health().adaptation == Adaptation::Starved {
+                at_freeze = Some((k, e.params()));
+            }
+        },
+    );
+    let (k_freeze, p_freeze) = at_freeze.expect("starves");
+    let delay_s = (k_freeze - 50_000) as f64 * 1e-4;
+    let drift = rel(&p_freeze, &before_stop);
+    eprintln!("starved {delay_s:.3} s after the input stopped, drift meanwhile {drift:.1e}");
+    assert!(delay_s < 0.2 && drift < 1e-3);
+    assert_eq!(est.params(), p_freeze, "frozen parameters do not move in 60 s");
+    let c = est.covariance();
+    for i in 2..5 {
+        assert!(c[i][i] <= 100.0 * 10.0 * EkfDesign::Q2[i] * (1.0 + 1e-9), "variance {i} above the ceiling");
+    }
+}
+
+#[test]
+fn change_detection_on_the_payload_change() {
+    let mut relocks = Vec::new();
+    for detect in [true, false] {
+        let mut design = EkfDesign::default();
+        if !detect {
+            design.health.change_samples = 0;
+        }
+        let mut est = Hekf::new(design.design());
+        let mut history = Vec::new();
+        drive(
+            &mut est,
+            15.0,
+            5.0,
+            |_| false,
+            |_, _| {},
+            |k, e| {
+                if k % 100 == 99 {
+                    let t_s = (k + 1) as f64 * 1e-4;
+                    let truth = if t_s <= 5.0 { StageParams::PAYLOAD } else { StageParams::NO_PAYLOAD };
+                    history.push(Sample { t_s, est: e.params(), truth });
+                }
+            },
+        );
+        let relock = relock_time(&history, 5.0, 0.01);
+        let h = est.health();
+        eprintln!(
+            "change detection {detect}: detected {}, rejected {}, relock to 1 % {relock:?} s",
+            h.changes_detected, h.rejected_samples
+        );
+        assert_eq!(h.changes_detected, u32::from(detect));
+        relocks.push(relock.expect("relocks"));
+    }
+    // With PRBS the filter relocks in well under a second either way; detection must not slow it much.
+    assert!(relocks[0] < 1.0 && relocks[0] <= 1.5 * relocks[1], "{relocks:?}");
+}
