@@ -10,16 +10,12 @@ use nanopos_id::{Real, StageParams};
 
 /// Run an estimator on the reference's data (`segment_s` per payload state) and return estimates every 10 ms.
 fn on_reference_data<T: Real, E: Estimator<T>>(
-    mut est: E,
+    est: E,
     excitation: ExcitationDesign,
     seed: u64,
     segment_s: f64,
 ) -> Vec<(f64, StageParams<f64>)> {
-    on_reference_data_health(est_owned(est), excitation, seed, segment_s).0
-}
-
-fn est_owned<E>(e: E) -> E {
-    e
+    on_reference_data_health(est, excitation, seed, segment_s).0
 }
 
 /// [`on_reference_data`], also returning the estimator's health at the end.
