@@ -38,7 +38,7 @@ pub enum Adaptation {
 }
 
 /// An estimator's health report.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct Health {
     /// Adapting or frozen, and why.
@@ -49,6 +49,29 @@ pub struct Health {
     pub rejected_samples: u32,
     /// Times a plant change was detected and the covariance reopened.
     pub changes_detected: u32,
+    /// Running RMS of the innovations (output minus the model's prediction), um; `NaN` if the estimator has no
+    /// such notion. With a right model it is the measurement noise; far above it, the model does not fit the data
+    /// (wrong tuning for the input, a plant the model cannot describe).
+    pub innovation_rms_um: f32,
+}
+
+impl Health {
+    /// Adapting, no events.
+    pub const fn new() -> Self {
+        Health {
+            adaptation: Adaptation::Adapting,
+            numeric_resets: 0,
+            rejected_samples: 0,
+            changes_detected: 0,
+            innovation_rms_um: f32::NAN,
+        }
+    }
+}
+
+impl Default for Health {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 /// An online estimator of the stage parameters.

@@ -32,7 +32,7 @@ impl<T: Real> Estimator<T> for Recorder<T> {
     }
     fn set_adapting(&mut self, _: bool) {}
     fn health(&self) -> Health {
-        Health { adaptation: Adaptation::Adapting, numeric_resets: 0, rejected_samples: 0, changes_detected: 0 }
+        Health::new()
     }
 }
 

@@ -57,6 +57,18 @@ impl<T: Real> Bank<T> {
         }
     }
 
+    /// The innovation RMS (um) of each estimator present, in report order (`NaN` where it has none).
+    pub fn innovation_rms_um(&self) -> impl Iterator<Item = f32> + '_ {
+        [
+            self.rls.as_ref().map(|e| e.health().innovation_rms_um),
+            self.ekf.as_ref().map(|e| e.health().innovation_rms_um),
+            self.hekf.as_ref().map(|e| e.health().innovation_rms_um),
+            self.arx.as_ref().map(|e| e.health().innovation_rms_um),
+        ]
+        .into_iter()
+        .flatten()
+    }
+
     /// `(name, estimate)` of each estimator present, in report order.
     pub fn estimates(&self) -> impl Iterator<Item = (&'static str, StageParams<T>)> + '_ {
         [

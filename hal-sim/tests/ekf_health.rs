@@ -155,3 +155,31 @@ fn change_detection_on_the_payload_change() {
     // With PRBS the filter relocks in well under a second either way; detection must not slow it much.
     assert!(relocks[0] < 1.0 && relocks[0] <= 1.5 * relocks[1], "{relocks:?}");
 }
+
+#[test]
+fn the_wrong_tuning_for_the_input_is_reported_not_turned_into_nan() {
+    // The paper's PRBS tuning (Q2) on the smoothed triangle fails (the float64 reference: b0 -15 %, a1 +38 %). The
+    // filter must stay finite and its health must show the misfit: its innovations are far above the noise that
+    // the right tuning (Q1) leaves.
+    use hal_sim::sim::{Scenario, Simulation};
+    let mut rms = Vec::new();
+    for q in [EkfDesign::Q1, EkfDesign::Q2] {
+        let (board, settings) = Scenario::Triangle.settings(60.0, 2);
+        let mut sim = Simulation::new(board, &settings, (Hekf::<f64>::new(EkfDesign::paper(q).design()),)).unwrap();
+        for _ in 0..600_000 {
+            sim.step();
+        }
+        let est = &sim.pipeline.estimators.0;
+        let (p, h) = (est.params(), est.health());
+        assert!(p.a0.is_finite() && p.a1.is_finite() && p.b0.is_finite());
+        assert_eq!(h.numeric_resets, 0);
+        eprintln!(
+            "triangle with {}: innovation RMS {:.2} nm, estimate error {:.1} %",
+            if q == EkfDesign::Q1 { "Q1" } else { "Q2" },
+            h.innovation_rms_um * 1e3,
+            100.0 * rel(&p, &StageParams::NO_PAYLOAD)
+        );
+        rms.push(h.innovation_rms_um);
+    }
+    assert!(rms[1] > 2.0 * rms[0], "Q2's misfit shows in its innovations: {rms:?}");
+}

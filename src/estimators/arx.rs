@@ -195,12 +195,7 @@ impl<T: Real> ArxEstimator<T> {
         ArxEstimator {
             core: ArxRls::new(&cfg),
             adapting: true,
-            health: Health {
-                adaptation: Adaptation::Adapting,
-                numeric_resets: 0,
-                rejected_samples: 0,
-                changes_detected: 0,
-            },
+            health: Health::new(),
             last_valid: Cell::new(cfg.initial.cast()),
             cfg,
         }

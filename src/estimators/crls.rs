@@ -132,12 +132,7 @@ impl<T: Real> Crls<T> {
             u_prev: T::zero(),
             y_prev: [T::zero(); 2],
             adapting: true,
-            health: Health {
-                adaptation: Adaptation::Adapting,
-                numeric_resets: 0,
-                rejected_samples: 0,
-                changes_detected: 0,
-            },
+            health: Health::new(),
         };
         s.reset_state();
         s

@@ -106,6 +106,8 @@ impl EkfDesign {
             holdoff_samples: libm::round(hd.holdoff_s / t) as u32,
             pe_floor: T::of(hd.pe_floor_v2),
             pe_alpha: T::of(t / hd.pe_tau_s),
+            // The innovation RMS in the health report averages over 1 s.
+            innovation_alpha: T::of(t / 1.0),
             p_ceiling: core::array::from_fn(|i| T::of(hd.ceiling * self.p0_diag[i] * scale[i] * scale[i])),
             p_floor: core::array::from_fn(|i| T::of(hd.floor * self.p0_diag[i] * scale[i] * scale[i])),
             r: T::of(self.r),
@@ -189,6 +191,7 @@ pub struct EkfConfig<T> {
     holdoff_samples: u32,
     pe_floor: T,
     pe_alpha: T,
+    innovation_alpha: T,
     p_ceiling: [T; 5],
     p_floor: [T; 5],
     r: T,
@@ -209,9 +212,9 @@ pub trait EkfKind: Copy + core::fmt::Debug + Default {
     /// Name in reports.
     const NAME: &'static str;
     /// Advance `(z, P)` over one sample period with `u` held and the measurements `y_prev`, `y`; a sample whose
-    /// normalised innovation exceeds `gate_nis` is not used. Returns the normalised innovation and whether the
+    /// normalised innovation exceeds `gate_nis` is not used. Returns the innovation, its variance, and whether the
     /// sample was used.
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, bool);
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, T, bool);
 }
 
 /// Section IV-B: RK4 prediction in substeps, then a Joseph-form update.
@@ -224,26 +227,26 @@ pub struct Continuous;
 impl EkfKind for Hybrid {
     const NAME: &'static str = "hekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T, gate_nis: T) -> (T, bool) {
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T, gate_nis: T) -> (T, T, bool) {
         let h = core.cfg.h;
         for _ in 0..core.cfg.substeps {
             core.rk4(u, h, None);
         }
         // Gate on the a priori innovation.
         let nu = y - core.z[0];
-        let nis = nu * nu / (core.p[idx(0, 0)] + core.cfg.r_d);
-        if nis > gate_nis {
-            return (nis, false);
+        let s = core.p[idx(0, 0)] + core.cfg.r_d;
+        if nu * nu > gate_nis * s {
+            return (nu, s, false);
         }
         core.correct(y);
-        (nis, true)
+        (nu, s, true)
     }
 }
 
 impl EkfKind for Continuous {
     const NAME: &'static str = "ekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, bool) {
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, T, bool) {
         let h = core.cfg.h * T::of(core.cfg.substeps as f64);
         // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
         // x1'' (at the step's start), and the term vanishes at the samples.
@@ -256,13 +259,13 @@ impl EkfKind for Continuous {
         // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
         // step is taken again without the measurement.
         let nu = y - core.z[0];
-        let nis = nu * nu / (core.p[idx(0, 0)] + core.cfg.r_d);
-        if nis > gate_nis {
+        let s = core.p[idx(0, 0)] + core.cfg.r_d;
+        if nu * nu > gate_nis * s {
             *core = before;
             core.rk4(u, h, None);
-            return (nis, false);
+            return (nu, s, false);
         }
-        (nis, true)
+        (nu, s, true)
     }
 }
 
@@ -290,6 +293,8 @@ pub struct Ekf<T, K> {
     holdoff: u32,
     /// Filtered input power.
     input_power: T,
+    /// Running mean square of the innovations, um^2.
+    innovation_ms: T,
     kind: K,
 }
 
@@ -306,16 +311,12 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
             u_prev: T::zero(),
             y_prev: T::zero(),
             adapting: true,
-            health: Health {
-                adaptation: Adaptation::Adapting,
-                numeric_resets: 0,
-                rejected_samples: 0,
-                changes_detected: 0,
-            },
+            health: Health::new(),
             nis_mean: T::one(),
             gated_run: 0,
             holdoff: 0,
             input_power: T::zero(),
+            innovation_ms: T::zero(),
             kind: K::default(),
         };
         s.reset_state();
@@ -540,7 +541,10 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
         let frozen = freeze.then(|| self.core.freeze_parameters());
         let gating = cfg.change_samples > 0 && self.holdoff == 0;
         let gate = if gating { cfg.gate2 * self.nis_mean.max(T::epsilon()) } else { T::greatest() };
-        let (nis, used) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);
+        let (nu, var, used) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);
+        let nis = nu * nu / var;
+        self.innovation_ms += cfg.innovation_alpha * (nu * nu - self.innovation_ms);
+        self.health.innovation_rms_um = self.innovation_ms.sqrt().as_f64() as f32;
         if let Some(f) = frozen {
             self.core.restore_parameters(&f);
         }

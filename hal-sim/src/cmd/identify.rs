@@ -9,7 +9,9 @@
 //! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
 //! - `SUMMARY.json`: per window, each estimator's mean parameters over it and the validation RMSE of SPEC section 7:
 //!   model (1) with those means, simulated exactly (zero-order hold) on the replica input `u'` from zero state one
-//!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`.
+//!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`; and
+//!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
+//!   health view of the same question: far above the noise floor, the model does not fit.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 
 use super::{fail, CliError, OutputFile, Progress};
@@ -52,6 +54,9 @@ pub struct WindowFigures {
     pub mean: StageParams<f64>,
     /// Validation RMSE, nm.
     pub rmse_nm: f64,
+    /// Mean of the estimator's own innovation RMS over the window, nm (`NaN` if it reports none): far above the
+    /// noise, the model does not fit (health's view; the RMSE is the validation's).
+    pub innovation_rms_nm: f64,
 }
 
 /// The result of a run.
@@ -62,6 +67,8 @@ pub struct Identified {
     pub times: Vec<f64>,
     /// Estimates per row, in `names` order.
     pub estimates: Vec<Vec<StageParams<f64>>>,
+    /// Innovation RMS per row, um, in `names` order.
+    pub innovations: Vec<Vec<f32>>,
     /// Truth per row, when the input has it.
     pub truth: Option<Vec<StageParams<f64>>>,
     /// Windows and, per window, the figures of each estimator in `names` order.
@@ -131,6 +138,7 @@ pub fn identify_in<T: nanopos_id::Real>(
     let every = ((0.01 / dt).round() as usize).max(1);
     let names: Vec<&'static str> = pipeline.estimators.estimates().map(|(n, _)| n).collect();
     let (mut times, mut estimates, mut truth_rows) = (Vec::new(), Vec::new(), Vec::new());
+    let mut innovations = Vec::new();
     let (mut u_rep, mut y_rep) = (Vec::with_capacity(n), Vec::with_capacity(n));
     let mut progress = Progress::new("identify", n as u64);
     for k in 0..n {
@@ -140,6 +148,7 @@ pub fn identify_in<T: nanopos_id::Real>(
         if (k + 1) % every == 0 {
             times.push(t[k]);
             estimates.push(pipeline.estimators.estimates().map(|(_, p)| p.cast::<f64>()).collect::<Vec<_>>());
+            innovations.push(pipeline.estimators.innovation_rms_um().collect::<Vec<_>>());
             if let Some(tr) = truth {
                 truth_rows.push(StageParams { a0: tr[0][k], a1: tr[1][k], b0: tr[2][k] });
             }
@@ -181,7 +190,9 @@ pub fn identify_in<T: nanopos_id::Real>(
         let figures = (0..names.len())
             .map(|col| {
                 let mean = mean_of(col);
-                WindowFigures { mean, rmse_nm: validation_rmse_nm(&mean, t, &u_rep, &y_rep, dt, w) }
+                let innovation_rms_nm =
+                    1e3 * rows.iter().map(|&i| innovations[i][col] as f64).sum::<f64>() / rows.len() as f64;
+                WindowFigures { mean, rmse_nm: validation_rmse_nm(&mean, t, &u_rep, &y_rep, dt, w), innovation_rms_nm }
             })
             .collect();
         let window_truth = truth.map(|_| {
@@ -192,7 +203,7 @@ pub fn identify_in<T: nanopos_id::Real>(
         });
         summary.push((*w, figures, window_truth));
     }
-    Ok(Identified { names, times, estimates, truth: truth.map(|_| truth_rows), windows: summary })
+    Ok(Identified { names, times, estimates, innovations, truth: truth.map(|_| truth_rows), windows: summary })
 }
 
 /// SPEC section 7: RMSE (nm) between `y'` and model (1) with `p` driven by `u'` over the window.
@@ -304,8 +315,13 @@ pub fn summary_json(r: &Identified) -> String {
                 .iter()
                 .zip(figs)
                 .map(|(n, f)| {
-                    let rmse = if f.rmse_nm.is_finite() { format!("{:?}", f.rmse_nm) } else { "null".into() };
-                    format!("\"{n}\": {{{}, \"rmse_nm\": {rmse}}}", json_params(&f.mean))
+                    let num = |x: f64| if x.is_finite() { format!("{x:?}") } else { "null".into() };
+                    format!(
+                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}}}",
+                        json_params(&f.mean),
+                        num(f.rmse_nm),
+                        num(f.innovation_rms_nm)
+                    )
                 })
                 .collect();
             let truth = truth.map(|p| format!(", \"truth\": {{{}}}", json_params(&p))).unwrap_or_default();
