@@ -2,7 +2,7 @@
 
 use hal_sim::board::{BoardSettings, SimBoard};
 use hal_sim::sim::{Scenario, Simulation};
-use nanopos_id::estimator::{Adaptation, Estimator, EstimatorBank, FilteredSample, Health};
+use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::filters::BiquadState;
 use nanopos_id::hal::{run_sample, BoardFaults, StageBoard};
