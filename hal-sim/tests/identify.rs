@@ -47,6 +47,7 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
         "\"hekf\"",
         "\"arx\"",
         "\"rmse_nm\"",
+        "\"innovation_rms_nm\"",
         "\"f0_hz\"",
         "\"zeta\"",
         "\"dc_gain\"",
