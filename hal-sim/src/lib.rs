@@ -14,3 +14,4 @@ pub mod experiment;
 pub mod noise;
 pub mod plant;
 pub mod sim;
+pub mod tuning;

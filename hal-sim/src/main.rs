@@ -39,7 +39,7 @@ enum Command {
         /// Estimators to run.
         #[arg(long, default_value = "rls,ekf,hekf,arx")]
         estimators: String,
-        /// Tuning preset: prbs (the paper's Q2, default) or triangle (Q1).
+        /// Tuning: a preset, prbs (the paper's Q2, default) or triangle (Q1), or a TOML file overriding one.
         #[arg(long, default_value = "prbs")]
         tuning: String,
         /// Averaging window T0:T1 in seconds (repeatable) [default: the last quarter of each half].

@@ -101,7 +101,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),
-        (&["identify", "--input", "ok.csv", "--tuning", "fast"], "unknown preset 'fast'"),
+        (&["identify", "--input", "ok.csv", "--tuning", "fast"], "'fast' is neither a preset"),
+        (&["identify", "--input", "ok.csv", "--tuning", "missing.toml"], "missing.toml: cannot read"),
         (&["identify", "--input", "ok.csv", "--window", "5:1"], "T0 < T1"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
     ];
