@@ -104,8 +104,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Identify { input, estimators, tuning, windows, out, summary } => {
             use hal_sim::cmd::identify;
-            let tuning = hal_sim::bank::Tuning::preset(&tuning)
-                .ok_or_else(|| CliError(format!("--tuning: unknown preset '{tuning}' (known: prbs, triangle)")))?;
+            let tuning = hal_sim::tuning::resolve(&tuning)?;
             let args = identify::IdentifyArgs {
                 input: &input,
                 estimators: identify::parse_estimators(&estimators)?,

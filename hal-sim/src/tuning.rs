@@ -172,7 +172,7 @@ mod tests {
         assert_eq!(t.rls.gamma, 0.5);
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
         let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
-        assert_eq!(q.ekf.p0_diag, [1e-11, 1e-5, 1e10, 10.0, 1e9], "P0 follows Q unless given");
+        assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
     }
 
     #[test]
