@@ -13,5 +13,6 @@ pub mod csv;
 pub mod experiment;
 pub mod noise;
 pub mod plant;
+pub mod plot;
 pub mod sim;
 pub mod tuning;

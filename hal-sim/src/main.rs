@@ -51,6 +51,9 @@ enum Command {
         /// Window means and validation RMSE, JSON.
         #[arg(long)]
         summary: Option<PathBuf>,
+        /// Every estimate against time (and the truth when present), SVG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
     },
     /// The paper's whole experiment on the simulated board: PRBS and triangle, every estimator, f64 and f32;
     /// prints a Table II-style table and writes the summaries.
@@ -102,7 +105,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
             let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
             simulate::run(&args).map(|_| ())
         }
-        Command::Identify { input, estimators, tuning, windows, out, summary } => {
+        Command::Identify { input, estimators, tuning, windows, out, summary, plot } => {
             use hal_sim::cmd::identify;
             let tuning = hal_sim::tuning::resolve(&tuning)?;
             let args = identify::IdentifyArgs {
@@ -112,6 +115,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 windows,
                 out: out.as_deref(),
                 summary: summary.as_deref(),
+                plot: plot.as_deref(),
             };
             let result = identify::run(&args)?;
             if args.summary.is_none() {

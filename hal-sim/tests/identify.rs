@@ -29,6 +29,8 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
             "est.csv",
             "--summary",
             "sum.json",
+            "--plot",
+            "fig.svg",
         ],
         d,
     );
@@ -56,6 +58,10 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
         assert!(sum.contains(key), "{key} missing in {sum}");
     }
     assert!(!sum.contains("NaN") && !sum.contains("inf"));
+    let svg = std::fs::read_to_string(d.join("fig.svg")).unwrap();
+    for word in ["<svg", "hekf", "arx", "truth", "error against the truth"] {
+        assert!(svg.contains(word), "{word} missing in the plot");
+    }
 }
 
 #[test]

@@ -1,5 +1,5 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
-//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json]`
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
 //! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
@@ -247,6 +247,8 @@ pub struct IdentifyArgs<'a> {
     pub out: Option<&'a Path>,
     /// `SUMMARY.json`.
     pub summary: Option<&'a Path>,
+    /// `FIG.svg`.
+    pub plot: Option<&'a Path>,
 }
 
 /// Run the command.
@@ -261,7 +263,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     // Both files are prepared before either is moved into place.
     let est = args.out.map(|p| write_estimates(p, &result)).transpose()?;
     let sum = args.summary.map(|p| write_summary(p, &result)).transpose()?;
-    for f in est.into_iter().chain(sum) {
+    let fig = args.plot.map(|p| crate::plot::write(p, &result)).transpose()?;
+    for f in est.into_iter().chain(sum).chain(fig) {
         f.commit()?;
     }
     Ok(result)
