@@ -28,6 +28,17 @@ pub enum Time {
 /// Read `names` from `path`, and `t` as [`Time`] says. Time may start anywhere but must advance by a constant step
 /// (to a relative 1e-6 of the step, which printed decimal times meet).
 pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, CliError> {
+    read_columns_optional(path, names, &[], time).map(|(c, _)| c)
+}
+
+/// [`read_columns`], plus the `optional` columns in the same pass if the header names all of them (then returned
+/// as a second [`Columns`], else `None`).
+pub fn read_columns_optional(
+    path: &Path,
+    names: &[&str],
+    optional: &[&str],
+    time: Time,
+) -> Result<(Columns, Option<Columns>), CliError> {
     let shown = path.display();
     let file = std::fs::File::open(path)
         .map_err(|e| CliError(format!("{shown}: cannot open: {}", crate::cmd::io_reason(&e))))?;
@@ -44,6 +55,11 @@ pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, 
     if !names.contains(&"t") && (time == Time::Required || fields.contains(&"t")) {
         names.push("t");
     }
+    let required = names.len();
+    let with_optional = !optional.is_empty() && optional.iter().all(|o| fields.contains(o));
+    if with_optional {
+        names.extend_from_slice(optional);
+    }
     let mut index = Vec::with_capacity(names.len());
     for name in &names {
         match fields.iter().position(|f| f == name) {
@@ -56,7 +72,7 @@ pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, 
             }
         }
     }
-    let t_col = names.iter().position(|&n| n == "t");
+    let t_col = names[..required].iter().position(|&n| n == "t");
     let mut out = Columns { data: vec![Vec::new(); names.len()], sample_period_s: None };
     let mut t0 = 0.0;
     let mut step = 0.0;
@@ -107,5 +123,6 @@ pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, 
     if t_col.is_some() && step > 0.0 {
         out.sample_period_s = Some(step);
     }
-    Ok(out)
+    let extra = with_optional.then(|| Columns { data: out.data.split_off(required), sample_period_s: None });
+    Ok((out, extra))
 }

@@ -17,7 +17,7 @@
 use super::{fail, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
 use crate::board::SimBoard;
-use crate::csv::{read_columns, Time};
+use crate::csv::{read_columns_optional, Time};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
 use nanopos_id::pipeline::{Pipeline, PipelineSettings};
@@ -254,8 +254,7 @@ pub struct IdentifyArgs<'a> {
 /// Run the command.
 pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let source = args.input.display().to_string();
-    let cols = read_columns(args.input, &["u", "y"], Time::Required)?;
-    let truth_cols = read_columns(args.input, &["a0", "a1", "b0"], Time::IfPresent).ok();
+    let (cols, truth_cols) = read_columns_optional(args.input, &["u", "y"], &["a0", "a1", "b0"], Time::Required)?;
     let (u, y, t) = (&cols.data[0], &cols.data[1], &cols.data[2]);
     let truth = truth_cols.as_ref().map(|c| &c.data[..3]);
     let rec = Recording { source: &source, t, u, y, truth };
