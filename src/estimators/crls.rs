@@ -28,6 +28,7 @@
 //! the norm check.
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
+use crate::estimators::{axpy, rk4_combine};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -220,15 +221,12 @@ impl<T: Real> Estimator<T> for Crls<T> {
         x[3..9].copy_from_slice(&self.p);
         x[9..12].copy_from_slice(&self.xi_u);
         x[12..15].copy_from_slice(&self.xi_y);
-        let (h, hh, h6) = (self.cfg.h, self.cfg.h * half, self.cfg.h / T::of(6.0));
+        let (h, hh) = (self.cfg.h, self.cfg.h * half);
         let k1 = self.derivative(&x, u, y_at(T::zero()), adapt_p);
-        let k2 = self.derivative(&add(&x, &k1, hh), u, y_at(half), adapt_p);
-        let k3 = self.derivative(&add(&x, &k2, hh), u, y_at(half), adapt_p);
-        let k4 = self.derivative(&add(&x, &k3, h), u, y_at(T::one()), adapt_p);
-        let two = T::of(2.0);
-        for i in 0..15 {
-            x[i] += h6 * (k1[i] + two * (k2[i] + k3[i]) + k4[i]);
-        }
+        let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_at(half), adapt_p);
+        let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_at(half), adapt_p);
+        let k4 = self.derivative(&axpy(&x, &k3, h), u, y_at(T::one()), adapt_p);
+        rk4_combine(&mut x, [&k1, &k2, &k3, &k4], h);
         self.theta.copy_from_slice(&x[..3]);
         self.p.copy_from_slice(&x[3..9]);
         self.xi_u.copy_from_slice(&x[9..12]);
@@ -264,9 +262,4 @@ impl<T: Real> Estimator<T> for Crls<T> {
     fn health(&self) -> Health {
         self.health
     }
-}
-
-#[inline(always)]
-fn add<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {
-    core::array::from_fn(|i| a[i] + h * b[i])
 }

@@ -41,6 +41,7 @@
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
+use crate::estimators::{axpy, rk4_combine};
 use crate::{Real, StageParams};
 
 /// Packed index of `(i, j)` in a symmetric 5 x 5 matrix (upper triangle, row-major).
@@ -418,22 +419,18 @@ impl<T: Real> EkfCore<T> {
     /// `y_start + (y_end - y_start) f + bow f (1 - f)` at the fraction `f` of the step.
     fn rk4(&mut self, u: T, h: T, ys: Option<(T, T, T)>) {
         let half = T::of(0.5);
-        let (hh, h6) = (h * half, h / T::of(6.0));
+        let hh = h * half;
         let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
         let (z, p) = (self.z, self.p);
         let (k1z, k1p) = self.derivative(&z, &p, u, y_at(T::zero()));
-        let (z2, p2) = (add(&z, &k1z, hh), add(&p, &k1p, hh));
+        let (z2, p2) = (axpy(&z, &k1z, hh), axpy(&p, &k1p, hh));
         let (k2z, k2p) = self.derivative(&z2, &p2, u, y_at(half));
-        let (z3, p3) = (add(&z, &k2z, hh), add(&p, &k2p, hh));
+        let (z3, p3) = (axpy(&z, &k2z, hh), axpy(&p, &k2p, hh));
         let (k3z, k3p) = self.derivative(&z3, &p3, u, y_at(half));
-        let (z4, p4) = (add(&z, &k3z, h), add(&p, &k3p, h));
+        let (z4, p4) = (axpy(&z, &k3z, h), axpy(&p, &k3p, h));
         let (k4z, k4p) = self.derivative(&z4, &p4, u, y_at(T::one()));
-        for i in 0..5 {
-            self.z[i] += h6 * (k1z[i] + T::of(2.0) * (k2z[i] + k3z[i]) + k4z[i]);
-        }
-        for i in 0..15 {
-            self.p[i] += h6 * (k1p[i] + T::of(2.0) * (k2p[i] + k3p[i]) + k4p[i]);
-        }
+        rk4_combine(&mut self.z, [&k1z, &k2z, &k3z, &k4z], h);
+        rk4_combine(&mut self.p, [&k1p, &k2p, &k3p, &k4p], h);
     }
 
     /// Joseph-form update with the scalar measurement `y` of `x1`.
@@ -512,11 +509,6 @@ impl<T: Real> EkfCore<T> {
             && self.p.iter().all(|x| x.is_finite())
             && (0..5).all(|i| self.p[idx(i, i)] >= T::zero())
     }
-}
-
-#[inline(always)]
-fn add<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {
-    core::array::from_fn(|i| a[i] + h * b[i])
 }
 
 impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {

@@ -11,3 +11,20 @@ pub mod crls;
 pub mod ekf;
 pub mod lsq;
 pub mod rls;
+
+use crate::Real;
+
+/// `a + h b`, the RK4 stage argument.
+#[inline(always)]
+pub(crate) fn axpy<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {
+    core::array::from_fn(|i| a[i] + h * b[i])
+}
+
+/// `x += h / 6 (k1 + 2 k2 + 2 k3 + k4)`, the RK4 step.
+#[inline(always)]
+pub(crate) fn rk4_combine<T: Real, const N: usize>(x: &mut [T; N], k: [&[T; N]; 4], h: T) {
+    let (h6, two) = (h / T::of(6.0), T::of(2.0));
+    for i in 0..N {
+        x[i] += h6 * (k[0][i] + two * (k[1][i] + k[2][i]) + k[3][i]);
+    }
+}
