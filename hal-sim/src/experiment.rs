@@ -124,3 +124,41 @@ pub fn relock_time(h: &[Sample], t_change: f64, tol: f64) -> Option<f64> {
     }
     settled_at.map(|t| t - t_change)
 }
+
+impl Histories {
+    /// `("f64", history)` and `("f32", history)`.
+    pub fn both(&self) -> [(&'static str, &[Sample]); 2] {
+        [("f64", &self.f64), ("f32", &self.f32)]
+    }
+}
+
+/// The paper's PRBS experiment (200 s, payload removed at 100 s, the reference's seed) with one estimator.
+pub fn paper_prbs<E64: Estimator<f64>, E32: Estimator<f32>>(
+    make64: impl FnOnce() -> E64,
+    make32: impl FnOnce() -> E32,
+) -> Histories {
+    run(Scenario::Prbs, 200.0, 1, make64, make32, |_, _| {})
+}
+
+/// What a 200 s run reports: relative errors `(a0, a1, b0)` of the means over 75-100 s and 175-200 s (the last
+/// quarter of each half), and the relock time after the change at 100 s (a0 and b0 within 1 %).
+#[derive(Clone, Copy, Debug)]
+pub struct Report {
+    /// Errors per window.
+    pub windows: [[f64; 3]; 2],
+    /// Relock time, s.
+    pub relock_s: Option<f64>,
+}
+
+/// Compute and print the [`Report`] of a 200 s history, each line headed by `label`.
+pub fn report(label: &str, h: &[Sample]) -> Report {
+    let mut windows = [[0.0; 3]; 2];
+    for (w, (t0, t1)) in windows.iter_mut().zip([(75.0, 100.0), (175.0, 200.0)]) {
+        let (m, truth) = window_mean(h, t0, t1);
+        *w = rel_errors(&m, &truth);
+        eprintln!("{label} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%", w[0] * 100.0, w[1] * 100.0, w[2] * 100.0);
+    }
+    let relock_s = relock_time(h, 100.0, 0.01);
+    eprintln!("{label} relock to 1%: {relock_s:?} s");
+    Report { windows, relock_s }
+}

@@ -1,39 +1,23 @@
 //! The `arx` estimator on the simulated paper experiment (PRBS, 200 s, payload removed at 100 s).
 
-use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
+use hal_sim::experiment::{paper_prbs, rel_errors, relock_time, report, run, window_mean};
 use hal_sim::sim::Scenario;
 use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
 
 #[test]
 fn arx_on_the_paper_prbs_experiment() {
     let design = ArxDesign::default();
-    let h = run(
-        Scenario::Prbs,
-        200.0,
-        1,
-        || ArxEstimator::<f64>::new(design.design()),
-        || ArxEstimator::<f32>::new(design.design()),
-        |_, _| {},
-    );
-    for (name, hist) in [("f64", &h.f64), ("f32", &h.f32)] {
-        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
-            let (m, truth) = window_mean(hist, t0, t1);
-            let e = rel_errors(&m, &truth);
-            eprintln!(
-                "arx {name} window {t0}-{t1}: a0 {:+.4}%  a1 {:+.4}%  b0 {:+.4}%",
-                e[0] * 100.0,
-                e[1] * 100.0,
-                e[2] * 100.0
-            );
-            // Regression guards, not derived bounds (the measured errors are this test's report): the resonance
-            // frequency within 0.1 % of a0 (what an ARX at the sample rate pins best), damping and gain within
-            // 1.5 % (measured up to 1.16 % and 0.64 %, the residual of the filter replicas and the second mode).
-            assert!(e[0].abs() < 1e-3 && e[1].abs() < 1.5e-2 && e[2].abs() < 1.5e-2, "{name} {t0}-{t1}: {e:?}");
+    let h = paper_prbs(|| ArxEstimator::<f64>::new(design.design()), || ArxEstimator::<f32>::new(design.design()));
+    for (name, hist) in h.both() {
+        let r = report(&format!("arx {name}"), hist);
+        // Regression guards, not derived bounds (the measured errors are this test's report): the resonance
+        // frequency within 0.1 % of a0 (what an ARX at the sample rate pins best), damping and gain within
+        // 1.5 % (measured up to 1.09 % and 0.83 %, the residual of the filter replicas and the second mode).
+        for e in r.windows {
+            assert!(e[0].abs() < 1e-3 && e[1].abs() < 1.5e-2 && e[2].abs() < 1.5e-2, "{name}: {e:?}");
         }
-        let relock = relock_time(hist, 100.0, 0.01);
-        eprintln!("arx {name} relock to 1%: {relock:?} s");
         // Measured 2.1 s with a 0.5 s memory (lambda = 0.9998); guard at 3 s.
-        assert!(relock.is_some_and(|t| t < 3.0), "{name}: {relock:?}");
+        assert!(r.relock_s.is_some_and(|t| t < 3.0), "{name}: {:?}", r.relock_s);
     }
 }
 

@@ -106,31 +106,24 @@ fn hekf_f32_stays_with_f64_on_the_reference_prbs_data() {
     }
 }
 
+/// SPEC 10 on the full board: a0 and b0 within 0.1 %, a1 within 1 %, relock in about a second. Met, except b0
+/// without payload (+0.28 to +0.30 %): the second mode (1.9 kHz) that the 2nd-order model cannot represent (+0.06 %
+/// with it switched off, see hekf_bias_by_board_effect). That window's b0 is guarded at 0.35 % and the limit written
+/// down.
+fn assert_ekf_goals(name: &str, r: &hal_sim::experiment::Report) {
+    for (w, e) in r.windows.iter().enumerate() {
+        let b0_bound = if w == 0 { 1e-3 } else { 3.5e-3 };
+        assert!(e[0].abs() < 1e-3 && e[1].abs() < 1e-2 && e[2].abs() < b0_bound, "{name} window {w}: {e:?}");
+    }
+    assert!(r.relock_s.is_some_and(|t| t < 1.0), "{name}: {:?}", r.relock_s);
+}
+
 #[test]
 fn hekf_on_the_full_simulated_board() {
-    use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
-    use hal_sim::sim::Scenario;
     let design = HekfDesign::default();
-    let h = run(
-        Scenario::Prbs,
-        200.0,
-        1,
-        || Hekf::<f64>::new(design.design()),
-        || Hekf::<f32>::new(design.design()),
-        |_, _| {},
-    );
-    for (name, hist) in [("f64", &h.f64), ("f32", &h.f32)] {
-        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
-            let (m, truth) = window_mean(hist, t0, t1);
-            let e = rel_errors(&m, &truth);
-            eprintln!(
-                "hekf board {name} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%",
-                e[0] * 100.0,
-                e[1] * 100.0,
-                e[2] * 100.0
-            );
-        }
-        eprintln!("hekf board {name} relock to 1%: {:?} s", relock_time(hist, 100.0, 0.01));
+    let h = hal_sim::experiment::paper_prbs(|| Hekf::<f64>::new(design.design()), || Hekf::<f32>::new(design.design()));
+    for (name, hist) in h.both() {
+        assert_ekf_goals(name, &hal_sim::experiment::report(&format!("hekf board {name}"), hist));
     }
 }
 
@@ -178,8 +171,6 @@ fn hekf_bias_by_board_effect() {
 
 #[test]
 fn cekf_on_the_reference_data_and_on_the_full_board() {
-    use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
-    use hal_sim::sim::Scenario;
     let design = HekfDesign::default();
     let h = on_reference_data::<f64, _>(Cekf::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
     for (t0, t1, truth) in [(15.0, 20.0, StageParams::PAYLOAD), (35.0, 40.0, StageParams::NO_PAYLOAD)] {
@@ -189,31 +180,9 @@ fn cekf_on_the_reference_data_and_on_the_full_board() {
         // O((w T)^3) and the estimate's wander, measured below 2e-4.
         assert!(e.iter().all(|x| x.abs() < 5e-4), "{e:?}");
     }
-    let b = run(
-        Scenario::Prbs,
-        200.0,
-        1,
-        || Cekf::<f64>::new(design.design()),
-        || Cekf::<f32>::new(design.design()),
-        |_, _| {},
-    );
-    for (name, hist) in [("f64", &b.f64), ("f32", &b.f32)] {
-        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
-            let (m, truth) = window_mean(hist, t0, t1);
-            let e = rel_errors(&m, &truth);
-            eprintln!(
-                "cekf board {name} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%",
-                e[0] * 100.0,
-                e[1] * 100.0,
-                e[2] * 100.0
-            );
-            // The same goals and the same second-mode limit on b0 without payload as the hybrid filter.
-            let b0_bound = if t0 < 100.0 { 1e-3 } else { 3.5e-3 };
-            assert!(e[0].abs() < 1e-3 && e[1].abs() < 1e-2 && e[2].abs() < b0_bound, "{name} {t0}-{t1}: {e:?}");
-        }
-        let relock = relock_time(hist, 100.0, 0.01);
-        eprintln!("cekf board {name} relock to 1%: {relock:?} s");
-        assert!(relock.is_some_and(|t| t < 1.0), "{name}: {relock:?}");
+    let b = hal_sim::experiment::paper_prbs(|| Cekf::<f64>::new(design.design()), || Cekf::<f32>::new(design.design()));
+    for (name, hist) in b.both() {
+        assert_ekf_goals(name, &hal_sim::experiment::report(&format!("cekf board {name}"), hist));
     }
 }
 
@@ -233,31 +202,14 @@ fn crls_on_the_reference_data() {
 
 #[test]
 fn crls_on_the_full_board_in_f64_and_f32() {
-    use hal_sim::experiment::{rel_errors, relock_time, run, window_mean};
-    use hal_sim::sim::Scenario;
+    use hal_sim::experiment::{paper_prbs, rel_errors, report, window_mean};
     use nanopos_id::estimators::crls::{Crls, CrlsDesign};
     let design = CrlsDesign::default();
-    let b = run(
-        Scenario::Prbs,
-        200.0,
-        1,
-        || Crls::<f64>::new(design.design()),
-        || Crls::<f32>::new(design.design()),
-        |_, _| {},
-    );
-    for (name, hist) in [("f64", &b.f64), ("f32", &b.f32)] {
-        for (t0, t1) in [(75.0, 100.0), (175.0, 200.0)] {
-            let (m, truth) = window_mean(hist, t0, t1);
-            let e = rel_errors(&m, &truth);
-            eprintln!(
-                "crls board {name} {t0}-{t1}: a0 {:+.4}% a1 {:+.4}% b0 {:+.4}%",
-                e[0] * 100.0,
-                e[1] * 100.0,
-                e[2] * 100.0
-            );
-            assert!(e.iter().all(|x| x.abs() < 1e-2), "{name} {t0}-{t1}: {e:?}");
-        }
-        eprintln!("crls board {name} relock to 1%: {:?} s", relock_time(hist, 100.0, 0.01));
+    let b = paper_prbs(|| Crls::<f64>::new(design.design()), || Crls::<f32>::new(design.design()));
+    for (name, hist) in b.both() {
+        // SPEC 10: the continuous RLS within 1 %.
+        let r = report(&format!("crls board {name}"), hist);
+        assert!(r.windows.iter().flatten().all(|x| x.abs() < 1e-2), "{name}: {r:?}");
     }
     let (m64, _) = window_mean(&b.f64, 175.0, 200.0);
     let (m32, _) = window_mean(&b.f32, 175.0, 200.0);
