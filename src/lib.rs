@@ -18,6 +18,8 @@ pub mod excitation;
 pub mod filters;
 pub mod fixed;
 pub mod hal;
+#[cfg(feature = "harness")]
+pub mod harness;
 pub mod linalg;
 pub mod params;
 pub mod pipeline;

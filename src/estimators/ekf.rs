@@ -40,6 +40,9 @@
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
 
+#[cfg(feature = "dense-ekf")]
+pub mod dense;
+
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::{axpy, rk4_combine};
 use crate::{Real, StageParams};

@@ -1,0 +1,354 @@
+//! The nanopos-id core on the Cortex-M4F instruction set, under QEMU (`mps2-an386`): `qemu/run` at the repository
+//! root builds and runs it.
+//!
+//! 1. **Correctness.** Replays the probe codes the simulated board produced (`target/qemu-vectors.bin`, embedded)
+//!    through the harness workload (the pipeline with the paper's three estimators, the ARX RLS in f32 and in
+//!    Q31.32, the dense hybrid EKF): every DAC code and every final estimate must equal the host's, bit for bit.
+//! 2. **Cost.** Times each kernel per update with SysTick under `-icount` (every instruction advances QEMU's virtual
+//!    clock by exactly `2^shift` ns), converts to instructions exactly, and writes `target/qemu-bench.json`.
+//!
+//! The verdict is the semihosting exit status: 0 when every check passed.
+
+#![no_std]
+#![no_main]
+
+use core::fmt::Write as _;
+
+use cortex_m::peripheral::syst::SystClkSource;
+use cortex_m::peripheral::SYST;
+use cortex_m_rt::{entry, exception, ExceptionFrame};
+use defmt_semihosting as _;
+use nanopos_id::estimator::{Estimator, FilteredSample};
+use nanopos_id::excitation::ExcitationState;
+use nanopos_id::filters::{BiquadState, PrefilterState};
+use nanopos_id::fixed::Q32;
+use nanopos_id::harness::{Results, Vectors, Workload};
+use nanopos_id::pipeline::Pipeline;
+use nanopos_id::Scalar;
+
+static VECTORS: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../target/qemu-vectors.bin"));
+
+/// Updates timed per kernel: the last `BENCH` samples of the run (estimators converged, the payload change behind).
+const BENCH: usize = 1000;
+/// SysTick's clock on mps2-an386 (the 25 MHz system clock): 40 ns per tick.
+const TICK_NS: u64 = 40;
+
+/// Exact instruction counts from SysTick ticks.
+struct Clock {
+    /// `-icount shift`: each instruction takes `2^shift` ns of virtual time.
+    shift: u32,
+    /// Instructions of the timing frame itself (two SysTick reads with nothing between).
+    frame: u32,
+}
+
+/// Calls the closure behind `ctx` (the timed call: its body and its prologue and epilogue are what is counted).
+unsafe extern "C" fn trampoline<F: FnMut()>(ctx: *mut F) {
+    // SAFETY: `ticks` passes a pointer to a live `F` that nothing else borrows during the call.
+    unsafe { (*ctx)() }
+}
+
+/// Ticks of SysTick (counting down over 2^24) across one call of `f`. The two reads and the call are one `asm!`
+/// block, so the compiler cannot schedule anything else into the timed region: it holds the first read, the call,
+/// `f`'s body and its return, and nothing else.
+#[inline(always)]
+fn ticks<F: FnMut()>(f: &mut F) -> u32 {
+    let (t0, t1): (u32, u32);
+    // SAFETY: SYST_CVR (0xE000_E018) is always mapped on a Cortex-M; the callee follows the C ABI, whose
+    // caller-saved registers (r0-r3, r12, lr, d0-d7) are declared clobbered; the address and the first reading live in callee-saved r4/r5.
+    unsafe {
+        core::arch::asm!(
+            "ldr r5, [r4]",
+            "blx r2",
+            "ldr r1, [r4]",
+            inout("r0") f as *mut F => _,
+            lateout("r1") t1,
+            inout("r2") trampoline::<F> as *const () as usize => _,
+            in("r4") 0xE000_E018u32,
+            out("r5") t0,
+            // The rest of the C ABI's caller-saved registers (this FPU has d0-d15 only).
+            out("r3") _, out("r12") _, out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+        );
+    }
+    t0.wrapping_sub(t1) & 0x00FF_FFFF
+}
+
+/// Exactly `N` instructions.
+#[inline(always)]
+fn nops<const N: usize>() {
+    // SAFETY: `nop` has no effect on memory, stack, registers or flags.
+    unsafe { core::arch::asm!(".rept {n}", "nop", ".endr", n = const N, options(nomem, nostack, preserves_flags)) }
+}
+
+impl Clock {
+    /// Start SysTick and find `shift` from 1000 known instructions; `None` when the counts cannot be exact.
+    fn calibrate(syst: &mut SYST) -> Option<Self> {
+        syst.set_clock_source(SystClkSource::Core);
+        syst.set_reload(0x00FF_FFFF);
+        syst.clear_current();
+        syst.enable_counter();
+        // The first reads after enabling see the counter's first reload: warm up.
+        let _ = ticks(&mut || ());
+        let empty = ticks(&mut || ());
+        let one = ticks(&mut nops::<1>);
+        let thousand = ticks(&mut nops::<1000>);
+        // Ticks per instruction are 2^shift / 40: find the power of two.
+        let ns_per_insn = (u64::from(thousand - empty) * TICK_NS + 500) / 1000;
+        let shift = 63 - ns_per_insn.max(1).leading_zeros();
+        defmt::info!("clock: 1000 instructions took {} ticks (frame {} ticks): icount shift {}", thousand - empty, empty, shift);
+        // Below 2^7 ns per instruction, a tick (40 ns) is not below half an instruction and rounding is not exact.
+        if shift < 7 || ns_per_insn.abs_diff(1 << shift) * 100 > 1 << shift {
+            defmt::error!("run under -icount shift=N with N >= 7 (a 25 MHz SysTick): counts would not be exact");
+            return None;
+        }
+        let mut clock = Clock { shift, frame: 0 };
+        clock.frame = clock.instructions(empty);
+        defmt::info!("clock: empty {} ticks, 1 nop {} ticks, 1000 nops {} ticks", empty, one, thousand);
+        let exact = clock.instructions(one) == 1 + clock.frame && clock.instructions(thousand) == 1000 + clock.frame;
+        defmt::info!("clock: the timing frame (two reads and an empty call) is {} instructions; 1 and 1000 instructions counted exactly: {}", clock.frame, exact);
+        exact.then_some(clock)
+    }
+
+    fn instructions(&self, ticks: u32) -> u32 {
+        let half = 1u64 << (self.shift - 1);
+        ((u64::from(ticks) * TICK_NS + half) >> self.shift) as u32
+    }
+
+    /// Instructions `f` executes when called (its body, prologue and epilogue; not the return itself).
+    #[inline(always)]
+    fn count<R>(&self, mut f: impl FnMut() -> R) -> (R, u32) {
+        let mut out = None;
+        let n = ticks(&mut || out = Some(f()));
+        (out.unwrap_or_else(|| fail("timed call did not run")), self.instructions(n).saturating_sub(self.frame))
+    }
+}
+
+/// Per-update counts of one kernel.
+#[derive(Clone, Copy, Default)]
+struct Stats {
+    total: u64,
+    max: u32,
+    updates: u32,
+}
+
+impl Stats {
+    fn add(&mut self, n: u32) {
+        self.total += u64::from(n);
+        self.max = self.max.max(n);
+        self.updates += 1;
+    }
+    fn mean(&self) -> u32 {
+        ((self.total + u64::from(self.updates) / 2) / u64::from(self.updates.max(1))) as u32
+    }
+}
+
+/// A fixed-capacity text buffer (the JSON and the table lines).
+struct Text<const N: usize> {
+    buf: [u8; N],
+    len: usize,
+}
+
+impl<const N: usize> Text<N> {
+    const fn new() -> Self {
+        Text { buf: [0; N], len: 0 }
+    }
+    fn as_str(&self) -> &str {
+        core::str::from_utf8(&self.buf[..self.len]).unwrap_or("")
+    }
+}
+
+impl<const N: usize> core::fmt::Write for Text<N> {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        let end = self.len + s.len();
+        self.buf.get_mut(self.len..end).ok_or(core::fmt::Error)?.copy_from_slice(s.as_bytes());
+        self.len = end;
+        Ok(())
+    }
+}
+
+fn fail(what: &str) -> ! {
+    defmt::error!("FAIL: {=str}", what);
+    semihosting::process::exit(1)
+}
+
+fn compare(name: &str, got: &[u32], expected: &[u32]) -> bool {
+    let same = got == expected;
+    if same {
+        defmt::info!("{=str}: bit-identical to the host: {:#010x}", name, got);
+    } else {
+        defmt::error!("{=str}: {:#010x} on QEMU, {:#010x} on the host", name, got, expected);
+    }
+    same
+}
+
+fn compare_results(got: &Results, expected: &Results) -> bool {
+    let fixed = |r: &Results| -> [u32; 8] { core::array::from_fn(|i| (r.arx_fixed[i / 2] >> (32 * (i % 2))) as u32) };
+    let sums = |r: &Results| [r.dac_code_sum as u32, (r.dac_code_sum >> 32) as u32];
+    [
+        compare("crls_f32 [a0, a1, b0]", &got.crls, &expected.crls),
+        compare("cekf_f32 [a0, a1, b0]", &got.cekf, &expected.cekf),
+        compare("hekf_f32 [a0, a1, b0]", &got.hekf, &expected.hekf),
+        compare("hekf_dense_f32 [a0, a1, b0]", &got.hekf_dense, &expected.hekf_dense),
+        compare("arx_rls_f32 [a0, a1, b0]", &got.arx, &expected.arx),
+        compare("arx_rls_fixed theta (i64 halves)", &fixed(got), &fixed(expected)),
+        compare("DAC code sum", &sums(got), &sums(expected)),
+    ]
+    .iter()
+    .all(|&ok| ok)
+}
+
+#[entry]
+fn main() -> ! {
+    let mut core = cortex_m::Peripherals::take().unwrap_or_else(|| fail("core peripherals taken"));
+    let Some(clock) = Clock::calibrate(&mut core.SYST) else { fail("instruction counting is not exact") };
+    let vectors = Vectors::parse(VECTORS).unwrap_or_else(|_| fail("the embedded vectors file is damaged"));
+    let n = vectors.len();
+    if n <= BENCH {
+        fail("the vectors hold too few samples for the benchmark window");
+    }
+    let mut w = Workload::new(&vectors.board).unwrap_or_else(|_| fail("the recorded board's settings are invalid"));
+
+    // 1. The whole run, with the pipeline's step timed every sample (its worst case includes the payload change),
+    //    snapshots at the start of the benchmark window, and the window's filtered samples kept.
+    let mut pipeline_run = Stats::default();
+    let mut window = [FilteredSample::<f32>::default(); BENCH];
+    let mut snapshot = None;
+    for k in 0..n {
+        let (probe, dac) = vectors.sample(k);
+        if k == n - BENCH {
+            snapshot = Some(w.clone());
+        }
+        let (out, insns) = clock.count(|| w.pipeline.step(&w.cfg, probe));
+        pipeline_run.add(insns);
+        w.step_others(&out);
+        if out.dac_code != dac {
+            defmt::error!("sample {}: DAC code {} on QEMU, {} on the host", k, out.dac_code, dac);
+            fail("the pipeline's output differs from the host's");
+        }
+        if k >= n - BENCH {
+            window[k - (n - BENCH)] = out.estimator_input.unwrap_or_else(|| fail("a fault in the benchmark window"));
+        }
+    }
+    let results = w.results();
+    let correct = compare_results(&results, &vectors.expected);
+    defmt::info!("{} samples: every DAC code equal to the host's", n);
+    let start = snapshot.unwrap_or_else(|| fail("no snapshot"));
+
+    // 2. Each kernel over the window, from the snapshot: the same updates as in the run, so each must end where the
+    //    run ended (checked below), and the counts are those of converged estimators on real data.
+    let mut json: Text<2048> = Text::new();
+    let mut table = Bench { clock: &clock, json: &mut json, first: true };
+    let mut bench_ok = true;
+
+    let mut p = start.pipeline.clone();
+    let stats = table.kernel("pipeline_all_f32", |c, s| {
+        for k in n - BENCH..n {
+            s.add(c.count(|| p.step(&start.cfg, vectors.sample(k).0)).1);
+        }
+    });
+    let _ = stats;
+    bench_ok &= p.estimators.2.params() == w.pipeline.estimators.2.params();
+    let mut bare = Pipeline::new(&start.cfg, ());
+    table.kernel("pipeline_bare_f32", |c, s| {
+        for k in 0..BENCH {
+            s.add(c.count(|| bare.step(&start.cfg, vectors.sample(k).0)).1);
+        }
+    });
+    let (mut crls, mut cekf, mut hekf) = start.pipeline.estimators;
+    table.kernel("crls_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| crls.update(x)).1)));
+    table.kernel("cekf_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cekf.update(x)).1)));
+    table.kernel("hekf_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| hekf.update(x)).1)));
+    let mut dense = start.hekf_dense;
+    table.kernel("hekf_dense_f32", |c, s| {
+        window.iter().for_each(|x| s.add(c.count(|| dense.update(x.u_f.value, x.y_f.value)).1))
+    });
+    let mut arx = start.arx.clone();
+    table.kernel("arx_rls_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| arx.update(x)).1)));
+    let fixed_in: [(Q32, Q32); BENCH] =
+        core::array::from_fn(|i| (Q32::of(f64::from(window[i].u_f.value)), Q32::of(f64::from(window[i].y_f.value))));
+    let mut arx_fixed = start.arx_fixed;
+    table.kernel("arx_rls_fixed", |c, s| {
+        fixed_in.iter().for_each(|&(u, y)| s.add(c.count(|| arx_fixed.update(&start.arx_fixed_cfg, u, y, true)).1))
+    });
+    bench_ok &= [crls.params(), cekf.params(), hekf.params()]
+        == [w.pipeline.estimators.0.params(), w.pipeline.estimators.1.params(), w.pipeline.estimators.2.params()]
+        && dense.params() == w.hekf_dense.params()
+        && arx.params() == w.arx.params()
+        && arx_fixed.rls().theta() == w.arx_fixed.rls().theta();
+
+    let cfg = &start.cfg;
+    let mut pre = PrefilterState::default();
+    table.kernel("prefilter_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cfg.prefilter.update(&mut pre, x.u)).1)));
+    let mut bq = BiquadState::default();
+    table.kernel("reconstruction_replica_f32", |c, s| {
+        window.iter().for_each(|x| s.add(c.count(|| cfg.reconstruction.update(&mut bq, x.u)).1))
+    });
+    let mut bq = BiquadState::default();
+    table.kernel("antialias_replica_f32", |c, s| {
+        window.iter().for_each(|x| s.add(c.count(|| cfg.antialias.update(&mut bq, x.u)).1))
+    });
+    let mut bq = BiquadState::default();
+    table.kernel("lag_replica_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cfg.lags.update(&mut bq, x.u)).1)));
+    let mut ex = ExcitationState::default();
+    table.kernel("excitation_prbs_f32", |c, s| (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1)));
+
+    table.summary("pipeline_run_f32 (all samples)", &pipeline_run);
+    let _ = write!(table.json, "\n}}\n");
+    if semihosting::fs::write(c"target/qemu-bench.json", json.as_str().as_bytes()).is_err() {
+        fail("could not write target/qemu-bench.json on the host");
+    }
+    defmt::info!("wrote target/qemu-bench.json");
+
+    if !bench_ok {
+        fail("a benchmark replay did not end where the run ended");
+    }
+    if !correct {
+        fail("results differ from the host's");
+    }
+    defmt::info!("PASS");
+    semihosting::process::exit(0)
+}
+
+/// The table on the log and the JSON file.
+struct Bench<'a> {
+    clock: &'a Clock,
+    json: &'a mut Text<2048>,
+    first: bool,
+}
+
+impl Bench<'_> {
+    fn kernel(&mut self, name: &str, run: impl FnOnce(&Clock, &mut Stats)) -> Stats {
+        let mut s = Stats::default();
+        run(self.clock, &mut s);
+        let _ = write!(
+            self.json,
+            "{}\n  \"{}\": {{\"instructions_per_update\": {}, \"max\": {}, \"updates\": {}}}",
+            if self.first { "{" } else { "," },
+            name,
+            s.mean(),
+            s.max,
+            s.updates
+        );
+        self.first = false;
+        self.summary(name, &s);
+        s
+    }
+
+    fn summary(&self, name: &str, s: &Stats) {
+        let mut line: Text<96> = Text::new();
+        let _ = write!(line, "{:<32} {:>8} {:>8} {:>7}", name, s.mean(), s.max, s.updates);
+        defmt::println!("{=str}", line.as_str());
+    }
+}
+
+#[exception]
+unsafe fn HardFault(_frame: &ExceptionFrame) -> ! {
+    fail("HardFault")
+}
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    let mut msg: Text<256> = Text::new();
+    let _ = write!(msg, "{info}");
+    fail(msg.as_str())
+}
