@@ -9,6 +9,9 @@ fn main() {
     let vectors = PathBuf::from("../target/qemu-vectors.bin");
     println!("cargo:rerun-if-changed={}", vectors.display());
     if !vectors.exists() {
-        panic!("{} is missing: `qemu/run` generates it (cargo run --release -p hal-sim --example qemu-vectors)", vectors.display());
+        panic!(
+            "{} is missing: `qemu/run` generates it (cargo run --release -p hal-sim --example qemu-vectors)",
+            vectors.display()
+        );
     }
 }

@@ -204,12 +204,7 @@ impl<'a> Vectors<'a> {
     }
 
     /// Serialise: the header and results, then each sample, through `out`.
-    pub fn write(
-        board: &BoardDescription,
-        expected: &Results,
-        samples: &[(u32, u32)],
-        mut out: impl FnMut(&[u8]),
-    ) {
+    pub fn write(board: &BoardDescription, expected: &Results, samples: &[(u32, u32)], mut out: impl FnMut(&[u8])) {
         let mut head = [0u8; HEADER];
         let mut w = Writer { buf: &mut head, at: 0 };
         w.put(MAGIC);
@@ -278,7 +273,8 @@ mod tests {
             amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
             actuation_delay_samples: 1,
         };
-        let expected = Results { crls: [1, 2, 3], arx_fixed: [-5, 6, 7, i64::MIN], dac_code_sum: 99, ..Default::default() };
+        let expected =
+            Results { crls: [1, 2, 3], arx_fixed: [-5, 6, 7, i64::MIN], dac_code_sum: 99, ..Default::default() };
         let samples = [(1u32, 2u32), (40_000, 4095)];
         let mut bytes = std::vec::Vec::new();
         Vectors::write(&board, &expected, &samples, |b| bytes.extend_from_slice(b));

@@ -29,6 +29,7 @@ use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
 use crate::hal::{BoardDescription, BoardFaults};
+use crate::scalar::{fmax, fmin};
 use crate::Real;
 
 /// Probe side of the analog front end: sensor -> divider/level shift -> ADC.
@@ -451,8 +452,8 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             self.counters.command_not_finite += 1;
             target = cfg.safe_v;
         }
-        let clamped = target.max(cfg.min_v).min(cfg.max_v);
-        let step = (clamped - self.command_v).max(-cfg.max_step_v).min(cfg.max_step_v);
+        let clamped = fmin(fmax(target, cfg.min_v), cfg.max_v);
+        let step = fmin(fmax(clamped - self.command_v, -cfg.max_step_v), cfg.max_step_v);
         let (dac_code, written_v) = encode(cfg, self.command_v + step);
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;

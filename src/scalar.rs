@@ -33,6 +33,27 @@ pub trait Scalar:
     fn greatest() -> Self;
 }
 
+/// `max(a, b)` by one comparison, for the sample path (`Float::max` is a libm call on the target). Unlike it, a NaN
+/// `b` is returned as is; a NaN `a` gives `b`.
+#[inline(always)]
+pub fn fmax<T: PartialOrd>(a: T, b: T) -> T {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// `min(a, b)` by one comparison, as [`fmax`].
+#[inline(always)]
+pub fn fmin<T: PartialOrd>(a: T, b: T) -> T {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
 /// A floating-point scalar the core runs in.
 pub trait Real: Scalar + Float + FloatConst {
     /// A 64-bit phase accumulator as a fraction of a cycle in `[0, 1)`, to the precision this scalar holds

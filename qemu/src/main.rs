@@ -95,7 +95,12 @@ impl Clock {
         // Ticks per instruction are 2^shift / 40: find the power of two.
         let ns_per_insn = (u64::from(thousand - empty) * TICK_NS + 500) / 1000;
         let shift = 63 - ns_per_insn.max(1).leading_zeros();
-        defmt::info!("clock: 1000 instructions took {} ticks (frame {} ticks): icount shift {}", thousand - empty, empty, shift);
+        defmt::info!(
+            "clock: 1000 instructions took {} ticks (frame {} ticks): icount shift {}",
+            thousand - empty,
+            empty,
+            shift
+        );
         // Below 2^7 ns per instruction, a tick (40 ns) is not below half an instruction and rounding is not exact.
         if shift < 7 || ns_per_insn.abs_diff(1 << shift) * 100 > 1 << shift {
             defmt::error!("run under -icount shift=N with N >= 7 (a 25 MHz SysTick): counts would not be exact");
@@ -278,7 +283,9 @@ fn main() -> ! {
 
     let cfg = &start.cfg;
     let mut pre = PrefilterState::default();
-    table.kernel("prefilter_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cfg.prefilter.update(&mut pre, x.u)).1)));
+    table.kernel("prefilter_f32", |c, s| {
+        window.iter().for_each(|x| s.add(c.count(|| cfg.prefilter.update(&mut pre, x.u)).1))
+    });
     let mut bq = BiquadState::default();
     table.kernel("reconstruction_replica_f32", |c, s| {
         window.iter().for_each(|x| s.add(c.count(|| cfg.reconstruction.update(&mut bq, x.u)).1))
@@ -288,9 +295,13 @@ fn main() -> ! {
         window.iter().for_each(|x| s.add(c.count(|| cfg.antialias.update(&mut bq, x.u)).1))
     });
     let mut bq = BiquadState::default();
-    table.kernel("lag_replica_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cfg.lags.update(&mut bq, x.u)).1)));
+    table.kernel("lag_replica_f32", |c, s| {
+        window.iter().for_each(|x| s.add(c.count(|| cfg.lags.update(&mut bq, x.u)).1))
+    });
     let mut ex = ExcitationState::default();
-    table.kernel("excitation_prbs_f32", |c, s| (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1)));
+    table.kernel("excitation_prbs_f32", |c, s| {
+        (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1))
+    });
 
     table.summary("pipeline_run_f32 (all samples)", &pipeline_run);
     let _ = write!(table.json, "\n}}\n");

@@ -177,13 +177,14 @@ impl<T: Real> Crls<T> {
         let z = xy3;
         let pphi: [T; 3] = core::array::from_fn(|i| p[ix(i, 0)] * phi[0] + p[ix(i, 1)] * phi[1] + p[ix(i, 2)] * phi[2]);
         let m2 = T::one() + phi[0] * pphi[0] + phi[1] * pphi[1] + phi[2] * pphi[2];
-        let eps = (z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2])) / m2;
+        // One division per stage: eps and the covariance term share 1 / m^2.
+        let inv = T::one() / m2;
+        let eps = (z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2])) * inv;
         let mut d = [T::zero(); 15];
         for i in 0..3 {
             d[i] = pphi[i] * eps;
         }
         if adapt_p {
-            let inv = T::one() / m2;
             for i in 0..3 {
                 for j in i..3 {
                     d[3 + ix(i, j)] = c.gamma * p[ix(i, j)] - pphi[i] * pphi[j] * inv;

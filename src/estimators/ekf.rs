@@ -45,6 +45,7 @@ pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::{axpy, rk4_combine};
+use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
 /// Packed index of `(i, j)` in a symmetric 5 x 5 matrix (upper triangle, row-major).
@@ -114,7 +115,7 @@ impl EkfDesign {
             innovation_alpha: T::of(t / 1.0),
             p_ceiling: core::array::from_fn(|i| T::of(hd.ceiling * self.p0_diag[i] * scale[i] * scale[i])),
             p_floor: core::array::from_fn(|i| T::of(hd.floor * self.p0_diag[i] * scale[i] * scale[i])),
-            r: T::of(self.r),
+            inv_r: T::of(1.0 / self.r),
             q: core::array::from_fn(|i| T::of(self.q_diag[i] * scale[i] * scale[i])),
             p0: core::array::from_fn(|i| T::of(self.p0_diag[i] * scale[i] * scale[i])),
             r_d: T::of(self.r / self.sample_period_s),
@@ -198,7 +199,7 @@ pub struct EkfConfig<T> {
     innovation_alpha: T,
     p_ceiling: [T; 5],
     p_floor: [T; 5],
-    r: T,
+    inv_r: T,
     q: [T; 5],
     p0: [T; 5],
     r_d: T,
@@ -216,9 +217,9 @@ pub trait EkfKind: Copy + core::fmt::Debug + Default {
     /// Name in reports.
     const NAME: &'static str;
     /// Advance `(z, P)` over one sample period with `u` held and the measurements `y_prev`, `y`; a sample whose
-    /// normalised innovation exceeds `gate_nis` is not used. Returns the innovation, its variance, and whether the
-    /// sample was used.
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, T, bool);
+    /// normalised innovation `nu^2 / S` exceeds `gate_nis` is not used. Returns the innovation and, when the sample
+    /// was used, its normalised square.
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, Option<T>);
 }
 
 /// Section IV-B: RK4 prediction in substeps, then a Joseph-form update.
@@ -231,26 +232,24 @@ pub struct Continuous;
 impl EkfKind for Hybrid {
     const NAME: &'static str = "hekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T, gate_nis: T) -> (T, T, bool) {
-        let h = core.cfg.h;
-        for _ in 0..core.cfg.substeps {
-            core.rk4(u, h, None);
-        }
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, _y_prev: T, y: T, gate_nis: T) -> (T, Option<T>) {
+        core.predict(u);
         // Gate on the a priori innovation.
         let nu = y - core.z[0];
         let s = core.p[idx(0, 0)] + core.cfg.r_d;
         if nu * nu > gate_nis * s {
-            return (nu, s, false);
+            return (nu, None);
         }
-        core.correct(y);
-        (nu, s, true)
+        let inv_s = T::one() / s;
+        core.correct(nu, s, inv_s);
+        (nu, Some(nu * nu * inv_s))
     }
 }
 
 impl EkfKind for Continuous {
     const NAME: &'static str = "ekf";
     #[inline]
-    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, T, bool) {
+    fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, Option<T>) {
         let h = core.cfg.h * T::of(core.cfg.substeps as f64);
         // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
         // x1'' (at the step's start), and the term vanishes at the samples.
@@ -258,18 +257,18 @@ impl EkfKind for Continuous {
         let z = &core.z;
         let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
         let bow = -x1_dd * h * h * T::of(0.5);
-        let before = *core;
+        let before = (core.z, core.p);
         core.rk4(u, h, Some((y_prev, y, bow)));
         // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
         // step is taken again without the measurement.
         let nu = y - core.z[0];
         let s = core.p[idx(0, 0)] + core.cfg.r_d;
         if nu * nu > gate_nis * s {
-            *core = before;
+            (core.z, core.p) = before;
             core.rk4(u, h, None);
-            return (nu, s, false);
+            return (nu, None);
         }
-        (nu, s, true)
+        (nu, Some(nu * nu / s))
     }
 }
 
@@ -368,6 +367,96 @@ impl<T: Real> EkfCore<T> {
         core::array::from_fn(|r| core::array::from_fn(|c| self.p[idx(r, c)].as_f64() * s[r] * s[c]))
     }
 
+    /// The hybrid filter's prediction over one sample period: RK4 in `substeps` steps of `h` with `u` held,
+    /// exploiting the structure of `F` (the RK4 of the full 5 + 15 system, computed by parts).
+    ///
+    /// With `P = [[A, B], [B', C]]` (`A` the 2 x 2 state block, `B` 2 x 3, `C` the 3 x 3 parameter block) and `F`'s
+    /// rows 2..5 zero, the parameters and `C` do not depend on the states: `theta' = 0` and `C' = Q_theta`, so RK4
+    /// gives `C + h Q_theta` after the step and `C + (h / 2) Q_theta` at the midpoint stages, exactly. The RK4 runs on
+    /// the rest, 11 values: `x` (2), `A` (3) and `B` (6), with
+    ///
+    /// ```text
+    /// x1' = W x2                    x2' = g0 x1 + g1 x2 + b u          (g0 = -c0 z2, g1 = -c1 z3, b = c2 z4)
+    /// A' = Fxx A + A Fxx' + Fxt B' + B Fxt' + Q_x,   B' = Fxx B + Fxt C,   Fxx = [[0, W], [g0, g1]]
+    /// Fxt = [[0, 0, 0], e],  e = [-c0 x1, -c1 x2, c2 u]
+    /// ```
+    ///
+    /// About 50 flops per stage (the full product `F P` would be 50 multiply-adds alone), 11-value RK4 sums.
+    #[inline]
+    fn predict(&mut self, u: T) {
+        let c = self.cfg;
+        let (half, two) = (T::of(0.5), T::of(2.0));
+        let (h, hh, h6) = (c.h, c.h * half, c.h / T::of(6.0));
+        let (w, g0, g1, bu, e2) = (c.w, -c.c0 * self.z[2], -c.c1 * self.z[3], c.c2 * self.z[4] * u, c.c2 * u);
+        let (q0, q1) = (c.q[0], c.q[1]);
+        // Unpacked: s = [x1, x2, a00, a01, a11, b00, b01, b02, b10, b11, b12].
+        let p = &mut self.p;
+        let mut s = [
+            self.z[0],
+            self.z[1],
+            p[idx(0, 0)],
+            p[idx(0, 1)],
+            p[idx(1, 1)],
+            p[idx(0, 2)],
+            p[idx(0, 3)],
+            p[idx(0, 4)],
+            p[idx(1, 2)],
+            p[idx(1, 3)],
+            p[idx(1, 4)],
+        ];
+        let mut cm = [p[idx(2, 2)], p[idx(2, 3)], p[idx(2, 4)], p[idx(3, 3)], p[idx(3, 4)], p[idx(4, 4)]];
+        let qt = [c.q[2], c.q[3], c.q[4]];
+        // The derivative of the 11 values, with the parameter block `cm` at the stage's time.
+        let derivative = |s: &[T; 11], cm: &[T; 6]| -> [T; 11] {
+            let e = [-c.c0 * s[0], -c.c1 * s[1], e2];
+            // e . C[:, j]
+            let ec = [
+                e[0] * cm[0] + e[1] * cm[1] + e[2] * cm[2],
+                e[0] * cm[1] + e[1] * cm[3] + e[2] * cm[4],
+                e[0] * cm[2] + e[1] * cm[4] + e[2] * cm[5],
+            ];
+            // Row 1 of F P on the state columns: g0 A[0, :] + g1 A[1, :] + e B[:, :]'.
+            let r0 = g0 * s[2] + g1 * s[3] + (e[0] * s[5] + e[1] * s[6] + e[2] * s[7]);
+            let r1 = g0 * s[3] + g1 * s[4] + (e[0] * s[8] + e[1] * s[9] + e[2] * s[10]);
+            [
+                w * s[1],
+                g0 * s[0] + g1 * s[1] + bu,
+                two * w * s[3] + q0,
+                w * s[4] + r0,
+                two * r1 + q1,
+                w * s[8],
+                w * s[9],
+                w * s[10],
+                g0 * s[5] + g1 * s[8] + ec[0],
+                g0 * s[6] + g1 * s[9] + ec[1],
+                g0 * s[7] + g1 * s[10] + ec[2],
+            ]
+        };
+        let at = |cm: &[T; 6], dt: T| -> [T; 6] {
+            [cm[0] + dt * qt[0], cm[1], cm[2], cm[3] + dt * qt[1], cm[4], cm[5] + dt * qt[2]]
+        };
+        for _ in 0..c.substeps {
+            let cm_mid = at(&cm, hh);
+            let cm_end = at(&cm, h);
+            let k1 = derivative(&s, &cm);
+            let k2 = derivative(&axpy(&s, &k1, hh), &cm_mid);
+            let k3 = derivative(&axpy(&s, &k2, hh), &cm_mid);
+            let k4 = derivative(&axpy(&s, &k3, h), &cm_end);
+            for i in 0..11 {
+                s[i] += h6 * (k1[i] + two * (k2[i] + k3[i]) + k4[i]);
+            }
+            cm = cm_end;
+        }
+        self.z[0] = s[0];
+        self.z[1] = s[1];
+        for (k, (i, j)) in [(0, 0), (0, 1), (1, 1), (0, 2), (0, 3), (0, 4), (1, 2), (1, 3), (1, 4)].iter().enumerate() {
+            p[idx(*i, *j)] = s[2 + k];
+        }
+        for (k, &e) in PARAM_BLOCK.iter().enumerate() {
+            p[e] = cm[k];
+        }
+    }
+
     /// `(z', P')` at `(z, P)` with input `u`, and for the continuous filter the measurement `y` at that instant.
     #[inline(always)]
     fn derivative(&self, z: &[T; 5], p: &[T; 15], u: T, y: Option<T>) -> ([T; 5], [T; 15]) {
@@ -406,7 +495,7 @@ impl<T: Real> EkfCore<T> {
         }
         if let Some(y) = y {
             // Continuous measurement: K = P H' / R, z' += K (y - x1), P' -= P H' H P / R.
-            let inv_r = T::one() / c.r;
+            let inv_r = c.inv_r;
             let innovation = (y - z[0]) * inv_r;
             for i in 0..5 {
                 dz[i] += p[idx(0, i)] * innovation;
@@ -436,13 +525,10 @@ impl<T: Real> EkfCore<T> {
         rk4_combine(&mut self.p, [&k1p, &k2p, &k3p, &k4p], h);
     }
 
-    /// Joseph-form update with the scalar measurement `y` of `x1`.
-    fn correct(&mut self, y: T) {
+    /// Joseph-form update with the innovation `innovation` of `x1`, its variance `s = P00 + R_d` and `1 / s`.
+    fn correct(&mut self, innovation: T, s: T, inv_s: T) {
         let p0: [T; 5] = core::array::from_fn(|i| self.p[idx(0, i)]);
-        let s = p0[0] + self.cfg.r_d;
-        let inv_s = T::one() / s;
         let k: [T; 5] = p0.map(|x| x * inv_s);
-        let innovation = y - self.z[0];
         for i in 0..5 {
             self.z[i] += k[i] * innovation;
         }
@@ -508,9 +594,9 @@ impl<T: Real> EkfCore<T> {
     }
 
     fn healthy(&self) -> bool {
-        self.z.iter().all(|x| x.is_finite())
-            && self.p.iter().all(|x| x.is_finite())
-            && (0..5).all(|i| self.p[idx(i, i)] >= T::zero())
+        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
+        let sum = self.z.iter().chain(self.p.iter()).fold(T::zero(), |acc, &x| acc + x);
+        sum.is_finite() && (0..5).all(|i| self.p[idx(i, i)] >= T::zero())
     }
 }
 
@@ -519,7 +605,10 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
 
     fn update(&mut self, s: &FilteredSample<T>) {
         let _ = self.kind;
-        let cfg = self.core.cfg;
+        let cfg = &self.core.cfg;
+        let (pe_alpha, pe_floor, innovation_alpha) = (cfg.pe_alpha, cfg.pe_floor, cfg.innovation_alpha);
+        let (nis_alpha, change_samples, holdoff_samples) = (cfg.nis_alpha, cfg.change_samples, cfg.holdoff_samples);
+        let gate2 = cfg.gate2;
         let u = s.u_f.value;
         if !(u.is_finite() && s.y_f.value.is_finite()) {
             // Caught at the door: nothing non-finite reaches the state or the stored previous sample.
@@ -527,35 +616,33 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.health.numeric_resets += 1;
             return;
         }
-        self.input_power += cfg.pe_alpha * (u * u - self.input_power);
-        let starved = self.input_power < cfg.pe_floor;
+        self.input_power += pe_alpha * (u * u - self.input_power);
+        let starved = self.input_power < pe_floor;
         if self.adapting {
             self.health.adaptation = if starved { Adaptation::Starved } else { Adaptation::Adapting };
         }
         let freeze = !self.adapting || starved;
         let frozen = freeze.then(|| self.core.freeze_parameters());
-        let gating = cfg.change_samples > 0 && self.holdoff == 0;
-        let gate = if gating { cfg.gate2 * self.nis_mean.max(T::epsilon()) } else { T::greatest() };
-        let (nu, var, used) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);
-        let nis = nu * nu / var;
-        self.innovation_ms += cfg.innovation_alpha * (nu * nu - self.innovation_ms);
-        self.health.innovation_rms_um = self.innovation_ms.sqrt().as_f64() as f32;
+        let gating = change_samples > 0 && self.holdoff == 0;
+        let gate = if gating { gate2 * fmax(self.nis_mean, T::epsilon()) } else { T::greatest() };
+        let (nu, nis) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);
+        self.innovation_ms += innovation_alpha * (nu * nu - self.innovation_ms);
         if let Some(f) = frozen {
             self.core.restore_parameters(&f);
         }
         self.holdoff = self.holdoff.saturating_sub(1);
-        if used {
+        if let Some(nis) = nis {
             self.gated_run = 0;
-            self.nis_mean += cfg.nis_alpha * (nis - self.nis_mean);
+            self.nis_mean += nis_alpha * (nis - self.nis_mean);
         } else {
             self.gated_run += 1;
             self.health.rejected_samples += 1;
-            if self.gated_run >= cfg.change_samples {
+            if self.gated_run >= change_samples {
                 // Not an outlier: the plant changed. Reopen the parameter covariance and let the filter relock.
                 self.core.reopen_parameters();
                 self.health.changes_detected += 1;
                 self.gated_run = 0;
-                self.holdoff = cfg.holdoff_samples;
+                self.holdoff = holdoff_samples;
             }
         }
         self.core.bound_covariance();
@@ -588,6 +675,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
     }
 
     fn health(&self) -> Health {
-        self.health
+        // The square root when asked, not per sample.
+        Health { innovation_rms_um: libm::sqrt(self.innovation_ms.as_f64()) as f32, ..self.health }
     }
 }
