@@ -388,7 +388,7 @@ impl<T: Real> EkfCore<T> {
         let (half, two) = (T::of(0.5), T::of(2.0));
         let (h, hh, h6) = (c.h, c.h * half, c.h / T::of(6.0));
         let (w, g0, g1, bu, e2) = (c.w, -c.c0 * self.z[2], -c.c1 * self.z[3], c.c2 * self.z[4] * u, c.c2 * u);
-        let (q0, q1) = (c.q[0], c.q[1]);
+        let (q0, q1, w2) = (c.q[0], c.q[1], two * c.w);
         // Unpacked: s = [x1, x2, a00, a01, a11, b00, b01, b02, b10, b11, b12].
         let p = &mut self.p;
         let mut s = [
@@ -421,9 +421,9 @@ impl<T: Real> EkfCore<T> {
             [
                 w * s[1],
                 g0 * s[0] + g1 * s[1] + bu,
-                two * w * s[3] + q0,
+                w2 * s[3] + q0,
                 w * s[4] + r0,
-                two * r1 + q1,
+                (r1 + r1) + q1,
                 w * s[8],
                 w * s[9],
                 w * s[10],
@@ -438,12 +438,16 @@ impl<T: Real> EkfCore<T> {
         for _ in 0..c.substeps {
             let cm_mid = at(&cm, hh);
             let cm_end = at(&cm, h);
-            let k1 = derivative(&s, &cm);
-            let k2 = derivative(&axpy(&s, &k1, hh), &cm_mid);
-            let k3 = derivative(&axpy(&s, &k2, hh), &cm_mid);
-            let k4 = derivative(&axpy(&s, &k3, h), &cm_end);
+            // Each stage folded into the sum as soon as it is known (fewer live values, fewer spills).
+            let k = derivative(&s, &cm);
+            let mut acc = k;
+            let k = derivative(&axpy(&s, &k, hh), &cm_mid);
+            acc = axpy(&acc, &k, two);
+            let k = derivative(&axpy(&s, &k, hh), &cm_mid);
+            acc = axpy(&acc, &k, two);
+            let k = derivative(&axpy(&s, &k, h), &cm_end);
             for i in 0..11 {
-                s[i] += h6 * (k1[i] + two * (k2[i] + k3[i]) + k4[i]);
+                s[i] += h6 * (acc[i] + k[i]);
             }
             cm = cm_end;
         }
