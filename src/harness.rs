@@ -12,22 +12,15 @@
 
 use crate::estimator::{Estimator, FilteredSample};
 use crate::estimators::arx::{ArxConfig, ArxDesign, ArxEstimator, ArxRls};
-use crate::estimators::crls::{Crls, CrlsDesign};
 use crate::estimators::ekf::dense::DenseHekf;
-use crate::estimators::ekf::{Cekf, EkfDesign, Hekf};
+use crate::estimators::ekf::EkfDesign;
 use crate::fixed::Q32;
 use crate::hal::{BoardDescription, ConverterFormat};
 use crate::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
 use crate::{Scalar, StageParams};
 
-/// The paper's three estimators with their PRBS tuning: the bank of `pipeline_all_f32`.
-pub type PaperBank = (Crls<f32>, Cekf<f32>, Hekf<f32>);
-
-/// The paper's three estimators at their defaults (PRBS tuning, `Q2`).
-pub fn paper_bank() -> PaperBank {
-    let ekf = EkfDesign::default();
-    (Crls::new(CrlsDesign::default().design()), Cekf::new(ekf.design()), Hekf::new(ekf.design()))
-}
+/// The paper's three estimators in f32 with their PRBS tuning: the bank of `pipeline_all_f32`.
+pub type PaperBank = crate::estimators::PaperBank<f32>;
 
 /// What the workload ends with: every estimator's parameters, as exact bit patterns.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -97,7 +90,7 @@ impl Workload {
         let cfg = PipelineSettings::default().design::<f32>(board)?;
         let arx_fixed_cfg = ArxDesign::default().design::<Q32>();
         Ok(Workload {
-            pipeline: Pipeline::new(&cfg, paper_bank()),
+            pipeline: Pipeline::new(&cfg, crate::estimators::paper_bank()),
             arx: ArxEstimator::new(ArxDesign::default().design()),
             arx_fixed: ArxRls::new(&arx_fixed_cfg),
             arx_fixed_cfg,

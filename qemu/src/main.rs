@@ -245,6 +245,7 @@ fn main() -> ! {
     let mut table = Bench { clock: &clock, json: &mut json, first: true };
     let mut bench_ok = true;
 
+    defmt::println!("{=str}", "kernel                           instructions per update: mean      max updates");
     let mut p = start.pipeline.clone();
     let stats = table.kernel("pipeline_all_f32", |c, s| {
         for k in n - BENCH..n {
@@ -347,7 +348,7 @@ impl Bench<'_> {
 
     fn summary(&self, name: &str, s: &Stats) {
         let mut line: Text<96> = Text::new();
-        let _ = write!(line, "{:<32} {:>8} {:>8} {:>7}", name, s.mean(), s.max, s.updates);
+        let _ = write!(line, "{:<32} {:>30} {:>8} {:>7}", name, s.mean(), s.max, s.updates);
         defmt::println!("{=str}", line.as_str());
     }
 }

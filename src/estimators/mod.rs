@@ -14,6 +14,15 @@ pub mod rls;
 
 use crate::Real;
 
+/// The paper's three estimators: continuous-time RLS, continuous EKF, hybrid EKF.
+pub type PaperBank<T> = (crls::Crls<T>, ekf::Cekf<T>, ekf::Hekf<T>);
+
+/// The paper's three estimators at their defaults (the PRBS tuning: the paper's RLS settings and `Q2`).
+pub fn paper_bank<T: Real>() -> PaperBank<T> {
+    let ekf = ekf::EkfDesign::default();
+    (crls::Crls::new(crls::CrlsDesign::default().design()), ekf::Cekf::new(ekf.design()), ekf::Hekf::new(ekf.design()))
+}
+
 /// `a + h b`, the RK4 stage argument.
 #[inline(always)]
 pub(crate) fn axpy<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {

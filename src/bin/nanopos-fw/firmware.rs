@@ -9,17 +9,29 @@ use embassy_executor::Spawner;
 use embassy_stm32::interrupt::{InterruptExt, Priority};
 use embassy_stm32::pac::interrupt;
 use embassy_time::{Duration, Ticker};
+use nanopos_id::estimator::{Estimator, Health};
+use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
+use nanopos_id::estimators::crls::Crls;
+use nanopos_id::estimators::ekf::{Cekf, Hekf};
+use nanopos_id::estimators::paper_bank;
 use nanopos_id::hal::run_sample;
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, PipelineSettings};
+use nanopos_id::StageParams;
 use panic_probe as _;
 
 /// Cycles per sample period at 170 MHz.
 const CYCLES_PER_SAMPLE: u32 = 17_000;
 
+/// Every estimator, in the interrupt (PRBS tuning). Run-time selection and tuning: issue 6.
+type Bank = (Crls<f32>, Cekf<f32>, Hekf<f32>, ArxEstimator<f32>);
+/// Their names in the telemetry, in the bank's order.
+const NAMES: [&str; 4] =
+    [<Crls<f32> as Estimator<f32>>::NAME, Cekf::<f32>::NAME, Hekf::<f32>::NAME, ArxEstimator::<f32>::NAME];
+
 /// What the interrupt owns.
 struct SampleTask {
     board: G474Board,
-    pipeline: Pipeline<f32, ()>,
+    pipeline: Pipeline<f32, Bank>,
     config: PipelineConfig<f32>,
     stats: SampleStats,
 }
@@ -61,7 +73,10 @@ async fn main(spawner: Spawner) {
     cortex_m::interrupt::free(|cs| {
         TASK.borrow(cs).replace(Some(SampleTask {
             board: G474Board::default(),
-            pipeline: Pipeline::new(&config, ()),
+            pipeline: {
+                let (crls, cekf, hekf) = paper_bank();
+                Pipeline::new(&config, (crls, cekf, hekf, ArxEstimator::new(ArxDesign::default().design())))
+            },
             config,
             stats: SampleStats::default(),
         }));
@@ -102,12 +117,23 @@ fn ADC1_2() {
     });
 }
 
-/// Take the statistics of the window since the last call.
-fn take_window() -> Option<SampleStats> {
+/// Each estimator's parameters and health at the end of a window.
+type Estimates = [(StageParams<f32>, Health); 4];
+
+/// Take the statistics of the window since the last call, and the estimates (read under the lock: a few hundred
+/// cycles, which delay one interrupt's start inside its slack; the sample instants are hardware-timed).
+fn take_window() -> Option<(SampleStats, Estimates)> {
     cortex_m::interrupt::free(|cs| {
         let mut task = TASK.borrow(cs).borrow_mut();
         let t = task.as_mut()?;
-        let snapshot = t.stats;
+        let e = &t.pipeline.estimators;
+        let estimates = [
+            (e.0.params(), e.0.health()),
+            (e.1.params(), e.1.health()),
+            (e.2.params(), e.2.health()),
+            (e.3.params(), e.3.health()),
+        ];
+        let snapshot = (t.stats, estimates);
         t.stats.window_samples = 0;
         t.stats.window_cycles = 0;
         t.stats.window_max_cycles = 0;
@@ -115,14 +141,16 @@ fn take_window() -> Option<SampleStats> {
     })
 }
 
-/// 10 Hz: interrupt cost, deadlines, faults, the last sample. Estimator lines join when estimators do.
+/// 10 Hz: interrupt cost, deadlines, faults, the last sample; then one line per estimator: the model
+/// `y'' = -a0 y - a1 y' + b0 u` (a0 in 1/s^2, a1 in 1/s, b0 in um/(s^2 V)) and what it means: natural frequency,
+/// damping ratio, static gain (um/V), with the estimator's health.
 #[embassy_executor::task]
 async fn telemetry() {
     let mut ticker = Ticker::every(Duration::from_millis(100));
     let mut reported_misses = 0;
     loop {
         ticker.next().await;
-        let Some(s) = take_window() else { continue };
+        let Some((s, estimates)) = take_window() else { continue };
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
         defmt::info!(
             "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} | y={=f32} um u={=f32} V | faults={=u8:#04x} over_range={=u32} stuck={=u32}",
@@ -136,6 +164,23 @@ async fn telemetry() {
             s.counters.probe_over_range,
             s.counters.probe_stuck
         );
+        for (name, (p, h)) in NAMES.iter().zip(estimates.iter()) {
+            defmt::info!(
+                "{=str}: a0={=f32} a1={=f32} b0={=f32} | f0={=f32} Hz zeta={=f32} gain={=f32} um/V | {} rejected={=u32} changes={=u32} resets={=u32} innovation_rms={=f32} um",
+                name,
+                p.a0,
+                p.a1,
+                p.b0,
+                p.f0_hz(),
+                p.damping_ratio(),
+                p.dc_gain(),
+                h.adaptation,
+                h.rejected_samples,
+                h.changes_detected,
+                h.numeric_resets,
+                h.innovation_rms_um
+            );
+        }
         let (misses, overruns) = (s.counters.deadline_misses, s.counters.adc_overruns);
         if misses + overruns != reported_misses {
             reported_misses = misses + overruns;
