@@ -1,0 +1,422 @@
+//! The run-time control protocol: one command per text line, parsed without allocation.
+//!
+//! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n` (a `\r` before it is ignored); words are separated by
+//! spaces or tabs; numbers are decimal (`1`, `0.5`, `-2.5e-1`). Every line gets one answer: `ok ...` or
+//! `error: ...` naming what was wrong and where.
+//!
+//! | command | meaning |
+//! |---|---|
+//! | `status` | counters, faults, the excitation and the estimates |
+//! | `excite off` / `excite prbs AMP_V` / `excite triangle AMP_V HZ` / `excite sine AMP_V HZ` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000]) |
+//! | `start` / `stop` | run or stop the excitation (the output ramps to its safe value) |
+//! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
+//! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
+//! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
+//! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0) |
+//! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
+
+/// Longest accepted line, bytes (without the terminator).
+pub const MAX_LINE: usize = 96;
+
+/// The estimators, as bits of an [`EstimatorSet`].
+pub const ESTIMATOR_NAMES: [&str; 4] = ["rls", "ekf", "hekf", "arx"];
+
+/// A set of estimators: bit `i` is [`ESTIMATOR_NAMES`]`[i]`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EstimatorSet(pub u8);
+
+impl EstimatorSet {
+    /// Every estimator.
+    pub const ALL: EstimatorSet = EstimatorSet(0b1111);
+    /// Whether estimator `i` is in the set.
+    pub fn contains(self, i: usize) -> bool {
+        self.0 & (1 << i) != 0
+    }
+}
+
+/// The excitation a command asks for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ExcitationChoice {
+    /// No excitation (output at its safe value).
+    Off,
+    /// The paper's PRBS with this amplitude, V.
+    Prbs {
+        /// Amplitude, V.
+        amplitude_v: f32,
+    },
+    /// The smoothed triangle.
+    Triangle {
+        /// Amplitude, V.
+        amplitude_v: f32,
+        /// Frequency, Hz.
+        frequency_hz: f32,
+    },
+    /// A sine.
+    Sine {
+        /// Amplitude, V.
+        amplitude_v: f32,
+        /// Frequency, Hz.
+        frequency_hz: f32,
+    },
+}
+
+/// Recording of the raw samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Recording {
+    /// Not recording.
+    Off,
+    /// Every sample, until `record off`.
+    On,
+    /// The next `n` samples.
+    Burst(u32),
+}
+
+/// Which preset tuning.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TuningPreset {
+    /// The paper's PRBS tuning (Q2).
+    Prbs,
+    /// The paper's triangle tuning (Q1).
+    Triangle,
+}
+
+/// A parsed command.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Command {
+    /// Report status.
+    Status,
+    /// Choose the excitation.
+    Excite(ExcitationChoice),
+    /// Run the excitation.
+    Start,
+    /// Stop the excitation.
+    Stop,
+    /// Run exactly these estimators.
+    Select(EstimatorSet),
+    /// Reset these estimators to their initial state.
+    Reset(EstimatorSet),
+    /// Freeze these estimators' parameters.
+    Freeze(EstimatorSet),
+    /// Let these estimators adapt again.
+    Adapt(EstimatorSet),
+    /// Load a preset tuning.
+    Tuning(TuningPreset),
+    /// Output clamp and slew limit.
+    Limits {
+        /// Lowest command, V.
+        min_v: f32,
+        /// Highest command, V.
+        max_v: f32,
+        /// Largest change, V/s.
+        slew_v_per_s: f32,
+    },
+    /// Recording mode.
+    Record(Recording),
+}
+
+/// Why a line was refused. `word` is the 1-based position of the offending word.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ParseError {
+    /// Nothing but spaces.
+    Empty,
+    /// Longer than [`MAX_LINE`] (the rest of the line was discarded).
+    TooLong,
+    /// A byte outside printable ASCII.
+    NotAscii {
+        /// Byte offset in the line.
+        at: usize,
+    },
+    /// The first word is no command.
+    UnknownCommand,
+    /// A word is missing.
+    Missing {
+        /// Position the word should have had.
+        word: usize,
+        /// What it should have been.
+        expected: &'static str,
+    },
+    /// A word is not what the command takes.
+    Invalid {
+        /// Its position.
+        word: usize,
+        /// What was expected.
+        expected: &'static str,
+    },
+    /// More words than the command takes.
+    Extra {
+        /// Position of the first extra word.
+        word: usize,
+    },
+}
+
+impl core::fmt::Display for ParseError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            ParseError::Empty => write!(f, "empty line"),
+            ParseError::TooLong => write!(f, "line longer than {MAX_LINE} bytes"),
+            ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
+            ParseError::UnknownCommand => write!(
+                f,
+                "unknown command (status, excite, start, stop, select, reset, freeze, adapt, tuning, limits, record)"
+            ),
+            ParseError::Missing { word, expected } => write!(f, "word {word}: missing, expected {expected}"),
+            ParseError::Invalid { word, expected } => write!(f, "word {word}: expected {expected}"),
+            ParseError::Extra { word } => write!(f, "word {word}: unexpected extra word"),
+        }
+    }
+}
+
+/// The words of a line, with their positions.
+struct Words<'a> {
+    it: core::str::SplitAsciiWhitespace<'a>,
+    n: usize,
+}
+
+impl<'a> Words<'a> {
+    fn next(&mut self, expected: &'static str) -> Result<(usize, &'a str), ParseError> {
+        self.n += 1;
+        self.it.next().map(|w| (self.n, w)).ok_or(ParseError::Missing { word: self.n, expected })
+    }
+
+    fn number(&mut self, expected: &'static str, ok: impl Fn(f32) -> bool) -> Result<f32, ParseError> {
+        let (word, w) = self.next(expected)?;
+        match w.parse::<f32>() {
+            Ok(x) if x.is_finite() && ok(x) => Ok(x),
+            _ => Err(ParseError::Invalid { word, expected }),
+        }
+    }
+
+    fn end(mut self) -> Result<(), ParseError> {
+        match self.it.next() {
+            None => Ok(()),
+            Some(_) => Err(ParseError::Extra { word: self.n + 1 }),
+        }
+    }
+}
+
+const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
+const AMP: &str = "an amplitude in V, 0 to 10";
+const HZ: &str = "a frequency in Hz, above 0 and at most 1000";
+
+fn estimator_set(word: usize, w: &str, allow_none: bool) -> Result<EstimatorSet, ParseError> {
+    let invalid = ParseError::Invalid { word, expected: EST_LIST };
+    match w {
+        "all" => return Ok(EstimatorSet::ALL),
+        "none" if allow_none => return Ok(EstimatorSet(0)),
+        _ => {}
+    }
+    let mut set = 0u8;
+    for name in w.split(',') {
+        let i = ESTIMATOR_NAMES.iter().position(|n| *n == name).ok_or(invalid)?;
+        set |= 1 << i;
+    }
+    Ok(EstimatorSet(set))
+}
+
+/// Parse one line (without its terminator).
+pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
+    if line.len() > MAX_LINE {
+        return Err(ParseError::TooLong);
+    }
+    let line = line.strip_suffix(b"\r").unwrap_or(line);
+    if let Some(at) = line.iter().position(|&b| !(b == b' ' || b == b'\t' || b.is_ascii_graphic())) {
+        return Err(ParseError::NotAscii { at });
+    }
+    // Printable ASCII is UTF-8.
+    let text = core::str::from_utf8(line).map_err(|e| ParseError::NotAscii { at: e.valid_up_to() })?;
+    let mut words = Words { it: text.split_ascii_whitespace(), n: 0 };
+    let (_, command) = words.next("a command").map_err(|_| ParseError::Empty)?;
+    let amplitude = |x: f32| (0.0..=10.0).contains(&x);
+    let frequency = |x: f32| x > 0.0 && x <= 1000.0;
+    let volts = |x: f32| (-10.0..=10.0).contains(&x);
+    let parsed = match command {
+        "status" => Command::Status,
+        "start" => Command::Start,
+        "stop" => Command::Stop,
+        "excite" => {
+            let (word, kind) = words.next("off, prbs, triangle or sine")?;
+            Command::Excite(match kind {
+                "off" => ExcitationChoice::Off,
+                "prbs" => ExcitationChoice::Prbs { amplitude_v: words.number(AMP, amplitude)? },
+                "triangle" => ExcitationChoice::Triangle {
+                    amplitude_v: words.number(AMP, amplitude)?,
+                    frequency_hz: words.number(HZ, frequency)?,
+                },
+                "sine" => ExcitationChoice::Sine {
+                    amplitude_v: words.number(AMP, amplitude)?,
+                    frequency_hz: words.number(HZ, frequency)?,
+                },
+                _ => return Err(ParseError::Invalid { word, expected: "off, prbs, triangle or sine" }),
+            })
+        }
+        "select" | "reset" | "freeze" | "adapt" => {
+            let (word, w) = words.next(EST_LIST)?;
+            let set = estimator_set(word, w, command == "select")?;
+            match command {
+                "select" => Command::Select(set),
+                "reset" => Command::Reset(set),
+                "freeze" => Command::Freeze(set),
+                _ => Command::Adapt(set),
+            }
+        }
+        "tuning" => {
+            let (word, w) = words.next("prbs or triangle")?;
+            Command::Tuning(match w {
+                "prbs" => TuningPreset::Prbs,
+                "triangle" => TuningPreset::Triangle,
+                _ => return Err(ParseError::Invalid { word, expected: "prbs or triangle" }),
+            })
+        }
+        "limits" => {
+            let min_v = words.number("the lowest command in V, -10 to 10", volts)?;
+            let max_v =
+                words.number("the highest command in V, above the lowest, at most 10", |x| volts(x) && x > min_v)?;
+            let slew_v_per_s = words.number("a slew limit in V/s, above 0", |x| x > 0.0)?;
+            Command::Limits { min_v, max_v, slew_v_per_s }
+        }
+        "record" => {
+            let (word, w) = words.next("off, on or burst")?;
+            Command::Record(match w {
+                "off" => Recording::Off,
+                "on" => Recording::On,
+                "burst" => {
+                    let (word, n) = words.next("a sample count, 1 to 1000000")?;
+                    match n.parse::<u32>() {
+                        Ok(n) if (1..=1_000_000).contains(&n) => Recording::Burst(n),
+                        _ => return Err(ParseError::Invalid { word, expected: "a sample count, 1 to 1000000" }),
+                    }
+                }
+                _ => return Err(ParseError::Invalid { word, expected: "off, on or burst" }),
+            })
+        }
+        _ => return Err(ParseError::UnknownCommand),
+    };
+    words.end()?;
+    Ok(parsed)
+}
+
+/// Collects bytes from a serial port into lines, without allocation. A line longer than [`MAX_LINE`] is reported
+/// once, as [`ParseError::TooLong`], and its rest discarded up to the next `\n`.
+#[derive(Clone, Debug)]
+pub struct LineBuffer {
+    buf: [u8; MAX_LINE],
+    len: usize,
+    overflowed: bool,
+}
+
+impl Default for LineBuffer {
+    fn default() -> Self {
+        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false }
+    }
+}
+
+impl LineBuffer {
+    /// Feed one byte; at the end of a line, the parsed command (or why not).
+    pub fn push(&mut self, byte: u8) -> Option<Result<Command, ParseError>> {
+        if byte == b'\n' {
+            let result = if self.overflowed { Err(ParseError::TooLong) } else { parse(&self.buf[..self.len]) };
+            self.len = 0;
+            self.overflowed = false;
+            return Some(result);
+        }
+        if self.len < MAX_LINE {
+            self.buf[self.len] = byte;
+            self.len += 1;
+        } else {
+            self.overflowed = true;
+        }
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn p(s: &str) -> Result<Command, ParseError> {
+        parse(s.as_bytes())
+    }
+
+    #[test]
+    fn every_command_parses() {
+        assert_eq!(p("status"), Ok(Command::Status));
+        assert_eq!(p("  start \r"), Ok(Command::Start));
+        assert_eq!(p("stop"), Ok(Command::Stop));
+        assert_eq!(p("excite off"), Ok(Command::Excite(ExcitationChoice::Off)));
+        assert_eq!(p("excite prbs 1"), Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v: 1.0 })));
+        assert_eq!(
+            p("excite\ttriangle 0.5 10"),
+            Ok(Command::Excite(ExcitationChoice::Triangle { amplitude_v: 0.5, frequency_hz: 10.0 }))
+        );
+        assert_eq!(
+            p("excite sine 2 4.2e2"),
+            Ok(Command::Excite(ExcitationChoice::Sine { amplitude_v: 2.0, frequency_hz: 420.0 }))
+        );
+        assert_eq!(p("select hekf,arx"), Ok(Command::Select(EstimatorSet(0b1100))));
+        assert_eq!(p("select none"), Ok(Command::Select(EstimatorSet(0))));
+        assert_eq!(p("reset all"), Ok(Command::Reset(EstimatorSet::ALL)));
+        assert_eq!(p("freeze rls"), Ok(Command::Freeze(EstimatorSet(1))));
+        assert_eq!(p("adapt ekf"), Ok(Command::Adapt(EstimatorSet(2))));
+        assert_eq!(p("tuning triangle"), Ok(Command::Tuning(TuningPreset::Triangle)));
+        assert_eq!(p("limits -5 5 1000"), Ok(Command::Limits { min_v: -5.0, max_v: 5.0, slew_v_per_s: 1000.0 }));
+        assert_eq!(p("record burst 20000"), Ok(Command::Record(Recording::Burst(20000))));
+        assert_eq!(p("record on"), Ok(Command::Record(Recording::On)));
+    }
+
+    #[test]
+    fn every_malformed_line_gets_an_error_that_says_where() {
+        use ParseError::*;
+        let cases: [(&[u8], ParseError); 22] = [
+            (b"", Empty),
+            (b"   \r", Empty),
+            (b"launch", UnknownCommand),
+            (b"status now", Extra { word: 2 }),
+            (b"excite", Missing { word: 2, expected: "off, prbs, triangle or sine" }),
+            (b"excite square 1", Invalid { word: 2, expected: "off, prbs, triangle or sine" }),
+            (b"excite prbs", Missing { word: 3, expected: AMP }),
+            (b"excite prbs 11", Invalid { word: 3, expected: AMP }),
+            (b"excite prbs -1", Invalid { word: 3, expected: AMP }),
+            (b"excite prbs NaN", Invalid { word: 3, expected: AMP }),
+            (b"excite prbs inf", Invalid { word: 3, expected: AMP }),
+            (b"excite sine 1 0", Invalid { word: 4, expected: HZ }),
+            (b"excite sine 1 1e9", Invalid { word: 4, expected: HZ }),
+            (b"excite triangle 1 10 3", Extra { word: 5 }),
+            (b"select hekf,,arx", Invalid { word: 2, expected: EST_LIST }),
+            (b"reset none", Invalid { word: 2, expected: EST_LIST }),
+            (b"freeze", Missing { word: 2, expected: EST_LIST }),
+            (b"tuning sine", Invalid { word: 2, expected: "prbs or triangle" }),
+            (
+                b"limits 5 -5 100",
+                Invalid { word: 3, expected: "the highest command in V, above the lowest, at most 10" },
+            ),
+            (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
+            (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
+            (b"status\xff", NotAscii { at: 6 }),
+        ];
+        for (line, err) in cases {
+            assert_eq!(parse(line), Err(err), "{:?}", core::str::from_utf8(line));
+            // Every error reads as one line.
+            let text = std::format!("{err}");
+            assert!(!text.is_empty() && !text.contains('\n'), "{text}");
+        }
+        assert_eq!(parse(&[b'a'; MAX_LINE + 1]), Err(TooLong));
+    }
+
+    #[test]
+    fn the_line_buffer_splits_lines_and_survives_an_overlong_one() {
+        let mut lb = LineBuffer::default();
+        let mut out = std::vec::Vec::new();
+        let mut feed = |bytes: &[u8]| {
+            for &b in bytes {
+                if let Some(r) = lb.push(b) {
+                    out.push(r);
+                }
+            }
+        };
+        feed(b"start\r\nstat");
+        feed(b"us\n");
+        feed(&[b'x'; 300]);
+        feed(b"\nstop\n");
+        assert_eq!(out, [Ok(Command::Start), Ok(Command::Status), Err(ParseError::TooLong), Ok(Command::Stop)]);
+    }
+}
