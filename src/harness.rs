@@ -101,7 +101,6 @@ impl Workload {
     }
 
     /// One sample: the pipeline (with the paper's estimators), then the other estimators on its output.
-    #[inline(never)]
     pub fn step(&mut self, probe_code: u32) -> SampleOutput<f32> {
         let out = self.pipeline.step(&self.cfg, probe_code);
         self.step_others(&out);

@@ -20,13 +20,15 @@ fn main() -> ExitCode {
         eprintln!("usage: qemu-vectors OUT [SAMPLES]");
         return ExitCode::from(2);
     };
-    let samples: usize = match samples.map(|s| s.parse()) {
+    let samples: usize = match samples {
         None => 20_000,
-        Some(Ok(n)) if n > 0 => n,
-        Some(_) => {
-            eprintln!("qemu-vectors: SAMPLES must be a positive integer, got {:?}", samples.unwrap());
-            return ExitCode::from(2);
-        }
+        Some(s) => match s.parse() {
+            Ok(n) if n > 0 => n,
+            _ => {
+                eprintln!("qemu-vectors: SAMPLES must be a positive integer, got {s:?}");
+                return ExitCode::from(2);
+            }
+        },
     };
     match run(out, samples) {
         Ok(()) => ExitCode::SUCCESS,

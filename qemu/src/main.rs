@@ -108,7 +108,6 @@ impl Clock {
         }
         let mut clock = Clock { shift, frame: 0 };
         clock.frame = clock.instructions(empty);
-        defmt::info!("clock: empty {} ticks, 1 nop {} ticks, 1000 nops {} ticks", empty, one, thousand);
         let exact = clock.instructions(one) == 1 + clock.frame && clock.instructions(thousand) == 1000 + clock.frame;
         defmt::info!("clock: the timing frame (two reads and an empty call) is {} instructions; 1 and 1000 instructions counted exactly: {}", clock.frame, exact);
         exact.then_some(clock)
@@ -247,12 +246,11 @@ fn main() -> ! {
 
     defmt::println!("{=str}", "kernel                           instructions per update: mean      max updates");
     let mut p = start.pipeline.clone();
-    let stats = table.kernel("pipeline_all_f32", |c, s| {
+    table.kernel("pipeline_all_f32", |c, s| {
         for k in n - BENCH..n {
             s.add(c.count(|| p.step(&start.cfg, vectors.sample(k).0)).1);
         }
     });
-    let _ = stats;
     bench_ok &= p.estimators.2.params() == w.pipeline.estimators.2.params();
     let mut bare = Pipeline::new(&start.cfg, ());
     table.kernel("pipeline_bare_f32", |c, s| {
@@ -287,18 +285,14 @@ fn main() -> ! {
     table.kernel("prefilter_f32", |c, s| {
         window.iter().for_each(|x| s.add(c.count(|| cfg.prefilter.update(&mut pre, x.u)).1))
     });
-    let mut bq = BiquadState::default();
-    table.kernel("reconstruction_replica_f32", |c, s| {
-        window.iter().for_each(|x| s.add(c.count(|| cfg.reconstruction.update(&mut bq, x.u)).1))
-    });
-    let mut bq = BiquadState::default();
-    table.kernel("antialias_replica_f32", |c, s| {
-        window.iter().for_each(|x| s.add(c.count(|| cfg.antialias.update(&mut bq, x.u)).1))
-    });
-    let mut bq = BiquadState::default();
-    table.kernel("lag_replica_f32", |c, s| {
-        window.iter().for_each(|x| s.add(c.count(|| cfg.lags.update(&mut bq, x.u)).1))
-    });
+    for (name, biquad) in [
+        ("reconstruction_replica_f32", &cfg.reconstruction),
+        ("antialias_replica_f32", &cfg.antialias),
+        ("lag_replica_f32", &cfg.lags),
+    ] {
+        let mut bq = BiquadState::default();
+        table.kernel(name, |c, s| window.iter().for_each(|x| s.add(c.count(|| biquad.update(&mut bq, x.u)).1)));
+    }
     let mut ex = ExcitationState::default();
     table.kernel("excitation_prbs_f32", |c, s| {
         (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1))
@@ -329,7 +323,7 @@ struct Bench<'a> {
 }
 
 impl Bench<'_> {
-    fn kernel(&mut self, name: &str, run: impl FnOnce(&Clock, &mut Stats)) -> Stats {
+    fn kernel(&mut self, name: &str, run: impl FnOnce(&Clock, &mut Stats)) {
         let mut s = Stats::default();
         run(self.clock, &mut s);
         let _ = write!(
@@ -343,7 +337,6 @@ impl Bench<'_> {
         );
         self.first = false;
         self.summary(name, &s);
-        s
     }
 
     fn summary(&self, name: &str, s: &Stats) {

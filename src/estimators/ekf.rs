@@ -124,6 +124,7 @@ impl EkfDesign {
             c1: T::of(p.a1),
             c2: T::of(p.b0 / w),
             h: T::of(h),
+            period: T::of(h * self.substeps.max(1) as f64),
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -208,6 +209,8 @@ pub struct EkfConfig<T> {
     c1: T,
     c2: T,
     h: T,
+    /// The continuous filter's step, `h * substeps` (the sample period).
+    period: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -250,7 +253,7 @@ impl EkfKind for Continuous {
     const NAME: &'static str = "ekf";
     #[inline]
     fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, Option<T>) {
-        let h = core.cfg.h * T::of(core.cfg.substeps as f64);
+        let h = core.cfg.period;
         // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
         // x1'' (at the step's start), and the term vanishes at the samples.
         let c = &core.cfg;
@@ -384,7 +387,7 @@ impl<T: Real> EkfCore<T> {
     /// About 50 flops per stage (the full product `F P` would be 50 multiply-adds alone), 11-value RK4 sums.
     #[inline]
     fn predict(&mut self, u: T) {
-        let c = self.cfg;
+        let c = &self.cfg;
         let (half, two) = (T::of(0.5), T::of(2.0));
         let (h, hh, h6) = (c.h, c.h * half, c.h / T::of(6.0));
         let (w, g0, g1, bu, e2) = (c.w, -c.c0 * self.z[2], -c.c1 * self.z[3], c.c2 * self.z[4] * u, c.c2 * u);

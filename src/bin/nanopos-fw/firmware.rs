@@ -25,8 +25,7 @@ const CYCLES_PER_SAMPLE: u32 = 17_000;
 /// Every estimator, in the interrupt (PRBS tuning). Run-time selection and tuning: issue 6.
 type Bank = (Crls<f32>, Cekf<f32>, Hekf<f32>, ArxEstimator<f32>);
 /// Their names in the telemetry, in the bank's order.
-const NAMES: [&str; 4] =
-    [<Crls<f32> as Estimator<f32>>::NAME, Cekf::<f32>::NAME, Hekf::<f32>::NAME, ArxEstimator::<f32>::NAME];
+const NAMES: [&str; 4] = [Crls::<f32>::NAME, Cekf::<f32>::NAME, Hekf::<f32>::NAME, ArxEstimator::<f32>::NAME];
 
 /// What the interrupt owns.
 struct SampleTask {

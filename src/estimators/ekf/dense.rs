@@ -70,6 +70,7 @@ impl<T: Real> DenseHekf<T> {
     /// One sample: prediction over `T` with the previous filtered input held, then the Joseph-form update with `y`.
     pub fn update(&mut self, u: T, y: T) {
         let (h, half, two) = (self.cfg.h, T::of(0.5), T::of(2.0));
+        let h6 = h / T::of(6.0);
         let u_held = self.u_prev;
         for _ in 0..self.cfg.substeps {
             let (z, p) = (self.z, self.p);
@@ -77,7 +78,6 @@ impl<T: Real> DenseHekf<T> {
             let (k2z, k2p) = self.derivative(&(z + k1z * (h * half)), &(p + k1p * (h * half)), u_held);
             let (k3z, k3p) = self.derivative(&(z + k2z * (h * half)), &(p + k2p * (h * half)), u_held);
             let (k4z, k4p) = self.derivative(&(z + k3z * h), &(p + k3p * h), u_held);
-            let h6 = h / T::of(6.0);
             self.z = z + (k1z + (k2z + k3z) * two + k4z) * h6;
             self.p = p + (k1p + (k2p + k3p) * two + k4p) * h6;
         }
