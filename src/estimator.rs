@@ -98,6 +98,9 @@ pub trait EstimatorBank<T: Real> {
     const LEN: usize;
     /// Feed one sample to each.
     fn update(&mut self, sample: &FilteredSample<T>);
+    /// Feed one sample to the estimators whose bit is set in `mask` (bit `i`: the bank's `i`-th estimator); the
+    /// others are not touched (their state stays as it was).
+    fn update_selected(&mut self, sample: &FilteredSample<T>, mask: u8);
     /// Reset each.
     fn reset(&mut self);
 }
@@ -106,6 +109,7 @@ pub trait EstimatorBank<T: Real> {
 impl<T: Real> EstimatorBank<T> for () {
     const LEN: usize = 0;
     fn update(&mut self, _: &FilteredSample<T>) {}
+    fn update_selected(&mut self, _: &FilteredSample<T>, _: u8) {}
     fn reset(&mut self) {}
 }
 
@@ -116,6 +120,12 @@ macro_rules! bank_for_tuple {
             #[inline]
             fn update(&mut self, sample: &FilteredSample<T>) {
                 $(self.$idx.update(sample);)+
+            }
+            #[inline]
+            fn update_selected(&mut self, sample: &FilteredSample<T>, mask: u8) {
+                $(if mask & (1 << $idx) != 0 {
+                    self.$idx.update(sample);
+                })+
             }
             fn reset(&mut self) {
                 $(self.$idx.reset();)+

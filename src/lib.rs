@@ -19,12 +19,15 @@ pub mod excitation;
 pub mod filters;
 pub mod fixed;
 pub mod hal;
+pub mod instrument;
 #[cfg(feature = "harness")]
 pub mod harness;
 pub mod linalg;
 pub mod params;
 pub mod pipeline;
+pub mod record;
 pub mod scalar;
+pub mod text;
 
 pub use params::StageParams;
 pub use scalar::{Real, Scalar};

@@ -122,6 +122,8 @@ pub struct PipelineSettings {
     pub amplifier: AmplifierFrontEnd,
     /// Fault detection.
     pub faults: FaultSettings,
+    /// Which estimators of the bank run: bit `i` for the bank's `i`-th (all by default). The others are not fed.
+    pub estimators: u8,
 }
 
 impl Default for PipelineSettings {
@@ -137,6 +139,7 @@ impl Default for PipelineSettings {
             probe: ProbeFrontEnd::default(),
             amplifier: AmplifierFrontEnd::default(),
             faults: FaultSettings::default(),
+            estimators: u8::MAX,
         }
     }
 }
@@ -243,6 +246,8 @@ pub struct PipelineConfig<T> {
     pub actuation_delay_samples: u8,
     /// Sample period, s.
     pub sample_period_s: f64,
+    /// Which estimators are fed (bit `i`: the bank's `i`-th).
+    pub estimators: u8,
 }
 
 impl PipelineSettings {
@@ -332,6 +337,7 @@ impl PipelineSettings {
             stuck_samples: self.faults.stuck_samples.max(2),
             actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
+            estimators: self.estimators,
         })
     }
 }
@@ -390,6 +396,8 @@ pub struct SampleOutput<T> {
     pub u_v: T,
     /// The probe reading, um.
     pub y_um: T,
+    /// The probe code it came from.
+    pub probe_code: u32,
     /// Latched faults after this sample.
     pub faults: Faults,
     /// What the estimators were fed (`None` while a fault is latched).
@@ -460,12 +468,12 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
 
         let sample = self.filter(cfg, u_v, y_um);
         let estimator_input = if self.faults.is_empty() {
-            self.estimators.update(&sample);
+            self.estimators.update_selected(&sample, cfg.estimators);
             Some(sample)
         } else {
             None
         };
-        SampleOutput { dac_code, u_v, y_um, faults: self.faults, estimator_input, board_faults: BoardFaults::default() }
+        SampleOutput { dac_code, u_v, y_um, probe_code, faults: self.faults, estimator_input, board_faults: BoardFaults::default() }
     }
 
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {

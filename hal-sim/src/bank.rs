@@ -2,36 +2,14 @@
 //! and their tuning presets.
 
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample};
-use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
-use nanopos_id::estimators::crls::{Crls, CrlsDesign};
-use nanopos_id::estimators::ekf::{Cekf, EkfDesign, Hekf};
+pub use nanopos_id::estimators::Tuning;
+use nanopos_id::estimators::arx::ArxEstimator;
+use nanopos_id::estimators::crls::Crls;
+use nanopos_id::estimators::ekf::{Cekf, Hekf};
 use nanopos_id::{Real, StageParams};
 
 /// The estimator names, in report order.
 pub const NAMES: [&str; 4] = ["rls", "ekf", "hekf", "arx"];
-
-/// Tuning of every estimator.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Tuning {
-    /// Continuous-time RLS.
-    pub rls: CrlsDesign,
-    /// Both EKFs.
-    pub ekf: EkfDesign,
-    /// The ARX RLS.
-    pub arx: ArxDesign,
-}
-
-impl Tuning {
-    /// `prbs`: the paper's Q2 and RLS settings (the default); `triangle`: Q1.
-    pub fn preset(name: &str) -> Option<Self> {
-        let q = match name {
-            "prbs" => EkfDesign::Q2,
-            "triangle" => EkfDesign::Q1,
-            _ => return None,
-        };
-        Some(Tuning { rls: CrlsDesign::default(), ekf: EkfDesign::paper(q), arx: ArxDesign::default() })
-    }
-}
 
 /// Any subset of the four estimators, in one scalar.
 pub struct Bank<T: Real> {
@@ -96,6 +74,21 @@ impl<T: Real> EstimatorBank<T> for Bank<T> {
             e.update(s);
         }
         if let Some(e) = &mut self.arx {
+            e.update(s);
+        }
+    }
+    fn update_selected(&mut self, s: &FilteredSample<T>, mask: u8) {
+        let on = |i: u8| mask & (1 << i) != 0;
+        if let Some(e) = self.rls.as_mut().filter(|_| on(0)) {
+            e.update(s);
+        }
+        if let Some(e) = self.ekf.as_mut().filter(|_| on(1)) {
+            e.update(s);
+        }
+        if let Some(e) = self.hekf.as_mut().filter(|_| on(2)) {
+            e.update(s);
+        }
+        if let Some(e) = self.arx.as_mut().filter(|_| on(3)) {
             e.update(s);
         }
     }

@@ -23,6 +23,54 @@ pub fn paper_bank<T: Real>() -> PaperBank<T> {
     (crls::Crls::new(crls::CrlsDesign::default().design()), ekf::Cekf::new(ekf.design()), ekf::Hekf::new(ekf.design()))
 }
 
+/// Tuning of every estimator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tuning {
+    /// Continuous-time RLS.
+    pub rls: crls::CrlsDesign,
+    /// Both EKFs.
+    pub ekf: ekf::EkfDesign,
+    /// The ARX RLS.
+    pub arx: arx::ArxDesign,
+}
+
+impl Tuning {
+    /// `prbs`: the paper's Q2 and RLS settings (the default); `triangle`: Q1.
+    pub fn preset(name: &str) -> Option<Self> {
+        let q = match name {
+            "prbs" => ekf::EkfDesign::Q2,
+            "triangle" => ekf::EkfDesign::Q1,
+            _ => return None,
+        };
+        Some(Tuning { rls: crls::CrlsDesign::default(), ekf: ekf::EkfDesign::paper(q), arx: arx::ArxDesign::default() })
+    }
+
+    /// Design every estimator's configuration in the working scalar.
+    pub fn design<T: Real>(&self) -> TuningConfig<T> {
+        TuningConfig { rls: self.rls.design(), ekf: self.ekf.design(), arx: self.arx.design() }
+    }
+}
+
+/// [`Tuning`], designed: the estimators' configurations.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TuningConfig<T> {
+    /// Continuous-time RLS.
+    pub rls: crls::CrlsConfig<T>,
+    /// Both EKFs.
+    pub ekf: ekf::EkfConfig<T>,
+    /// The ARX RLS.
+    pub arx: arx::ArxConfig<T>,
+}
+
+/// Every estimator, in the order of [`crate::control::ESTIMATOR_NAMES`] (`rls`, `ekf`, `hekf`, `arx`): the bank the
+/// firmware's interrupt runs, any subset of it selected at run time.
+pub type FullBank<T> = (crls::Crls<T>, ekf::Cekf<T>, ekf::Hekf<T>, arx::ArxEstimator<T>);
+
+/// Every estimator, fresh, with the tuning `cfg`.
+pub fn full_bank<T: Real>(cfg: &TuningConfig<T>) -> FullBank<T> {
+    (crls::Crls::new(cfg.rls), ekf::Cekf::new(cfg.ekf), ekf::Hekf::new(cfg.ekf), arx::ArxEstimator::new(cfg.arx))
+}
+
 /// `a + h b`, the RK4 stage argument.
 #[inline(always)]
 pub(crate) fn axpy<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T; N] {

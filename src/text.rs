@@ -1,0 +1,214 @@
+//! Text output without `core::fmt`'s float machinery: numbers for replies and headers, and a fixed-size buffer to
+//! write lines into.
+//!
+//! `core`'s float formatting (shortest round trip) costs several KiB of flash; [`Num`] writes a number with a given
+//! count of significant digits by scaling in f64, which is exact to about 15 digits, enough for every quantity this
+//! firmware reports.
+
+use core::fmt;
+
+/// `x` with at most `digits` significant digits (1 to 17), trailing zeros dropped: plain notation between 1e-3 and
+/// 1e6, scientific (`1.2345e8`) outside. `nan`, `inf`, `-inf` as such.
+#[derive(Clone, Copy, Debug)]
+pub struct Num(pub f64, pub u8);
+
+impl fmt::Display for Num {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let Num(x, digits) = *self;
+        let digits = digits.clamp(1, 17) as u32;
+        if x.is_nan() {
+            return f.write_str("nan");
+        }
+        if x.is_sign_negative() && x != 0.0 {
+            f.write_str("-")?;
+        }
+        let a = libm::fabs(x);
+        if a.is_infinite() {
+            return f.write_str("inf");
+        }
+        if a == 0.0 {
+            return f.write_str("0");
+        }
+        // a = m 10^e with m in [1, 10).
+        let (mut m, mut e) = (a, 0i32);
+        while m >= 1e16 {
+            m /= 1e16;
+            e += 16;
+        }
+        while m >= 10.0 {
+            m /= 10.0;
+            e += 1;
+        }
+        while m < 1e-16 {
+            m *= 1e16;
+            e -= 16;
+        }
+        while m < 1.0 {
+            m *= 10.0;
+            e -= 1;
+        }
+        let unit = 10u64.pow(digits - 1);
+        let mut n = libm::round(m * unit as f64) as u64;
+        if n >= 10 * unit {
+            n /= 10;
+            e += 1;
+        }
+        // The digits of n, most significant first, trailing zeros dropped.
+        let mut buf = [0u8; 17];
+        for i in (0..digits as usize).rev() {
+            buf[i] = b'0' + (n % 10) as u8;
+            n /= 10;
+        }
+        let mut len = digits as usize;
+        while len > 1 && buf[len - 1] == b'0' {
+            len -= 1;
+        }
+        let digits = &buf[..len];
+        fn text(b: &[u8]) -> &str {
+            core::str::from_utf8(b).unwrap_or("?")
+        }
+        if (-3..6).contains(&e) {
+            if e < 0 {
+                f.write_str("0.")?;
+                for _ in 0..(-e - 1) {
+                    f.write_str("0")?;
+                }
+                f.write_str(text(digits))
+            } else {
+                let int = e as usize + 1;
+                if len <= int {
+                    f.write_str(text(digits))?;
+                    for _ in len..int {
+                        f.write_str("0")?;
+                    }
+                    Ok(())
+                } else {
+                    f.write_str(text(&digits[..int]))?;
+                    f.write_str(".")?;
+                    f.write_str(text(&digits[int..]))
+                }
+            }
+        } else {
+            f.write_str(text(&digits[..1]))?;
+            if len > 1 {
+                f.write_str(".")?;
+                f.write_str(text(&digits[1..]))?;
+            }
+            write!(f, "e{e}")
+        }
+    }
+}
+
+/// A fixed buffer that `write!` fills; what does not fit is cut and the buffer remembers it (ending in `...`).
+#[derive(Clone, Debug)]
+pub struct TextBuf<const N: usize> {
+    buf: [u8; N],
+    len: usize,
+    truncated: bool,
+}
+
+impl<const N: usize> Default for TextBuf<N> {
+    fn default() -> Self {
+        TextBuf { buf: [0; N], len: 0, truncated: false }
+    }
+}
+
+impl<const N: usize> TextBuf<N> {
+    /// The bytes written.
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.buf[..self.len]
+    }
+    /// As text.
+    pub fn as_str(&self) -> &str {
+        core::str::from_utf8(self.as_bytes()).unwrap_or("")
+    }
+    /// Empty it.
+    pub fn clear(&mut self) {
+        self.len = 0;
+        self.truncated = false;
+    }
+    /// Whether something was cut.
+    pub fn truncated(&self) -> bool {
+        self.truncated
+    }
+}
+
+impl<const N: usize> fmt::Write for TextBuf<N> {
+    fn write_str(&mut self, s: &str) -> fmt::Result {
+        let room = N - self.len;
+        if s.len() <= room && !self.truncated {
+            self.buf[self.len..self.len + s.len()].copy_from_slice(s.as_bytes());
+            self.len += s.len();
+            return Ok(());
+        }
+        if !self.truncated {
+            // Cut at a character boundary, leaving room for the marker and the line end.
+            let keep = room.saturating_sub(4);
+            let mut cut = keep.min(s.len());
+            while !s.is_char_boundary(cut) {
+                cut -= 1;
+            }
+            self.buf[self.len..self.len + cut].copy_from_slice(&s.as_bytes()[..cut]);
+            self.len += cut;
+            for &b in b"...\n" {
+                if self.len < N {
+                    self.buf[self.len] = b;
+                    self.len += 1;
+                }
+            }
+            self.truncated = true;
+        }
+        Err(fmt::Error)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::format;
+
+    #[test]
+    fn numbers_read_as_expected() {
+        let cases: [(f64, u8, &str); 18] = [
+            (0.0, 6, "0"),
+            (1.0, 6, "1"),
+            (-2.5, 6, "-2.5"),
+            (1053.2149, 6, "1053.21"),
+            (999_999.7, 6, "1e6"),
+            (123_456.0, 6, "123456"),
+            (1.342_553_6e8, 6, "1.34255e8"),
+            (0.012_345_67, 6, "0.0123457"),
+            (0.000_999_99, 3, "0.001"),
+            (2.5e-7, 6, "2.5e-7"),
+            (0.0048828125, 15, "0.0048828125"),
+            (0.00152587890625, 15, "0.00152587890625"),
+            (-50.0, 15, "-50"),
+            (10_000.0, 15, "10000"),
+            (f64::NAN, 6, "nan"),
+            (f64::NEG_INFINITY, 6, "-inf"),
+            (1e-300, 3, "1e-300"),
+            (1.7976931348623157e308, 4, "1.798e308"),
+        ];
+        for (x, d, want) in cases {
+            assert_eq!(format!("{}", Num(x, d)), want, "{x:e}");
+        }
+        // Round trip at 15 digits over many magnitudes.
+        for k in -20..20 {
+            let x = 1.234_567_890_123_4 * 10f64.powi(k);
+            let back: f64 = format!("{}", Num(x, 15)).parse().unwrap();
+            assert!(((back - x) / x).abs() < 1e-14, "{x:e} {back:e}");
+        }
+    }
+
+    #[test]
+    fn a_full_buffer_cuts_and_says_so() {
+        use core::fmt::Write;
+        let mut b = TextBuf::<16>::default();
+        assert!(write!(b, "ok ").is_ok());
+        assert!(write!(b, "{}", "a long reply that does not fit").is_err());
+        assert_eq!(b.as_str(), "ok a long re...\n");
+        assert!(b.truncated());
+        b.clear();
+        assert!(write!(b, "ok").is_ok() && b.as_str() == "ok");
+    }
+}
