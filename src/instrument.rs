@@ -102,11 +102,8 @@ pub struct Instrument<T: Real> {
 impl<T: Real> Instrument<T> {
     /// At rest, with every estimator fresh.
     pub fn new(config: PipelineConfig<T>, tuning: &TuningConfig<T>) -> Self {
-        let code_in_effect = {
-            // The output of a pipeline at rest: its safe value.
-            let raw = config.amplifier.scale * config.safe_v + config.amplifier.offset;
-            num_traits::cast::<T, u32>(raw.round()).unwrap_or(0).min(config.dac_max_code)
-        };
+        // A pipeline at rest outputs its safe value.
+        let code_in_effect = config.safe_code();
         Instrument {
             pipeline: Pipeline::new(&config, full_bank(tuning)),
             config,
@@ -225,7 +222,12 @@ impl<T: Real> Instrument<T> {
     /// Each estimator's parameters and health.
     pub fn estimates(&self) -> [(StageParams<T>, Health); 4] {
         let e = &self.pipeline.estimators;
-        [(e.0.params(), e.0.health()), (e.1.params(), e.1.health()), (e.2.params(), e.2.health()), (e.3.params(), e.3.health())]
+        [
+            (e.0.params(), e.0.health()),
+            (e.1.params(), e.1.health()),
+            (e.2.params(), e.2.health()),
+            (e.3.params(), e.3.health()),
+        ]
     }
 
     /// A snapshot of everything status reports.

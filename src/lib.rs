@@ -12,6 +12,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod console;
 pub mod control;
 pub mod estimator;
 pub mod estimators;
@@ -19,9 +20,9 @@ pub mod excitation;
 pub mod filters;
 pub mod fixed;
 pub mod hal;
-pub mod instrument;
 #[cfg(feature = "harness")]
 pub mod harness;
+pub mod instrument;
 pub mod linalg;
 pub mod params;
 pub mod pipeline;

@@ -342,6 +342,13 @@ impl PipelineSettings {
     }
 }
 
+impl<T: Real> PipelineConfig<T> {
+    /// The DAC code of the safe output: what a fault handler writes when the pipeline cannot run.
+    pub fn safe_code(&self) -> u32 {
+        encode(self, self.safe_v).0
+    }
+}
+
 /// Fault bits. A latched fault stops the excitation until cleared.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
@@ -473,7 +480,15 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         } else {
             None
         };
-        SampleOutput { dac_code, u_v, y_um, probe_code, faults: self.faults, estimator_input, board_faults: BoardFaults::default() }
+        SampleOutput {
+            dac_code,
+            u_v,
+            y_um,
+            probe_code,
+            faults: self.faults,
+            estimator_input,
+            board_faults: BoardFaults::default(),
+        }
     }
 
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {

@@ -6,7 +6,7 @@
 //! ```text
 //! # nanopos-record v1 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50
 //! R00000000a3f2 <base64 of up to 48 samples> 1c0f
-//! R00000000a422 ... 
+//! R00000000a422 ...
 //! # nanopos-record end samples=2048 overflow=0
 //! ```
 //!
@@ -197,10 +197,7 @@ impl RecordHeader {
 
     /// `u` in V and `y` in um of a sample.
     pub fn physical(&self, s: RawSample) -> (f64, f64) {
-        (
-            self.u_v_offset + self.u_v_per_code * s.u_code as f64,
-            self.y_um_offset + self.y_um_per_code * s.y_code as f64,
-        )
+        (self.u_v_offset + self.u_v_per_code * s.u_code as f64, self.y_um_offset + self.y_um_per_code * s.y_code as f64)
     }
 }
 

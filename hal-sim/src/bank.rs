@@ -2,10 +2,10 @@
 //! and their tuning presets.
 
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample};
-pub use nanopos_id::estimators::Tuning;
 use nanopos_id::estimators::arx::ArxEstimator;
 use nanopos_id::estimators::crls::Crls;
 use nanopos_id::estimators::ekf::{Cekf, Hekf};
+pub use nanopos_id::estimators::Tuning;
 use nanopos_id::{Real, StageParams};
 
 /// The estimator names, in report order.

@@ -1,0 +1,410 @@
+//! The low-priority side of run-time control: a parsed command ([`crate::control`]) in, a [`Change`] for the
+//! interrupt and the reply text out.
+//!
+//! The [`Controller`] keeps the physical settings (f64) and designs every new configuration itself, so the
+//! interrupt only ever receives finished values. A command that cannot be honoured changes nothing and is answered
+//! `error: ...` naming why. Replies are lines; the last line of every reply starts with `ok` or `error:`, and
+//! `status` sends one `est ...` line per estimator before its `ok` line.
+
+use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
+use crate::estimator::Adaptation;
+use crate::estimators::{Tuning, TuningConfig};
+use crate::excitation::{ExcitationDesign, Waveform};
+use crate::hal::BoardDescription;
+use crate::instrument::{Change, RecordStatus, Status};
+use crate::pipeline::{Faults, PipelineConfig, PipelineSettings, SettingsError};
+use crate::record::RecordHeader;
+use crate::text::Num;
+use crate::Real;
+use core::fmt::{self, Write};
+
+/// The run-time settings and what the user chose.
+#[derive(Clone, Debug)]
+pub struct Controller {
+    settings: PipelineSettings,
+    board: BoardDescription,
+    /// The excitation `start` runs.
+    chosen: ExcitationDesign,
+    running: bool,
+    tuning: TuningPreset,
+    frozen: EstimatorSet,
+}
+
+impl Controller {
+    /// Start from `settings` (its excitation is the one `start` runs), running it or not. Fails if the settings do
+    /// not design for `board`.
+    pub fn new(settings: PipelineSettings, board: BoardDescription, running: bool) -> Result<Self, SettingsError> {
+        let c = Controller {
+            chosen: settings.excitation,
+            settings,
+            board,
+            running,
+            tuning: TuningPreset::Prbs,
+            frozen: EstimatorSet(0),
+        };
+        c.design::<f32>(&c.settings)?;
+        Ok(c)
+    }
+
+    /// The configuration of the current settings.
+    pub fn config<T: Real>(&self) -> PipelineConfig<T> {
+        // Validated in `new` and before every change of `settings`.
+        self.design(&self.settings).unwrap_or_else(|_| unreachable!("settings are validated before they are kept"))
+    }
+
+    /// The current tuning, designed.
+    pub fn tuning<T: Real>(&self) -> TuningConfig<T> {
+        preset(self.tuning).design()
+    }
+
+    /// The settings in use (the excitation of a stopped controller is the constant safe value).
+    pub fn settings(&self) -> &PipelineSettings {
+        &self.settings
+    }
+
+    /// Whether the excitation runs.
+    pub fn running(&self) -> bool {
+        self.running
+    }
+
+    fn design<T: Real>(&self, s: &PipelineSettings) -> Result<PipelineConfig<T>, SettingsError> {
+        let mut s = *s;
+        if !self.running {
+            s.excitation = ExcitationDesign::constant(s.limits.safe_v);
+        }
+        s.design(&self.board)
+    }
+
+    /// The recording header of the current settings.
+    pub fn record_header(&self) -> RecordHeader {
+        let (p, a) = (&self.settings.probe, &self.settings.amplifier);
+        let um_per_adc_v = p.um_per_v / p.adc_v_per_sensor_v;
+        RecordHeader {
+            rate_hz: self.settings.sample_rate_hz,
+            delay: self.board.actuation_delay_samples,
+            u_v_per_code: self.board.amplifier.volts_per_code() / a.dac_v_per_command_v,
+            u_v_offset: -a.dac_offset_v / a.dac_v_per_command_v,
+            y_um_per_code: self.board.probe.volts_per_code() * um_per_adc_v,
+            y_um_offset: -p.adc_offset_v * um_per_adc_v,
+        }
+    }
+
+    /// Answer a line that did not parse.
+    pub fn refuse(&self, e: ParseError, reply: &mut impl Write) {
+        let _ = writeln!(reply, "error: {e}");
+    }
+
+    /// Carry out `cmd`: the change to post (if any) and the reply. `status` is called only for `status`. Nothing
+    /// changes when the reply is an error.
+    pub fn execute<T: Real>(
+        &mut self,
+        cmd: Command,
+        status: impl FnOnce() -> Status<T>,
+        reply: &mut impl Write,
+    ) -> Option<Change<T>> {
+        match self.try_execute(cmd, status, reply) {
+            Ok(change) => change,
+            Err(e) => {
+                let _ = writeln!(reply, "error: {e}");
+                None
+            }
+        }
+    }
+
+    fn try_execute<T: Real>(
+        &mut self,
+        cmd: Command,
+        status: impl FnOnce() -> Status<T>,
+        reply: &mut impl Write,
+    ) -> Result<Option<Change<T>>, Refusal> {
+        let mut change = Change::default();
+        match cmd {
+            Command::Status => {
+                self.write_status(&status(), reply)?;
+                return Ok(None);
+            }
+            Command::Excite(choice) => {
+                let design = excitation(choice);
+                let mut s = self.settings;
+                s.excitation = design;
+                change.config = Some(self.design(&s)?);
+                self.settings = s;
+                self.chosen = design;
+                let state = if self.running { "running" } else { "stopped, send start" };
+                writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
+            }
+            Command::Start | Command::Stop => {
+                let was = self.running;
+                self.running = cmd == Command::Start;
+                let mut s = self.settings;
+                s.excitation = self.chosen;
+                match self.design(&s) {
+                    Ok(cfg) => change.config = Some(cfg),
+                    Err(e) => {
+                        self.running = was;
+                        return Err(e.into());
+                    }
+                }
+                self.settings = s;
+                if self.running {
+                    change.clear_faults = true;
+                    writeln!(reply, "ok start {} (latched faults cleared)", Exc(&self.chosen))?;
+                } else {
+                    writeln!(reply, "ok stop (output to {} V at the slew limit)", Num(s.limits.safe_v, 6))?;
+                }
+            }
+            Command::Select(set) => {
+                let mut s = self.settings;
+                let before = EstimatorSet(s.estimators & EstimatorSet::ALL.0);
+                s.estimators = set.0;
+                change.config = Some(self.design(&s)?);
+                // An estimator not fed for a while holds stale signals: it restarts when selected again.
+                change.reset = EstimatorSet(set.0 & !before.0);
+                self.settings = s;
+                writeln!(reply, "ok select {}", Names(set))?;
+            }
+            Command::Reset(set) => {
+                change.reset = set;
+                writeln!(reply, "ok reset {}", Names(set))?;
+            }
+            Command::Freeze(set) => {
+                change.freeze = set;
+                self.frozen.0 |= set.0;
+                writeln!(reply, "ok freeze {}", Names(set))?;
+            }
+            Command::Adapt(set) => {
+                change.adapt = set;
+                self.frozen.0 &= !set.0;
+                writeln!(reply, "ok adapt {}", Names(set))?;
+            }
+            Command::Tuning(p) => {
+                change.tuning = Some(preset(p).design());
+                // The estimators restart with the new tuning; frozen ones stay frozen.
+                change.freeze = self.frozen;
+                self.tuning = p;
+                writeln!(reply, "ok tuning {} (estimators restarted)", tuning_name(p))?;
+            }
+            Command::Limits { min_v, max_v, slew_v_per_s } => {
+                let mut s = self.settings;
+                s.limits.min_v = min_v as f64;
+                s.limits.max_v = max_v as f64;
+                s.limits.max_slew_v_per_s = slew_v_per_s as f64;
+                change.config = Some(self.design(&s)?);
+                self.settings = s;
+                let l = &s.limits;
+                writeln!(
+                    reply,
+                    "ok limits {} V to {} V, {} V/s",
+                    Num(l.min_v, 6),
+                    Num(l.max_v, 6),
+                    Num(l.max_slew_v_per_s, 6)
+                )?;
+            }
+            Command::Record(r) => {
+                if self.board.probe.bits > 16 || self.board.amplifier.bits > 16 {
+                    return Err(Refusal::Text("record: the v1 stream carries 16-bit codes; this board's are wider"));
+                }
+                change.record = Some(match r {
+                    Recording::Off => Some(0),
+                    Recording::On => None,
+                    Recording::Burst(n) => Some(n),
+                });
+                if r != Recording::Off {
+                    self.record_header().write(reply)?;
+                }
+                match r {
+                    Recording::Off => writeln!(reply, "ok record off")?,
+                    Recording::On => writeln!(reply, "ok record on")?,
+                    Recording::Burst(n) => writeln!(reply, "ok record burst {n}")?,
+                }
+            }
+        }
+        Ok(Some(change))
+    }
+
+    /// The `est` lines and the `ok status` line.
+    pub fn write_status<T: Real>(&self, s: &Status<T>, w: &mut impl Write) -> fmt::Result {
+        for (i, (p, h)) in s.estimates.iter().enumerate() {
+            let f = |x: T| Num(x.to_f64().unwrap_or(f64::NAN), 6);
+            write!(
+                w,
+                "est {} a0={} a1={} b0={} f0_hz={} zeta={} gain_um_per_v={} ",
+                ESTIMATOR_NAMES[i],
+                f(p.a0),
+                f(p.a1),
+                f(p.b0),
+                f(p.f0_hz()),
+                f(p.damping_ratio()),
+                f(p.dc_gain())
+            )?;
+            let state = if !s.selected.contains(i) {
+                "off"
+            } else {
+                match h.adaptation {
+                    Adaptation::Adapting => "adapting",
+                    Adaptation::Frozen => "frozen",
+                    Adaptation::Starved => "starved",
+                }
+            };
+            writeln!(
+                w,
+                "{state} rejected={} changes={} resets={} innovation_rms_um={}",
+                h.rejected_samples,
+                h.changes_detected,
+                h.numeric_resets,
+                Num(h.innovation_rms_um as f64, 4)
+            )?;
+        }
+        let c = &s.counters;
+        writeln!(
+            w,
+            "ok status samples={} excitation={} {} faults={} over_range={} stuck={} not_finite={} deadline_misses={} \
+             adc_overruns={} command_v={} selected={} tuning={} record={}",
+            s.samples,
+            Exc(&self.chosen),
+            if self.running { "running" } else { "stopped" },
+            FaultNames(s.faults),
+            c.probe_over_range,
+            c.probe_stuck,
+            c.command_not_finite,
+            c.deadline_misses,
+            c.adc_overruns,
+            Num(s.command_v.to_f64().unwrap_or(f64::NAN), 6),
+            Names(s.selected),
+            tuning_name(self.tuning),
+            Rec(s.record)
+        )
+    }
+}
+
+/// The line that closes a recording (once it stopped and its last frame went out).
+pub fn write_record_end(r: &RecordStatus, w: &mut impl Write) -> fmt::Result {
+    writeln!(w, "{} samples={} overflow={}", crate::record::END_TAG, r.recorded, r.overflowed as u8)
+}
+
+/// Why a command was refused.
+enum Refusal {
+    Settings(SettingsError),
+    Text(&'static str),
+    /// The reply did not fit its buffer (it was cut, and says so).
+    Reply,
+}
+
+impl From<SettingsError> for Refusal {
+    fn from(e: SettingsError) -> Self {
+        Refusal::Settings(e)
+    }
+}
+
+impl From<fmt::Error> for Refusal {
+    fn from(_: fmt::Error) -> Self {
+        Refusal::Reply
+    }
+}
+
+impl fmt::Display for Refusal {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Refusal::Settings(e) => write!(f, "{e}"),
+            Refusal::Text(t) => f.write_str(t),
+            Refusal::Reply => f.write_str("reply too long for the buffer"),
+        }
+    }
+}
+
+fn preset(p: TuningPreset) -> Tuning {
+    let name = tuning_name(p);
+    Tuning::preset(name).unwrap_or_else(|| unreachable!("{name} is a preset"))
+}
+
+fn tuning_name(p: TuningPreset) -> &'static str {
+    match p {
+        TuningPreset::Prbs => "prbs",
+        TuningPreset::Triangle => "triangle",
+    }
+}
+
+fn excitation(c: ExcitationChoice) -> ExcitationDesign {
+    match c {
+        ExcitationChoice::Off => ExcitationDesign::OFF,
+        ExcitationChoice::Prbs { amplitude_v } => {
+            ExcitationDesign { amplitude_v: amplitude_v as f64, ..ExcitationDesign::PAPER_PRBS }
+        }
+        ExcitationChoice::Triangle { amplitude_v, frequency_hz } => ExcitationDesign {
+            waveform: Waveform::Triangle { freq_hz: frequency_hz as f64, max_hz: 1000.0 },
+            amplitude_v: amplitude_v as f64,
+            offset_v: 0.0,
+        },
+        ExcitationChoice::Sine { amplitude_v, frequency_hz } => {
+            ExcitationDesign::sine(frequency_hz as f64, amplitude_v as f64)
+        }
+    }
+}
+
+/// An excitation as the protocol names it.
+struct Exc<'a>(&'a ExcitationDesign);
+
+impl fmt::Display for Exc<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let a = Num(self.0.amplitude_v, 6);
+        match self.0.waveform {
+            Waveform::Off => f.write_str("off"),
+            Waveform::Prbs { .. } => write!(f, "prbs {a} V"),
+            Waveform::Triangle { freq_hz, .. } => write!(f, "triangle {a} V {} Hz", Num(freq_hz, 6)),
+            Waveform::Sine { freq_hz } => write!(f, "sine {a} V {} Hz", Num(freq_hz, 6)),
+        }
+    }
+}
+
+/// A set of estimators, comma-separated (`none` if empty).
+struct Names(EstimatorSet);
+
+impl fmt::Display for Names {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        list(f, ESTIMATOR_NAMES.iter().enumerate().filter(|(i, _)| self.0.contains(*i)).map(|(_, n)| *n))
+    }
+}
+
+/// `a,b,c`, or `none`.
+fn list<'a>(f: &mut fmt::Formatter<'_>, names: impl Iterator<Item = &'a str>) -> fmt::Result {
+    let mut first = true;
+    for name in names {
+        f.write_str(if first { "" } else { "," })?;
+        f.write_str(name)?;
+        first = false;
+    }
+    if first {
+        f.write_str("none")?;
+    }
+    Ok(())
+}
+
+/// Latched faults by name (`none` if none).
+struct FaultNames(Faults);
+
+impl fmt::Display for FaultNames {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let names = [
+            (Faults::PROBE_OVER_RANGE, "over_range"),
+            (Faults::PROBE_STUCK, "stuck"),
+            (Faults::COMMAND_NOT_FINITE, "not_finite"),
+        ];
+        list(f, names.iter().filter(|(bit, _)| self.0.contains(*bit)).map(|(_, n)| *n))
+    }
+}
+
+/// The recorder, in one word and its counts.
+struct Rec(RecordStatus);
+
+impl fmt::Display for Rec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let r = &self.0;
+        let state = match (r.active, r.remaining, r.overflowed) {
+            (true, None, _) => "on",
+            (true, Some(_), _) => "burst",
+            (false, _, true) => "overflowed",
+            (false, _, false) => "off",
+        };
+        write!(f, "{state} recorded={} buffered={}", r.recorded, r.buffered)
+    }
+}

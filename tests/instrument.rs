@@ -1,0 +1,410 @@
+//! The firmware's interrupt body ([`Instrument::sample`]), its run-time control ([`Controller`]) and its safety
+//! logic, on the simulated board through the HAL trait: the same calls the firmware makes, in the same order.
+
+use hal_sim::board::SimBoard;
+use hal_sim::sim::Scenario;
+use nanopos_id::console::{write_record_end, Controller};
+use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
+use nanopos_id::estimator::{Adaptation, Estimator};
+use nanopos_id::estimators::{full_bank, Tuning};
+use nanopos_id::hal::{BoardFaults, StageBoard};
+use nanopos_id::instrument::{Change, Instrument, WatchdogGate, RECORD_BUFFER};
+use nanopos_id::pipeline::{Faults, Pipeline, SampleOutput};
+use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
+use nanopos_id::text::TextBuf;
+use nanopos_id::StageParams;
+
+/// The board, the interrupt's state and the command side, wired as in the firmware.
+struct Lab {
+    board: SimBoard,
+    isr: Instrument<f32>,
+    ctl: Controller,
+    line: LineBuffer,
+    /// Everything sent back on the serial link.
+    link: String,
+}
+
+impl Lab {
+    fn new() -> Self {
+        let (board_settings, settings) = Scenario::Prbs.settings(200.0, 1);
+        let board = SimBoard::new(board_settings);
+        let ctl = Controller::new(settings, board.description(), true).unwrap();
+        let isr = Instrument::new(ctl.config(), &ctl.tuning());
+        Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new() }
+    }
+
+    /// Type `text` on the link; every completed line is executed, its change posted and applied by one sample.
+    /// Returns the replies.
+    fn send(&mut self, text: &str) -> String {
+        let start = self.link.len();
+        for &b in text.as_bytes() {
+            let Some(parsed) = self.line.push(b) else { continue };
+            let mut reply = TextBuf::<1024>::default();
+            let change = match parsed {
+                Ok(cmd) => {
+                    let isr = &self.isr;
+                    self.ctl.execute(cmd, || isr.status(), &mut reply)
+                }
+                Err(e) => {
+                    self.ctl.refuse(e, &mut reply);
+                    None
+                }
+            };
+            if let Some(c) = change {
+                assert!(self.isr.post(c).is_ok());
+                self.sample();
+                assert!(!self.isr.change_pending());
+            }
+            self.link.push_str(reply.as_str());
+        }
+        self.link[start..].to_string()
+    }
+
+    fn sample(&mut self) -> SampleOutput<f32> {
+        self.isr.sample(&mut self.board)
+    }
+
+    fn run(&mut self, n: usize) -> Vec<SampleOutput<f32>> {
+        (0..n).map(|_| self.sample()).collect()
+    }
+
+    fn params(&self, i: usize) -> StageParams<f32> {
+        self.isr.estimates()[i].0
+    }
+}
+
+/// The last line of a reply.
+fn verdict(reply: &str) -> &str {
+    reply.lines().last().unwrap_or("")
+}
+
+#[test]
+fn the_interrupt_body_is_the_pipeline_the_host_tests() {
+    // With nothing posted, `Instrument::sample` is exactly `run_sample` on a pipeline with every estimator.
+    let mut lab = Lab::new();
+    let (board_settings, _) = Scenario::Prbs.settings(200.0, 1);
+    let mut board = SimBoard::new(board_settings);
+    let cfg = lab.ctl.config::<f32>();
+    let mut reference = Pipeline::new(&cfg, full_bank(&Tuning::preset("prbs").unwrap().design()));
+    for _ in 0..20_000 {
+        let a = lab.sample();
+        let b = nanopos_id::hal::run_sample(&mut board, &mut reference, &cfg);
+        assert_eq!(a, b);
+    }
+    let e = &reference.estimators;
+    let want = [e.0.params(), e.1.params(), e.2.params(), e.3.params()];
+    for (i, w) in want.iter().enumerate() {
+        assert_eq!(lab.params(i), *w, "{}", ESTIMATOR_NAMES[i]);
+    }
+    // And it identifies: 2 s of PRBS bring the hybrid EKF's f0 within 1 % of the truth.
+    let truth = lab.board.plant().params();
+    let f0 = lab.params(2).f0_hz() as f64;
+    assert!((f0 / truth.f0_hz() - 1.0).abs() < 0.01, "{f0} vs {}", truth.f0_hz());
+}
+
+#[test]
+fn a_change_applies_whole_between_two_samples_and_never_overwrites_a_waiting_one() {
+    let mut lab = Lab::new();
+    lab.run(100);
+    let mut tight = lab.ctl.settings().clone();
+    tight.limits.min_v = -0.25;
+    tight.limits.max_v = 0.25;
+    let cfg = tight.design::<f32>(&lab.board.description()).unwrap();
+    let change = Change { config: Some(cfg), freeze: nanopos_id::control::EstimatorSet(0b0100), ..Change::default() };
+    assert!(lab.isr.post(change.clone()).is_ok());
+    // A second change while the first waits comes back untouched.
+    let back = lab.isr.post(Change { clear_faults: true, ..Change::default() }).unwrap_err();
+    assert!(back.0.clear_faults);
+    assert!(lab.isr.change_pending());
+    // The very next sample runs entirely with the new configuration: the limits and the freeze together.
+    lab.sample();
+    assert!(!lab.isr.change_pending());
+    assert_eq!(lab.isr.config(), &cfg);
+    assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Frozen);
+    for out in lab.run(200) {
+        assert!(out.u_v.abs() <= 0.25 + 0.005, "{}", out.u_v);
+    }
+}
+
+#[test]
+fn every_command_is_answered_and_does_what_it_says() {
+    let mut lab = Lab::new();
+    lab.run(2000);
+    let r = lab.send("status\n");
+    assert!(verdict(&r).starts_with("ok status samples="), "{r}");
+    assert_eq!(r.lines().filter(|l| l.starts_with("est ")).count(), 4, "{r}");
+    assert!(r.contains("excitation=prbs 1 V running"), "{r}");
+
+    // Selection: only hekf runs; the others hold their estimates; selecting them again restarts them.
+    assert_eq!(verdict(&lab.send("select hekf\n")), "ok select hekf");
+    let before: Vec<_> = (0..4).map(|i| lab.params(i)).collect();
+    lab.run(1000);
+    for i in [0, 1, 3] {
+        assert_eq!(lab.params(i), before[i], "{}", ESTIMATOR_NAMES[i]);
+    }
+    assert_ne!(lab.params(2), before[2]);
+    assert!(lab.send("status\n").contains("est rls a0="));
+    assert!(lab.send("status\n").lines().any(|l| l.starts_with("est rls") && l.contains(" off ")));
+    assert_eq!(verdict(&lab.send("select all\n")), "ok select rls,ekf,hekf,arx");
+    // `send` ran one sample after the reset: the restarted estimators are still at their initial parameters.
+    let initial = StageParams::INITIAL.cast::<f32>();
+    for i in [0, 1, 3] {
+        let p = lab.params(i);
+        assert!((p.a0 / initial.a0 - 1.0).abs() < 1e-3, "{}: {p:?}", ESTIMATOR_NAMES[i]);
+    }
+
+    // Freeze and adapt.
+    assert_eq!(verdict(&lab.send("freeze ekf,hekf\n")), "ok freeze ekf,hekf");
+    let frozen = lab.params(2);
+    lab.run(500);
+    assert_eq!(lab.params(2), frozen);
+    assert_eq!(lab.isr.estimates()[1].1.adaptation, Adaptation::Frozen);
+    assert_eq!(verdict(&lab.send("adapt all\n")), "ok adapt rls,ekf,hekf,arx");
+    lab.run(500);
+    assert_ne!(lab.params(2), frozen);
+
+    // Reset: back to the initial parameters.
+    lab.send("reset hekf\n");
+    let p = lab.params(2);
+    assert!((p.a0 / initial.a0 - 1.0).abs() < 1e-3, "{p:?}");
+
+    // Tuning: the estimators restart, frozen ones stay frozen.
+    lab.send("freeze rls\n");
+    assert_eq!(verdict(&lab.send("tuning triangle\n")), "ok tuning triangle (estimators restarted)");
+    assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
+    assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Adapting);
+    assert!(lab.send("status\n").contains("tuning=triangle"));
+
+    // Excitation: a sine, then stop (output ramps to 0 V), then start.
+    assert_eq!(verdict(&lab.send("excite sine 0.5 200\n")), "ok excite sine 0.5 V 200 Hz (running)");
+    let peak = lab.run(500).iter().map(|o| o.u_v.abs()).fold(0.0, f32::max);
+    assert!((peak - 0.5).abs() < 0.01, "{peak}");
+    assert_eq!(verdict(&lab.send("stop\n")), "ok stop (output to 0 V at the slew limit)");
+    let tail = lab.run(100);
+    assert!(
+        tail[20..].iter().all(|o| o.u_v.abs() < 0.005),
+        "{:?}",
+        tail[..5].iter().map(|o| o.u_v).collect::<Vec<_>>()
+    );
+    assert!(lab.send("status\n").contains("excitation=sine 0.5 V 200 Hz stopped"));
+    assert_eq!(verdict(&lab.send("start\n")), "ok start sine 0.5 V 200 Hz (latched faults cleared)");
+    let peak = lab.run(500).iter().map(|o| o.u_v.abs()).fold(0.0, f32::max);
+    assert!(peak > 0.45, "{peak}");
+    assert_eq!(verdict(&lab.send("excite off\n")), "ok excite off (running)");
+}
+
+#[test]
+fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
+    let mut lab = Lab::new();
+    lab.run(100);
+    let cfg = *lab.isr.config();
+    let bad = [
+        "",
+        "launch",
+        "status now",
+        "excite",
+        "excite square 1",
+        "excite prbs 11",
+        "excite prbs NaN",
+        "excite sine 1 0",
+        "excite triangle 1 10 3",
+        "select hekf,,arx",
+        "reset none",
+        "freeze",
+        "tuning sine",
+        "limits 5 -5 100",
+        "limits -5 5 0",
+        // Parses, but cannot be honoured: the safe value (0 V) would be outside the clamp.
+        "limits 1 5 1000",
+        "record burst 0",
+        "status\u{7f}",
+    ];
+    for line in bad {
+        let r = lab.send(&format!("{line}\n"));
+        assert_eq!(r.lines().count(), 1, "{line:?}: {r}");
+        assert!(r.starts_with("error: "), "{line:?}: {r}");
+        assert_eq!(lab.isr.config(), &cfg, "{line:?} changed the configuration");
+    }
+    assert_eq!(
+        lab.send("limits 1 5 1000\n").trim_end(),
+        "error: output limits need min_v < max_v, safe_v between them, and a positive slew limit"
+    );
+    let r = lab.send(&format!("{}\n", "x".repeat(200)));
+    assert!(r.starts_with("error: line longer than 96 bytes"), "{r}");
+
+    // Noise on the line: every line gets exactly one final answer, nothing panics.
+    let mut seed = 0x2545_F491_4F6C_DD1Du64;
+    let mut next = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    };
+    let words = [
+        "status", "excite", "prbs", "sine", "1", "-3", "1e3", "x", "select", "all", "hekf,rls", "limits", "record",
+        "burst", "0.5", ",", "\t", "\u{1}",
+    ];
+    for _ in 0..3000 {
+        let n = (next() % 5) as usize;
+        let line: Vec<&str> = (0..n).map(|_| words[(next() % words.len() as u64) as usize]).collect();
+        let r = lab.send(&format!("{}\n", line.join(" ")));
+        let last = verdict(&r);
+        assert!(last.starts_with("ok") || last.starts_with("error: "), "{line:?}: {r}");
+        lab.sample();
+    }
+}
+
+#[test]
+fn the_output_is_clamped_and_slew_limited_as_configured_at_run_time() {
+    let mut lab = Lab::new();
+    assert_eq!(verdict(&lab.send("limits -0.4 0.6 500\n")), "ok limits -0.4 V to 0.6 V, 500 V/s");
+    let lsb = 20.0 / 4096.0;
+    let out = lab.run(5000);
+    let (lo, hi) = out.iter().fold((f32::MAX, f32::MIN), |(a, b), o| (a.min(o.u_v), b.max(o.u_v)));
+    assert!(lo >= -0.4 - lsb && hi <= 0.6 + lsb, "{lo} {hi}");
+    assert!(lo < -0.35 && hi > 0.55, "the clamp is reached: {lo} {hi}");
+    let max_step = out.windows(2).map(|w| (w[1].u_v - w[0].u_v).abs()).fold(0.0, f32::max);
+    assert!(max_step <= 0.05 + lsb, "{max_step} V per sample for 500 V/s");
+    assert!(max_step > 0.04);
+}
+
+#[test]
+fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
+    for (name, code, samples) in [("over_range", 0u32, 50usize), ("stuck", 30_000, 1200)] {
+        let mut lab = Lab::new();
+        lab.run(1000);
+        lab.board.forced_probe_code = Some(code);
+        let out = lab.run(samples);
+        let last = out.last().unwrap();
+        assert!(!last.faults.is_empty(), "{name}");
+        assert!(last.estimator_input.is_none(), "{name}: estimators not fed while a fault is latched");
+        // The output went to the safe value (0 V: the DAC's mid-scale) through the slew limiter, and stays.
+        let safe = lab.isr.config().safe_code();
+        assert_eq!(safe, 2048);
+        let tail = lab.run(20);
+        assert!(tail.iter().all(|o| o.dac_code == safe), "{name}");
+        let status = lab.send("status\n");
+        assert!(status.contains(&format!("faults={name}")), "{status}");
+        // Cleared by start once the probe is back.
+        lab.board.forced_probe_code = None;
+        assert!(lab.send("start\n").starts_with("ok start"));
+        let out = lab.run(200);
+        assert!(out.iter().all(|o| o.faults == Faults::default()), "{name}");
+        assert!(out.iter().any(|o| o.u_v.abs() > 0.9), "{name}: excitation resumed");
+    }
+}
+
+#[test]
+fn deadline_misses_and_overruns_are_counted_and_reported() {
+    let mut lab = Lab::new();
+    lab.run(10);
+    lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: false });
+    lab.sample();
+    lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: true });
+    lab.sample();
+    let s = lab.send("status\n");
+    assert!(s.contains("deadline_misses=2 adc_overruns=1"), "{s}");
+    // Reported, not a reason to stop: the excitation runs on.
+    assert!(s.contains("faults=none"), "{s}");
+}
+
+#[test]
+fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
+    // Asked every 100 ms: 1000 samples at 10 kHz; half of that suffices.
+    let mut gate = WatchdogGate::new(500);
+    let mut lab = Lab::new();
+    let mut fed = 0;
+    for _ in 0..5 {
+        lab.run(1000);
+        fed += gate.may_feed(lab.isr.status().samples) as u32;
+    }
+    assert_eq!(fed, 5);
+    // The sample clock stops (the interrupt no longer runs): no more feeding, so the watchdog resets the board.
+    assert!(!gate.may_feed(lab.isr.status().samples));
+    assert!(!gate.may_feed(lab.isr.status().samples));
+    // A clock running at a tenth of its rate is not enough either.
+    lab.run(100);
+    assert!(!gate.may_feed(lab.isr.status().samples));
+    lab.run(1000);
+    assert!(gate.may_feed(lab.isr.status().samples));
+}
+
+/// Drain the recorder as the firmware does: whole frames while recording, the remainder once it stopped.
+fn drain(lab: &mut Lab, link: &mut String, finished: bool) {
+    let mut buf = [RawSample::default(); FRAME_SAMPLES];
+    let mut frame = [0u8; FRAME_MAX_BYTES];
+    loop {
+        let st = lab.isr.record_status();
+        if st.buffered == 0 || (st.active && st.buffered < FRAME_SAMPLES && !finished) {
+            return;
+        }
+        let (first, n) = lab.isr.drain_recorded(&mut buf);
+        let len = encode_frame(first, &buf[..n], &mut frame);
+        link.push_str(std::str::from_utf8(&frame[..len]).unwrap());
+    }
+}
+
+#[test]
+fn a_recording_carries_exactly_what_the_interrupt_saw() {
+    let mut lab = Lab::new();
+    lab.run(777);
+    let mut link = lab.send("record burst 3000\n");
+    assert!(link.starts_with("# nanopos-record v1 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50\n"), "{link}");
+    assert!(link.ends_with("ok record burst 3000\n"));
+    // `send` ran the sample that applied the change: the first recorded sample is that one.
+    let first_index = lab.isr.status().samples - 1;
+    let mut outputs = Vec::new();
+    for k in 0..4000 {
+        let out = lab.sample();
+        outputs.push(out);
+        if k % 10 == 0 {
+            drain(&mut lab, &mut link, false);
+        }
+    }
+    drain(&mut lab, &mut link, true);
+    let st = lab.isr.record_status();
+    assert!(!st.active && !st.overflowed && st.recorded == 3000, "{st:?}");
+    let mut end = TextBuf::<80>::default();
+    write_record_end(&st, &mut end).unwrap();
+    assert_eq!(end.as_str(), "# nanopos-record end samples=3000 overflow=0\n");
+
+    // Decode: contiguous frames from the sample the change applied on; y is each sample's probe code, u the code
+    // in effect over its period (the board's delay of one sample: the code written one sample earlier).
+    let mut decoded = Vec::new();
+    let mut expect_index = first_index;
+    for line in link.lines().filter(|l| l.starts_with('R')) {
+        let mut out = [RawSample::default(); FRAME_SAMPLES];
+        let (index, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
+        assert_eq!(index, expect_index);
+        expect_index += n as u64;
+        decoded.extend_from_slice(&out[..n]);
+    }
+    assert_eq!(decoded.len(), 3000);
+    // Sample 0 of the recording was the `send`'s sample; compare from the next one, whose outputs we kept.
+    for (k, s) in decoded.iter().enumerate().skip(1) {
+        let out = &outputs[k - 1];
+        assert_eq!(s.y_code as u32, out.probe_code, "{k}");
+        let cfg = lab.isr.config();
+        let u = cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset;
+        assert_eq!(u, out.u_v, "{k}");
+    }
+}
+
+#[test]
+fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
+    let mut lab = Lab::new();
+    lab.send("record on\n");
+    lab.run(RECORD_BUFFER + 500);
+    let st = lab.isr.record_status();
+    assert!(!st.active && st.overflowed, "{st:?}");
+    assert_eq!(st.recorded, RECORD_BUFFER as u64);
+    assert!(lab.send("status\n").contains(&format!("record=overflowed recorded={RECORD_BUFFER}")));
+    let mut link = String::new();
+    drain(&mut lab, &mut link, true);
+    let mut total = 0;
+    let mut out = [RawSample::default(); FRAME_SAMPLES];
+    for line in link.lines() {
+        total += decode_frame(line.as_bytes(), &mut out).unwrap().1;
+    }
+    assert_eq!(total, RECORD_BUFFER);
+}
