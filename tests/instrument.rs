@@ -408,3 +408,51 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     }
     assert_eq!(total, RECORD_BUFFER);
 }
+
+#[test]
+fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() {
+    let mut lab = Lab::new();
+    // From the very first sample, so the host's replay starts from the same rest as the interrupt's estimators.
+    let mut link = lab.send("record on\n");
+    for k in 0..20_000 {
+        lab.sample();
+        if k % 20 == 0 {
+            drain(&mut lab, &mut link, false);
+        }
+    }
+    // What the interrupt's estimators hold after the last recorded sample (`record off` applies before its sample).
+    let board: Vec<_> = (0..4).map(|i| lab.params(i)).collect();
+    link.push_str(&lab.send("record off\n"));
+    drain(&mut lab, &mut link, true);
+    let st = lab.isr.record_status();
+    let mut end = TextBuf::<80>::default();
+    write_record_end(&st, &mut end).unwrap();
+    link.push_str(end.as_str());
+    assert!(!st.overflowed && st.recorded == 20_001, "{st:?}");
+
+    let dir = std::env::temp_dir().join(format!("nanopos-record-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (capture, csv) = (dir.join("capture.txt"), dir.join("run.csv"));
+    std::fs::write(&capture, &link).unwrap();
+    let rec = hal_sim::cmd::decode::run(&capture, &csv, 1).unwrap();
+    assert_eq!((rec.first_index, rec.samples.len(), rec.ended), (0, 20_001, Some(false)));
+    let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+
+    // The host's replay of the decoded file, in f32 like the board: the interrupt's estimates, to rounding of the
+    // decoded volts (f64 in the file, f32 on the board).
+    let cfg = lab.ctl.config::<f32>();
+    let mut replay = Pipeline::new(&cfg, full_bank(&lab.ctl.tuning::<f32>()));
+    let (u, y) = (&cols.data[0], &cols.data[1]);
+    for k in 0..u.len() {
+        replay.replay(&cfg, u[k] as f32, y[k] as f32);
+    }
+    let e = &replay.estimators;
+    let host = [e.0.params(), e.1.params(), e.2.params(), e.3.params()];
+    for (i, h) in host.iter().enumerate() {
+        let b = board[i];
+        for (x, z) in [(h.a0, b.a0), (h.a1, b.a1), (h.b0, b.b0)] {
+            assert!(((x - z) / z).abs() < 1e-4, "{}: host {h:?} board {b:?}", ESTIMATOR_NAMES[i]);
+        }
+    }
+}

@@ -80,6 +80,18 @@ enum Command {
         #[arg(long, value_name = "A,GAMMA", allow_hyphen_values = true)]
         weight: Option<hal_sim::cmd::fit::Weight>,
     },
+    /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
+    Decode {
+        /// The capture (everything the board sent; replies and other lines are skipped).
+        #[arg(long)]
+        input: PathBuf,
+        /// Output CSV file, for `identify --input`.
+        #[arg(long)]
+        out: PathBuf,
+        /// Which recording of the capture, counting from 1.
+        #[arg(long, default_value_t = 1)]
+        recording: usize,
+    },
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -126,6 +138,26 @@ fn run(cli: Cli) -> Result<(), CliError> {
         Command::Paper { duration, out_dir } => {
             let runs = hal_sim::cmd::paper::run(duration, Some(&out_dir))?;
             print!("{}", hal_sim::cmd::paper::table(&runs));
+            Ok(())
+        }
+        Command::Decode { input, out, recording } => {
+            let rec = hal_sim::cmd::decode::run(&input, &out, recording)?;
+            let n = rec.samples.len();
+            eprintln!(
+                "nanopos-sim: {n} samples ({} s at {} Hz) from board sample {} written to {}",
+                n as f64 / rec.header.rate_hz,
+                rec.header.rate_hz,
+                rec.first_index,
+                out.display()
+            );
+            match rec.ended {
+                Some(true) => eprintln!(
+                    "nanopos-sim: note: the recording stopped early: the board's buffer overflowed (the link is \
+                     slower than the stream; see the README's recording section)"
+                ),
+                Some(false) => {}
+                None => eprintln!("nanopos-sim: note: the capture ends before the recording's end line"),
+            }
             Ok(())
         }
         Command::Fit { input, arx, zero_initial, weight } => {

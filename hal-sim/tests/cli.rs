@@ -100,3 +100,77 @@ fn help_exits_zero() {
     assert!(out.status.success());
     assert!(String::from_utf8_lossy(&out.stdout).contains("--scenario"));
 }
+
+/// A capture as the board's serial link delivers it: replies around a recording of `n` samples.
+fn capture(n: usize, first: u64) -> String {
+    use nanopos_id::record::{encode_frame, RawSample, RecordHeader, FRAME_MAX_BYTES, FRAME_SAMPLES};
+    let header = RecordHeader {
+        rate_hz: 10_000.0,
+        delay: 1,
+        u_v_per_code: 20.0 / 4096.0,
+        u_v_offset: -10.0,
+        y_um_per_code: 100.0 / 65536.0,
+        y_um_offset: -50.0,
+    };
+    let mut text = String::from("ok status samples=12\n");
+    let mut h = nanopos_id::text::TextBuf::<256>::default();
+    header.write(&mut h).unwrap();
+    text.push_str(h.as_str());
+    text.push_str("ok record burst 100\n");
+    let samples: Vec<RawSample> =
+        (0..n).map(|k| RawSample { u_code: 2048 + (k % 3) as u16, y_code: 32768 + k as u16 }).collect();
+    let mut buf = [0u8; FRAME_MAX_BYTES];
+    for (i, chunk) in samples.chunks(FRAME_SAMPLES).enumerate() {
+        let len = encode_frame(first + (i * FRAME_SAMPLES) as u64, chunk, &mut buf);
+        text.push_str(std::str::from_utf8(&buf[..len]).unwrap());
+    }
+    text.push_str(&format!("# nanopos-record end samples={n} overflow=0\nok status samples=99\n"));
+    text
+}
+
+#[test]
+fn decode_turns_a_capture_into_the_csv_identify_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cap.txt"), capture(1000, 5000)).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("1000 samples (0.1 s at 10000 Hz) from board sample 5000"));
+    let text = std::fs::read_to_string(dir.path().join("run.csv")).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 1001);
+    assert_eq!(lines[0], "t,u,y");
+    // Code 2048 is 0 V; code 32768 + 1 is 100/65536 um.
+    assert_eq!(lines[1], "0,0,0");
+    assert_eq!(lines[2], "0.0001,0.0048828125,0.00152587890625");
+    // `identify` reads it.
+    let out = nanopos_sim(&["identify", "--input", "run.csv", "--estimators", "hekf", "--window", "0:0.1"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn decode_refuses_damage_and_gaps_naming_the_line() {
+    let good = capture(200, 0);
+    let lines: Vec<&str> = good.lines().collect();
+    // Line 4 is the first frame: one character changed.
+    let mut damaged: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
+    damaged[3] = damaged[3].replacen('A', "B", 1);
+    // A frame lost in the capture.
+    let gap: Vec<&str> = lines.iter().enumerate().filter(|(i, _)| *i != 4).map(|(_, l)| *l).collect();
+    let cases: [(String, &[&str], &str); 5] = [
+        (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
+        (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
+        ("ok status\n".into(), &[], "no recording in the capture"),
+        (good.clone(), &["--recording", "2"], "recording 2 asked for, the capture holds 1"),
+        (good.replace("rate_hz=10000", "rate_hz=fast"), &[], "cap.txt:2: rate_hz=fast: not a number"),
+    ];
+    for (text, extra, msg) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("cap.txt"), &text).unwrap();
+        let mut args = vec!["decode", "--input", "cap.txt", "--out", "run.csv"];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, dir.path());
+        assert_clean_failure(&out, msg);
+        std::fs::remove_file(dir.path().join("cap.txt")).unwrap();
+        no_stray_files(dir.path());
+    }
+}
