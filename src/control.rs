@@ -180,8 +180,8 @@ impl<'a> Words<'a> {
 
     fn number(&mut self, expected: &'static str, ok: impl Fn(f32) -> bool) -> Result<f32, ParseError> {
         let (word, w) = self.next(expected)?;
-        match w.parse::<f32>() {
-            Ok(x) if x.is_finite() && ok(x) => Ok(x),
+        match crate::text::parse_decimal(w).map(|x| x as f32) {
+            Some(x) if x.is_finite() && ok(x) => Ok(x),
             _ => Err(ParseError::Invalid { word, expected }),
         }
     }

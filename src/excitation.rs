@@ -83,6 +83,7 @@ impl ExcitationDesign {
     }
 
     /// The generator's configuration for sample rate `fs_hz`.
+    #[inline(never)]
     pub fn design<T: Real>(&self, fs_hz: f64) -> Excitation<T> {
         let phase_step = |f_hz: f64| {
             let cycles = f_hz / fs_hz;

@@ -23,8 +23,8 @@ use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOut
 use crate::record::RawSample;
 use crate::{Real, StageParams};
 
-/// Samples the recording ring holds: 0.2 s at 10 kHz, 8 KiB.
-pub const RECORD_BUFFER: usize = 2048;
+/// Samples the recording ring holds: 0.1 s at 10 kHz, 4 KiB (the firmware's static RAM stays under 16 KiB).
+pub const RECORD_BUFFER: usize = 1024;
 
 /// A change prepared at low priority and applied whole between two samples.
 #[derive(Clone, Debug, Default)]

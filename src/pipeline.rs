@@ -252,6 +252,7 @@ pub struct PipelineConfig<T> {
 
 impl PipelineSettings {
     /// Validate and design for the board's converters.
+    #[inline(never)]
     pub fn design<T: Real>(&self, board: &BoardDescription) -> Result<PipelineConfig<T>, SettingsError> {
         let (probe_adc, amplifier_dac) = (board.probe, board.amplifier);
         if board.actuation_delay_samples > 1 {

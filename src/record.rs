@@ -25,7 +25,7 @@
 //! **Throughput.** 48 samples take 64 base64 characters per 12 bytes, 256 for the frame's 192, plus 20 of framing:
 //! 276 bytes per 4.8 ms, 57.5 kB/s, 575 kbit/s with start and stop bits. Continuous recording at 10 kHz needs the
 //! link at 921 600 baud (62 % of it); at 115 200 baud only bursts that fit the board's buffer
-//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.2 s) are complete.
+//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete.
 
 /// Samples per frame.
 pub const FRAME_SAMPLES: usize = 48;

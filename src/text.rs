@@ -1,9 +1,9 @@
-//! Text output without `core::fmt`'s float machinery: numbers for replies and headers, and a fixed-size buffer to
-//! write lines into.
+//! Numbers as text both ways without `core`'s float machinery, and a fixed-size buffer to write lines into.
 //!
-//! `core`'s float formatting (shortest round trip) costs several KiB of flash; [`Num`] writes a number with a given
-//! count of significant digits by scaling in f64, which is exact to about 15 digits, enough for every quantity this
-//! firmware reports.
+//! `core`'s float formatting (shortest round trip) and parsing (correctly rounded, with its 10 KiB table of powers
+//! of five) cost more flash than the firmware can spare. [`Num`] writes a number with a given count of significant
+//! digits, and [`parse_decimal`] reads one, both by scaling in f64: within a few units in the last place, enough for
+//! every quantity this firmware reports or accepts (volts, hertz, sample counts).
 
 use core::fmt;
 
@@ -97,6 +97,89 @@ impl fmt::Display for Num {
             write!(f, "e{e}")
         }
     }
+}
+
+/// A decimal number: `[+-]digits[.digits][(e|E)[+-]digits]` (at least one digit before or after the point). `None`
+/// for anything else, including `nan` and `inf`. Within a few ulps of the correctly rounded value (within a few
+/// ulps of `f64::MAX` it may overflow to infinity, which callers refuse as not finite).
+pub fn parse_decimal(s: &str) -> Option<f64> {
+    let b = s.as_bytes();
+    let mut i = 0;
+    let negative = match b.first() {
+        Some(b'-') => {
+            i += 1;
+            true
+        }
+        Some(b'+') => {
+            i += 1;
+            false
+        }
+        _ => false,
+    };
+    // Up to 19 significant digits in a u64; further digits only shift the exponent.
+    let (mut mantissa, mut exp10, mut digits) = (0u64, 0i32, 0u32);
+    let mut digit = |c: u8, after_point: bool, exp10: &mut i32| {
+        if mantissa < 1_000_000_000_000_000_000 {
+            mantissa = mantissa * 10 + (c - b'0') as u64;
+            *exp10 -= after_point as i32;
+        } else {
+            *exp10 += !after_point as i32;
+        }
+        digits += 1;
+    };
+    while i < b.len() && b[i].is_ascii_digit() {
+        digit(b[i], false, &mut exp10);
+        i += 1;
+    }
+    if i < b.len() && b[i] == b'.' {
+        i += 1;
+        while i < b.len() && b[i].is_ascii_digit() {
+            digit(b[i], true, &mut exp10);
+            i += 1;
+        }
+    }
+    if digits == 0 {
+        return None;
+    }
+    if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
+        i += 1;
+        let sign = match b.get(i) {
+            Some(b'-') => {
+                i += 1;
+                -1
+            }
+            Some(b'+') => {
+                i += 1;
+                1
+            }
+            _ => 1,
+        };
+        let start = i;
+        let mut e = 0i32;
+        while i < b.len() && b[i].is_ascii_digit() {
+            e = (e * 10 + (b[i] - b'0') as i32).min(10_000);
+            i += 1;
+        }
+        if i == start {
+            return None;
+        }
+        exp10 += sign * e;
+    }
+    if i != b.len() {
+        return None;
+    }
+    let mut x = mantissa as f64;
+    let (mut e, up) = (exp10.unsigned_abs(), exp10 > 0);
+    // Powers of ten by squaring: exact up to 1e22, then within an ulp or two per step.
+    let mut p = 10.0f64;
+    while e > 0 && x != 0.0 && x.is_finite() {
+        if e & 1 == 1 {
+            x = if up { x * p } else { x / p };
+        }
+        p *= p;
+        e >>= 1;
+    }
+    Some(if negative { -x } else { x })
 }
 
 /// A fixed buffer that `write!` fills; what does not fit is cut and the buffer remembers it (ending in `...`).
@@ -198,6 +281,39 @@ mod tests {
             let back: f64 = format!("{}", Num(x, 15)).parse().unwrap();
             assert!(((back - x) / x).abs() < 1e-14, "{x:e} {back:e}");
         }
+    }
+
+    #[test]
+    fn decimals_parse_like_std_within_a_few_ulps() {
+        let good = [
+            "0",
+            "1",
+            "-2.5",
+            "+3",
+            ".5",
+            "5.",
+            "4.2e2",
+            "1E-3",
+            "-0.000125",
+            "1000",
+            "123456789.123456789",
+            "1e300",
+            "1e-300",
+            "0.1",
+            "2.5e-1",
+            "99999999999999999999999",
+            "7e22",
+            "1.5e307",
+        ];
+        for t in good {
+            let want: f64 = t.parse().unwrap();
+            let got = parse_decimal(t).unwrap_or_else(|| panic!("{t}"));
+            assert!((got - want).abs() <= 4.0 * f64::EPSILON * want.abs(), "{t}: {got:e} vs {want:e}");
+        }
+        for t in ["", "-", ".", "e5", "1e", "1e+", "nan", "inf", "1.2.3", "1x", " 1", "1 ", "--1", "0x10", "1e5e5"] {
+            assert_eq!(parse_decimal(t), None, "{t:?}");
+        }
+        assert_eq!(parse_decimal("1e99999"), Some(f64::INFINITY));
     }
 
     #[test]

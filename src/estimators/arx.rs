@@ -111,6 +111,7 @@ pub struct ArxConfig<T> {
 
 impl ArxDesign {
     /// Round to the working scalar (float or fixed point).
+    #[inline(never)]
     pub fn design<T: Scalar>(&self) -> ArxConfig<T> {
         let n = arx_of_stage(&self.initial, self.sample_period_s);
         ArxConfig {

@@ -79,6 +79,7 @@ pub struct CrlsConfig<T> {
 
 impl CrlsDesign {
     /// Normalise and round.
+    #[inline(never)]
     pub fn design<T: Real>(&self) -> CrlsConfig<T> {
         let i = &self.initial;
         let scale = [i.b0, i.a1, i.a0];

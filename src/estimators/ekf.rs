@@ -97,6 +97,7 @@ impl EkfDesign {
     }
 
     /// Normalise and round to the working scalar.
+    #[inline(never)]
     pub fn design<T: Real>(&self) -> EkfConfig<T> {
         let p = &self.initial;
         let w = libm::sqrt(p.a0);

@@ -46,6 +46,7 @@ impl Tuning {
     }
 
     /// Design every estimator's configuration in the working scalar.
+    #[inline(never)]
     pub fn design<T: Real>(&self) -> TuningConfig<T> {
         TuningConfig { rls: self.rls.design(), ekf: self.ekf.design(), arx: self.arx.design() }
     }

@@ -76,6 +76,7 @@ impl PrefilterDesign {
     }
 
     /// The discrete filter for sample period `t_s`.
+    #[inline(never)]
     pub fn design<T: Real>(&self, t_s: f64) -> Prefilter<T> {
         let ([d0, d1, d2], g) = self.continuous();
         let a = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-d0, -d1, -d2]];

@@ -8,6 +8,16 @@
 //! | amplifier out (DAC1_OUT1) | PA4 | A2 (CN8 pin 3) | reconstruction filter input, then 0-3.3 V -> +-10 V level shift |
 //! | ground | GND | CN8 | analog ground of filters and instruments |
 //!
+//! | console TX (LPUART1_TX) | PA2 | ST-LINK virtual COM port (USB) | host terminal, 921 600 baud 8N1 |
+//! | console RX (LPUART1_RX) | PA3 | ST-LINK virtual COM port (USB) | host terminal |
+//!
+//! ## Console and watchdog
+//! LPUART1 is wired to the ST-LINK's virtual COM port on the Nucleo (solder bridges SB12/SB13 closed as shipped):
+//! the run-time commands and the recording stream use it at 921 600 baud, which continuous recording needs (575
+//! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (at most about 40 us, under the 87 us
+//! a FIFO lasts at this rate). The independent watchdog (IWDG, LSI 32 kHz) resets the board 0.5 s after its last
+//! feed.
+//!
 //! ## Clocks
 //! HSI16 / 4 * 85 / 2 = 170 MHz SYSCLK (PLL R, range-1 boost), APB1/APB2 at 170 MHz, so TIM2 counts at 170 MHz.
 //! ADC12 kernel clock = SYSCLK; embassy's ADC driver divides it by 4 to 42.5 MHz (limit 60 MHz).
@@ -27,7 +37,9 @@
 use embassy_stm32::pac;
 use embassy_stm32::pac::adc::vals::{Exten, Ovrmod, Rovsm, SampleTime, Trovs};
 use embassy_stm32::pac::timer::vals::{Mms, Ocm};
-use embassy_stm32::Peripherals;
+use embassy_stm32::usart::{BufferedUart, Config as UartConfig};
+use embassy_stm32::wdg::IndependentWatchdog;
+use embassy_stm32::{bind_interrupts, peripherals, Peripherals};
 use nanopos_id::hal::{BoardDescription, BoardFaults, ConverterFormat, StageBoard};
 
 /// Sample rate, Hz.
@@ -47,8 +59,14 @@ const WINDOW_TICKS: u32 = 64 * 19 * 4;
 const ADC_TRIGGER_TIM2_CC2: u8 = 3;
 /// DAC TSEL code of TIM2_TRGO (RM0440, DAC1 triggers: 4).
 const DAC_TRIGGER_TIM2_TRGO: u8 = 4;
-/// DAC code of the safe output: mid-scale, 1.65 V, which the level shift makes 0 V at the amplifier.
-pub const SAFE_DAC_CODE: u16 = 2048;
+/// Console baud rate (the ST-LINK/V3 virtual COM port supports it; continuous recording needs it).
+pub const CONSOLE_BAUD: u32 = 921_600;
+/// Watchdog timeout, us.
+pub const WATCHDOG_TIMEOUT_US: u32 = 500_000;
+
+bind_interrupts!(struct Irqs {
+    LPUART1 => embassy_stm32::usart::BufferedInterruptHandler<peripherals::LPUART1>;
+});
 
 /// The clock tree above.
 pub fn clocks() -> embassy_stm32::Config {
@@ -76,8 +94,50 @@ pub const DESCRIPTION: BoardDescription = BoardDescription {
     actuation_delay_samples: 1,
 };
 
-/// Set up DAC, ADC and the sample timer. The timer is left stopped: [`start_sample_clock`] starts it.
-pub fn init(p: Peripherals) {
+/// What the rest of the firmware gets from the board.
+pub struct Parts {
+    /// The console (commands, replies, recording).
+    pub console: BufferedUart<'static>,
+    /// The independent watchdog, not yet started.
+    pub watchdog: IndependentWatchdog<'static, peripherals::IWDG>,
+}
+
+/// Why the board last reset, read (and cleared) once at start.
+#[derive(Clone, Copy, PartialEq, Eq, defmt::Format)]
+pub enum ResetCause {
+    /// Power on or brown-out.
+    PowerOn,
+    /// The reset pin (the Nucleo's button, or the probe).
+    Pin,
+    /// The software reset (a probe's or a debugger's reset request).
+    Software,
+    /// The independent or window watchdog: the firmware hung or faulted.
+    Watchdog,
+    /// Anything else (low-power, option bytes).
+    Other,
+}
+
+/// Read and clear the reset flags.
+pub fn reset_cause() -> ResetCause {
+    let rcc = pac::RCC;
+    let csr = rcc.csr().read();
+    rcc.csr().modify(|w| w.set_rmvf(true));
+    if csr.iwdgrstf() || csr.wwdgrstf() {
+        ResetCause::Watchdog
+    } else if csr.borrstf() {
+        ResetCause::PowerOn
+    } else if csr.sftrstf() {
+        ResetCause::Software
+    } else if csr.pinrstf() {
+        ResetCause::Pin
+    } else {
+        ResetCause::Other
+    }
+}
+
+/// Set up DAC, ADC, the sample timer, the console and the watchdog. The timer is left stopped:
+/// [`start_sample_clock`] starts it. `safe_code` is the DAC code the output holds until the pipeline runs.
+pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     // DAC1 channel 1 on PA4: the driver enables the clock, selects the high-frequency interface mode for a
     // 170 MHz AHB and the buffered external output, and sets PA4 analog. The trigger is set on the registers below,
     // so the driver is forgotten (dropping it would disable the channel).
@@ -85,7 +145,7 @@ pub fn init(p: Peripherals) {
     core::mem::forget(dac);
     let dac = pac::DAC1;
     dac.cr().modify(|w| w.set_en(0, false));
-    dac.dhr12r(0).write(|w| w.set_dhr(SAFE_DAC_CODE));
+    dac.dhr12r(0).write(|w| w.set_dhr(safe_code));
     dac.cr().modify(|w| {
         w.set_tsel(0, DAC_TRIGGER_TIM2_TRGO);
         w.set_ten(0, true);
@@ -134,6 +194,14 @@ pub fn init(p: Peripherals) {
     tim.cr2().modify(|w| w.set_mms(Mms::UPDATE));
     tim.egr().write(|w| w.set_ug(true));
     tim.sr().write_value(Default::default());
+
+    let mut uart_config = UartConfig::default();
+    uart_config.baudrate = CONSOLE_BAUD;
+    let tx_buf = cortex_m::singleton!(: [u8; 1024] = [0; 1024]).expect("console buffers taken once");
+    let rx_buf = cortex_m::singleton!(: [u8; 128] = [0; 128]).expect("console buffers taken once");
+    let console = BufferedUart::new(p.LPUART1, p.PA3, p.PA2, tx_buf, rx_buf, Irqs, uart_config)
+        .expect("LPUART1 at 921 600 baud from a 170 MHz clock");
+    Parts { console, watchdog: IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US) }
 }
 
 /// Start the sample clock.
@@ -141,10 +209,10 @@ pub fn start_sample_clock() {
     pac::TIM2.cr1().modify(|w| w.set_cen(true));
 }
 
-/// Drive the amplifier to its safe value and keep it there: usable from a fault handler. The timer keeps running
-/// in hardware, so the next update (within 100 us) loads the safe code.
-pub fn force_safe_output() {
-    pac::DAC1.dhr12r(0).write(|w| w.set_dhr(SAFE_DAC_CODE));
+/// Drive the amplifier to `code` (its safe value) and keep it there: usable from a fault handler. The timer keeps
+/// running in hardware, so the next update (within 100 us) loads it.
+pub fn force_safe_output(code: u16) {
+    pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code));
 }
 
 /// The board seen from the sample interrupt. Reading the probe acknowledges the conversion, notes an ADC overrun

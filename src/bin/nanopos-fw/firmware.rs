@@ -1,95 +1,121 @@
-//! The firmware's glue: start-up, the sample interrupt, telemetry.
+//! The firmware's glue: start-up, the sample interrupt, the console, telemetry and the watchdog.
+//!
+//! Three contexts:
+//! - **`ADC1_2`**, the highest priority: one [`Instrument::sample`] per conversion (the pipeline, every selected
+//!   estimator, a waiting configuration change applied first, the recording ring).
+//! - **`console`** task (thread mode): reads command lines from LPUART1, designs each change with the
+//!   [`Controller`], posts it, waits for the interrupt to apply it, replies; streams the recording.
+//! - **`telemetry`** task (thread mode): every 100 ms, logs over defmt/RTT and feeds the watchdog if the sample
+//!   clock ran.
+//!
+//! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, a snapshot, a frame
+//! of recorded samples): at most about a kilobyte, a few hundred cycles, which delay one interrupt's start inside
+//! its slack and never move the sample instants (hardware-timed).
 
-use crate::board::{self, G474Board};
+use crate::board::{self, G474Board, ResetCause};
 use core::cell::RefCell;
+use core::sync::atomic::{AtomicU16, Ordering};
 use cortex_m::interrupt::Mutex;
 use cortex_m::peripheral::DWT;
 use defmt_rtt as _;
 use embassy_executor::Spawner;
 use embassy_stm32::interrupt::{InterruptExt, Priority};
 use embassy_stm32::pac::interrupt;
-use embassy_time::{Duration, Ticker};
-use nanopos_id::estimator::{Estimator, Health};
-use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
-use nanopos_id::estimators::crls::Crls;
-use nanopos_id::estimators::ekf::{Cekf, Hekf};
-use nanopos_id::estimators::paper_bank;
-use nanopos_id::hal::run_sample;
-use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, PipelineSettings};
+use embassy_stm32::peripherals::IWDG;
+use embassy_stm32::usart::BufferedUart;
+use embassy_stm32::wdg::IndependentWatchdog;
+use embassy_time::{Duration, Ticker, Timer};
+use embedded_io_async::{Read, Write};
+use nanopos_id::console::{write_record_end, Controller};
+use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
+use nanopos_id::estimator::Health;
+use nanopos_id::instrument::{Change, Instrument, Status, WatchdogGate};
+use nanopos_id::pipeline::{FaultCounters, Faults, PipelineSettings};
+use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
+use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
 use panic_probe as _;
 
 /// Cycles per sample period at 170 MHz.
 const CYCLES_PER_SAMPLE: u32 = 17_000;
 
-/// Every estimator, in the interrupt (PRBS tuning). Run-time selection and tuning: issue 6.
-type Bank = (Crls<f32>, Cekf<f32>, Hekf<f32>, ArxEstimator<f32>);
-/// Their names in the telemetry, in the bank's order.
-const NAMES: [&str; 4] = [Crls::<f32>::NAME, Cekf::<f32>::NAME, Hekf::<f32>::NAME, ArxEstimator::<f32>::NAME];
-
 /// What the interrupt owns.
 struct SampleTask {
     board: G474Board,
-    pipeline: Pipeline<f32, Bank>,
-    config: PipelineConfig<f32>,
+    instrument: Instrument<f32>,
     stats: SampleStats,
 }
 
-/// Interrupt statistics over one telemetry window, plus totals.
+/// Interrupt statistics over one telemetry window.
 #[derive(Clone, Copy, Default)]
 struct SampleStats {
-    samples: u64,
     window_samples: u32,
     window_cycles: u64,
     window_max_cycles: u32,
     y_um: f32,
     u_v: f32,
-    faults: Faults,
-    counters: FaultCounters,
 }
 
-/// The interrupt's state, shared with the telemetry task for the few cycles a snapshot takes. Taking the lock in
-/// thread mode masks the sample interrupt for that copy (about 100 cycles): it delays one interrupt's start by under
-/// a microsecond, inside its 85.7 us slack, and never moves the sample instants, which are hardware-timed.
-static TASK: Mutex<RefCell<Option<SampleTask>>> = Mutex::new(RefCell::new(None));
+/// The interrupt's state lives in a zero-initialised static (`singleton!`), so its 11 KiB cost RAM only; `TASK`
+/// holds a reference to it once installed.
+static TASK: Mutex<RefCell<Option<&'static mut SampleTask>>> = Mutex::new(RefCell::new(None));
+
+/// The DAC code the fault handler writes: the safe value of the configuration in use.
+static SAFE_CODE: AtomicU16 = AtomicU16::new(2048);
+
+/// Run `f` on the interrupt's state under the lock (`None` before it is installed).
+fn with_task<R>(f: impl FnOnce(&mut SampleTask) -> R) -> Option<R> {
+    cortex_m::interrupt::free(|cs| TASK.borrow(cs).borrow_mut().as_deref_mut().map(f))
+}
 
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(board::clocks());
-    // The embassy time driver (TIM15) must not delay the sample interrupt.
+    // The embassy time driver (TIM15) and the console's UART must not delay the sample interrupt.
     embassy_stm32::interrupt::TIM1_BRK_TIM15.set_priority(Priority::P1);
+    embassy_stm32::interrupt::LPUART1.set_priority(Priority::P2);
+    let cause = board::reset_cause();
 
     let mut core = cortex_m::Peripherals::take().expect("core peripherals taken once");
     core.DCB.enable_trace();
     core.DWT.enable_cycle_counter();
 
-    let settings = PipelineSettings::default();
-    let config: PipelineConfig<f32> = match settings.design(&board::DESCRIPTION) {
+    // After a watchdog reset (a hang, a panic, a fault) the stage stays still until someone sends `start`.
+    let running = cause != ResetCause::Watchdog;
+    let controller = match Controller::new(PipelineSettings::default(), board::DESCRIPTION, running) {
         Ok(c) => c,
         Err(e) => defmt::panic!("pipeline settings: {}", e),
     };
-    board::init(p);
+    let config = controller.config::<f32>();
+    let safe = config.safe_code() as u16;
+    SAFE_CODE.store(safe, Ordering::Relaxed);
+    let parts = board::init(p, safe);
+    let task = cortex_m::singleton!(: SampleTask = SampleTask {
+        board: G474Board::default(),
+        instrument: Instrument::new(config, &controller.tuning()),
+        stats: SampleStats::default(),
+    })
+    .expect("the interrupt's state is made once");
     cortex_m::interrupt::free(|cs| {
-        TASK.borrow(cs).replace(Some(SampleTask {
-            board: G474Board::default(),
-            pipeline: {
-                let (crls, cekf, hekf) = paper_bank();
-                Pipeline::new(&config, (crls, cekf, hekf, ArxEstimator::new(ArxDesign::default().design())))
-            },
-            config,
-            stats: SampleStats::default(),
-        }));
+        TASK.borrow(cs).replace(Some(task));
     });
     embassy_stm32::interrupt::ADC1_2.set_priority(Priority::P0);
-    // SAFETY: the handler below only touches state behind `TASK`, initialised just above.
+    // SAFETY: the handler below only touches state behind `TASK`, installed just above.
     unsafe { embassy_stm32::interrupt::ADC1_2.enable() };
     board::start_sample_clock();
+    if cause == ResetCause::Watchdog {
+        defmt::warn!("nanopos-fw: reset by the watchdog (a hang or a fault): excitation stopped, send `start`");
+    }
     defmt::info!(
-        "nanopos-fw: sampling at {=u32} Hz, PRBS 1 V, probe 16-bit, DAC 12-bit, cycle budget {=u32}",
+        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe 16-bit, DAC 12-bit, cycle budget {=u32}, reset cause {}, console LPUART1 {=u32} baud",
         board::SAMPLE_RATE_HZ,
-        CYCLES_PER_SAMPLE
+        if running { "PRBS 1 V running" } else { "excitation stopped" },
+        CYCLES_PER_SAMPLE,
+        cause,
+        board::CONSOLE_BAUD
     );
-    spawner.spawn(telemetry().expect("telemetry task spawns once"));
+    spawner.spawn(telemetry(parts.watchdog).expect("telemetry task spawns once"));
+    spawner.spawn(console(parts.console, controller).expect("console task spawns once"));
 }
 
 #[interrupt]
@@ -97,76 +123,166 @@ fn ADC1_2() {
     let start = DWT::cycle_count();
     cortex_m::interrupt::free(|cs| {
         let mut task = TASK.borrow(cs).borrow_mut();
-        let Some(t) = task.as_mut() else {
+        let Some(t) = task.as_deref_mut() else {
             // Not started: acknowledge the conversion and leave the output where it is (safe).
             G474Board::discard_conversion();
             return;
         };
-        let out = run_sample(&mut t.board, &mut t.pipeline, &t.config);
+        let out = t.instrument.sample(&mut t.board);
         let cycles = DWT::cycle_count().wrapping_sub(start);
         let s = &mut t.stats;
-        s.samples += 1;
         s.window_samples += 1;
         s.window_cycles += cycles as u64;
         s.window_max_cycles = s.window_max_cycles.max(cycles);
         s.y_um = out.y_um;
         s.u_v = out.u_v;
-        s.faults = out.faults;
-        s.counters = t.pipeline.fault_counters();
     });
 }
 
-/// Each estimator's parameters and health at the end of a window.
-type Estimates = [(StageParams<f32>, Health); 4];
+/// The console: command lines in, replies and the recording stream out.
+#[embassy_executor::task]
+async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
+    let (mut tx, mut rx) = uart.split();
+    let mut line = LineBuffer::default();
+    let mut reply = TextBuf::<768>::default();
+    let mut bytes = [0u8; 32];
+    let mut frame = [0u8; FRAME_MAX_BYTES];
+    let mut samples = [RawSample::default(); FRAME_SAMPLES];
+    let mut recording = false;
+    loop {
+        // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms).
+        let n = match embassy_futures::select::select(rx.read(&mut bytes), Timer::after_millis(2)).await {
+            embassy_futures::select::Either::First(Ok(n)) => n,
+            embassy_futures::select::Either::First(Err(e)) => {
+                defmt::warn!("console: receive error {} (bytes lost; the line in progress is refused)", e);
+                line.push(b'\n');
+                0
+            }
+            embassy_futures::select::Either::Second(()) => 0,
+        };
+        for &b in &bytes[..n] {
+            let Some(parsed) = line.push(b) else { continue };
+            reply.clear();
+            let change = match parsed {
+                Ok(cmd) => {
+                    ctl.execute(cmd, || with_task(|t| t.instrument.status()).unwrap_or_else(idle_status), &mut reply)
+                }
+                Err(e) => {
+                    ctl.refuse(e, &mut reply);
+                    None
+                }
+            };
+            if let Some(change) = change {
+                if let Some(cfg) = &change.config {
+                    SAFE_CODE.store(cfg.safe_code() as u16, Ordering::Relaxed);
+                }
+                recording |= change.record.is_some_and(|r| r != Some(0));
+                post(change).await;
+            }
+            if tx.write_all(reply.as_bytes()).await.is_err() {
+                defmt::warn!("console: transmit error");
+            }
+        }
+        // The recording: whole frames while it runs; the rest, and the end line, once it stopped.
+        while recording {
+            let Some((first, n, status)) = with_task(|t| {
+                let st = t.instrument.record_status();
+                if st.active && st.buffered < FRAME_SAMPLES {
+                    return (0, 0, st);
+                }
+                let (first, n) = t.instrument.drain_recorded(&mut samples);
+                (first, n, t.instrument.record_status())
+            }) else {
+                break;
+            };
+            if n > 0 {
+                let len = encode_frame(first, &samples[..n], &mut frame);
+                let _ = tx.write_all(&frame[..len]).await;
+            }
+            if !status.active && status.buffered == 0 {
+                reply.clear();
+                let _ = write_record_end(&status, &mut reply);
+                let _ = tx.write_all(reply.as_bytes()).await;
+                recording = false;
+            }
+            if n == 0 {
+                break;
+            }
+        }
+    }
+}
 
-/// Take the statistics of the window since the last call, and the estimates (read under the lock: a few hundred
-/// cycles, which delay one interrupt's start inside its slack; the sample instants are hardware-timed).
-fn take_window() -> Option<(SampleStats, Estimates)> {
-    cortex_m::interrupt::free(|cs| {
-        let mut task = TASK.borrow(cs).borrow_mut();
-        let t = task.as_mut()?;
-        let e = &t.pipeline.estimators;
-        let estimates = [
-            (e.0.params(), e.0.health()),
-            (e.1.params(), e.1.health()),
-            (e.2.params(), e.2.health()),
-            (e.3.params(), e.3.health()),
-        ];
-        let snapshot = (t.stats, estimates);
-        t.stats.window_samples = 0;
-        t.stats.window_cycles = 0;
-        t.stats.window_max_cycles = 0;
-        Some(snapshot)
-    })
+/// Before the interrupt's state is installed (never, once the console runs).
+fn idle_status() -> Status<f32> {
+    Status {
+        samples: 0,
+        faults: Faults::default(),
+        counters: FaultCounters::default(),
+        command_v: 0.0,
+        selected: Default::default(),
+        estimates: [(StageParams::INITIAL.cast(), Health::new()); 4],
+        record: Default::default(),
+    }
+}
+
+/// Hand `change` to the interrupt and wait until a sample applied it.
+async fn post(mut change: Change<f32>) {
+    loop {
+        match with_task(|t| t.instrument.post(change)) {
+            Some(Ok(())) => break,
+            Some(Err(busy)) => change = busy.0,
+            None => return,
+        }
+        Timer::after_micros(100).await;
+    }
+    while with_task(|t| t.instrument.change_pending()).unwrap_or(false) {
+        Timer::after_micros(100).await;
+    }
 }
 
 /// 10 Hz: interrupt cost, deadlines, faults, the last sample; then one line per estimator: the model
 /// `y'' = -a0 y - a1 y' + b0 u` (a0 in 1/s^2, a1 in 1/s, b0 in um/(s^2 V)) and what it means: natural frequency,
-/// damping ratio, static gain (um/V), with the estimator's health.
+/// damping ratio, static gain (um/V), with the estimator's health. Feeds the watchdog while samples are counted.
 #[embassy_executor::task]
-async fn telemetry() {
+async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
+    // Asked every 100 ms, when 1000 samples should have run: fed if at least half did.
+    let mut gate = WatchdogGate::new(500);
+    watchdog.unleash();
     let mut ticker = Ticker::every(Duration::from_millis(100));
     let mut reported_misses = 0;
     loop {
         ticker.next().await;
-        let Some((s, estimates)) = take_window() else { continue };
+        let Some((s, st)) = with_task(|t| {
+            let snapshot = (t.stats, t.instrument.status());
+            t.stats = SampleStats::default();
+            snapshot
+        }) else {
+            continue;
+        };
+        if gate.may_feed(st.samples) {
+            watchdog.pet();
+        }
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
+        let c = &st.counters;
         defmt::info!(
             "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} | y={=f32} um u={=f32} V | faults={=u8:#04x} over_range={=u32} stuck={=u32}",
-            s.samples,
+            st.samples,
             mean,
             s.window_max_cycles,
             CYCLES_PER_SAMPLE,
             s.y_um,
             s.u_v,
-            s.faults.0,
-            s.counters.probe_over_range,
-            s.counters.probe_stuck
+            st.faults.0,
+            c.probe_over_range,
+            c.probe_stuck
         );
-        for (name, (p, h)) in NAMES.iter().zip(estimates.iter()) {
+        for (i, (p, h)) in st.estimates.iter().enumerate() {
+            if !st.selected.contains(i) {
+                continue;
+            }
             defmt::info!(
                 "{=str}: a0={=f32} a1={=f32} b0={=f32} | f0={=f32} Hz zeta={=f32} gain={=f32} um/V | {} rejected={=u32} changes={=u32} resets={=u32} innovation_rms={=f32} um",
-                name,
+                ESTIMATOR_NAMES[i],
                 p.a0,
                 p.a1,
                 p.b0,
@@ -180,7 +296,7 @@ async fn telemetry() {
                 h.innovation_rms_um
             );
         }
-        let (misses, overruns) = (s.counters.deadline_misses, s.counters.adc_overruns);
+        let (misses, overruns) = (c.deadline_misses, c.adc_overruns);
         if misses + overruns != reported_misses {
             reported_misses = misses + overruns;
             defmt::warn!("deadline misses={=u32} adc overruns={=u32}", misses, overruns);
@@ -189,10 +305,11 @@ async fn telemetry() {
 }
 
 /// Any fault (a panic ends here too, through panic-probe's `udf`): the amplifier goes to its safe value; the
-/// sample timer keeps running in hardware and loads it within one sample period.
+/// sample timer keeps running in hardware and loads it within one sample period. Nothing feeds the watchdog any
+/// more, so 0.5 s later the board resets, and comes back with the excitation stopped.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
-    board::force_safe_output();
+    board::force_safe_output(SAFE_CODE.load(Ordering::Relaxed));
     loop {
         cortex_m::asm::wfi();
     }
