@@ -123,6 +123,8 @@ impl<T: Real> Instrument<T> {
     }
 
     /// Hand a change to the next sample. Refused while another is waiting.
+    // The refused change comes back by value to be posted again: there is no heap to box it in.
+    #[allow(clippy::result_large_err)]
     pub fn post(&mut self, change: Change<T>) -> Result<(), Busy<T>> {
         if self.pending.is_some() {
             return Err(Busy(change));

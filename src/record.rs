@@ -213,11 +213,11 @@ mod tests {
         });
         let mut buf = [0u8; FRAME_MAX_BYTES];
         for n in [0, 1, 2, 3, 47, 48] {
-            let len = encode_frame(0x1234_5678_9a, &samples[..n], &mut buf);
+            let len = encode_frame(0x0012_3456_789a, &samples[..n], &mut buf);
             assert_eq!(buf[len - 1], b'\n');
             let line = &buf[..len - 1];
             let mut out = [RawSample::default(); FRAME_SAMPLES];
-            assert_eq!(decode_frame(line, &mut out), Ok((0x1234_5678_9a, n)), "{n}");
+            assert_eq!(decode_frame(line, &mut out), Ok((0x0012_3456_789a, n)), "{n}");
             assert_eq!(out[..n], samples[..n]);
             if n == FRAME_SAMPLES {
                 assert_eq!(len, FRAME_MAX_BYTES);

@@ -321,7 +321,7 @@ mod tests {
         use core::fmt::Write;
         let mut b = TextBuf::<16>::default();
         assert!(write!(b, "ok ").is_ok());
-        assert!(write!(b, "{}", "a long reply that does not fit").is_err());
+        assert!(b.write_str("a long reply that does not fit").is_err());
         assert_eq!(b.as_str(), "ok a long re...\n");
         assert!(b.truncated());
         b.clear();

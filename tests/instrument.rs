@@ -106,7 +106,7 @@ fn the_interrupt_body_is_the_pipeline_the_host_tests() {
 fn a_change_applies_whole_between_two_samples_and_never_overwrites_a_waiting_one() {
     let mut lab = Lab::new();
     lab.run(100);
-    let mut tight = lab.ctl.settings().clone();
+    let mut tight = *lab.ctl.settings();
     tight.limits.min_v = -0.25;
     tight.limits.max_v = 0.25;
     let cfg = tight.design::<f32>(&lab.board.description()).unwrap();

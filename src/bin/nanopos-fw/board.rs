@@ -41,6 +41,7 @@ use embassy_stm32::usart::{BufferedUart, Config as UartConfig};
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_stm32::{bind_interrupts, peripherals, Peripherals};
 use nanopos_id::hal::{BoardDescription, BoardFaults, ConverterFormat, StageBoard};
+use nanopos_id::pipeline::{AmplifierFrontEnd, PipelineSettings, ProbeFrontEnd};
 
 /// Sample rate, Hz.
 pub const SAMPLE_RATE_HZ: u32 = 10_000;
@@ -132,6 +133,18 @@ pub fn reset_cause() -> ResetCause {
         ResetCause::Pin
     } else {
         ResetCause::Other
+    }
+}
+
+/// The pipeline's settings on this board: the sample rate, and the analog front end's scaling (the reference probe's
+/// 5 um/V; the divider mapping +-10 V onto the ADC's 0-3.3 V, the level shift mapping the DAC's 0-3.3 V onto
+/// +-10 V). Change them with the hardware; the rest are the paper's defaults.
+pub fn settings() -> PipelineSettings {
+    PipelineSettings {
+        sample_rate_hz: SAMPLE_RATE_HZ as f64,
+        probe: ProbeFrontEnd { um_per_v: 5.0, adc_v_per_sensor_v: 3.3 / 20.0, adc_offset_v: 1.65 },
+        amplifier: AmplifierFrontEnd { dac_v_per_command_v: 3.3 / 20.0, dac_offset_v: 1.65 },
+        ..PipelineSettings::default()
     }
 }
 

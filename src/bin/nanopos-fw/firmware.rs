@@ -30,7 +30,7 @@ use nanopos_id::console::{write_record_end, Controller};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::Health;
 use nanopos_id::instrument::{Change, Instrument, Status, WatchdogGate};
-use nanopos_id::pipeline::{FaultCounters, Faults, PipelineSettings};
+use nanopos_id::pipeline::{FaultCounters, Faults};
 use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
@@ -82,7 +82,7 @@ async fn main(spawner: Spawner) {
 
     // After a watchdog reset (a hang, a panic, a fault) the stage stays still until someone sends `start`.
     let running = cause != ResetCause::Watchdog;
-    let controller = match Controller::new(PipelineSettings::default(), board::DESCRIPTION, running) {
+    let controller = match Controller::new(board::settings(), board::DESCRIPTION, running) {
         Ok(c) => c,
         Err(e) => defmt::panic!("pipeline settings: {}", e),
     };
