@@ -42,19 +42,20 @@ impl Controller {
             tuning: TuningPreset::Prbs,
             frozen: EstimatorSet(0),
         };
-        c.design::<f32>(&c.settings)?;
+        c.design::<f32>(&c.settings, running)?;
         Ok(c)
     }
 
     /// The configuration of the current settings.
     pub fn config<T: Real>(&self) -> PipelineConfig<T> {
         // Validated in `new` and before every change of `settings`.
-        self.design(&self.settings).unwrap_or_else(|_| unreachable!("settings are validated before they are kept"))
+        self.design(&self.settings, self.running)
+            .unwrap_or_else(|_| unreachable!("settings are validated before they are kept"))
     }
 
     /// The current tuning, designed.
     pub fn tuning<T: Real>(&self) -> TuningConfig<T> {
-        preset(self.tuning).design()
+        Tuning::of(self.tuning).design()
     }
 
     /// The settings in use (the excitation of a stopped controller is the constant safe value).
@@ -67,9 +68,10 @@ impl Controller {
         self.running
     }
 
-    fn design<T: Real>(&self, s: &PipelineSettings) -> Result<PipelineConfig<T>, SettingsError> {
+    /// `s` designed for the board, with the excitation running or held at the safe value.
+    fn design<T: Real>(&self, s: &PipelineSettings, running: bool) -> Result<PipelineConfig<T>, SettingsError> {
         let mut s = *s;
-        if !self.running {
+        if !running {
             s.excitation = ExcitationDesign::constant(s.limits.safe_v);
         }
         s.design(&self.board)
@@ -127,26 +129,20 @@ impl Controller {
                 let design = excitation(choice);
                 let mut s = self.settings;
                 s.excitation = design;
-                change.config = Some(self.design(&s)?);
+                change.config = Some(self.design(&s, self.running)?);
                 self.settings = s;
                 self.chosen = design;
                 let state = if self.running { "running" } else { "stopped, send start" };
                 writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
             }
             Command::Start | Command::Stop => {
-                let was = self.running;
-                self.running = cmd == Command::Start;
+                let running = cmd == Command::Start;
                 let mut s = self.settings;
                 s.excitation = self.chosen;
-                match self.design(&s) {
-                    Ok(cfg) => change.config = Some(cfg),
-                    Err(e) => {
-                        self.running = was;
-                        return Err(e.into());
-                    }
-                }
+                change.config = Some(self.design(&s, running)?);
                 self.settings = s;
-                if self.running {
+                self.running = running;
+                if running {
                     change.clear_faults = true;
                     writeln!(reply, "ok start {} (latched faults cleared)", Exc(&self.chosen))?;
                 } else {
@@ -157,7 +153,7 @@ impl Controller {
                 let mut s = self.settings;
                 let before = EstimatorSet(s.estimators & EstimatorSet::ALL.0);
                 s.estimators = set.0;
-                change.config = Some(self.design(&s)?);
+                change.config = Some(self.design(&s, self.running)?);
                 // An estimator not fed for a while holds stale signals: it restarts when selected again.
                 change.reset = EstimatorSet(set.0 & !before.0);
                 self.settings = s;
@@ -178,7 +174,7 @@ impl Controller {
                 writeln!(reply, "ok adapt {}", Names(set))?;
             }
             Command::Tuning(p) => {
-                change.tuning = Some(preset(p).design());
+                change.tuning = Some(Tuning::of(p).design());
                 // The estimators restart with the new tuning; frozen ones stay frozen.
                 change.freeze = self.frozen;
                 self.tuning = p;
@@ -189,7 +185,7 @@ impl Controller {
                 s.limits.min_v = min_v as f64;
                 s.limits.max_v = max_v as f64;
                 s.limits.max_slew_v_per_s = slew_v_per_s as f64;
-                change.config = Some(self.design(&s)?);
+                change.config = Some(self.design(&s, self.running)?);
                 self.settings = s;
                 let l = &s.limits;
                 writeln!(
@@ -310,11 +306,6 @@ impl fmt::Display for Refusal {
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }
     }
-}
-
-fn preset(p: TuningPreset) -> Tuning {
-    let name = tuning_name(p);
-    Tuning::preset(name).unwrap_or_else(|| unreachable!("{name} is a preset"))
 }
 
 fn tuning_name(p: TuningPreset) -> &'static str {

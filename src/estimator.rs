@@ -97,7 +97,10 @@ pub trait EstimatorBank<T: Real> {
     /// How many estimators the bank holds.
     const LEN: usize;
     /// Feed one sample to each.
-    fn update(&mut self, sample: &FilteredSample<T>);
+    #[inline]
+    fn update(&mut self, sample: &FilteredSample<T>) {
+        self.update_selected(sample, u8::MAX);
+    }
     /// Feed one sample to the estimators whose bit is set in `mask` (bit `i`: the bank's `i`-th estimator); the
     /// others are not touched (their state stays as it was).
     fn update_selected(&mut self, sample: &FilteredSample<T>, mask: u8);
@@ -108,7 +111,6 @@ pub trait EstimatorBank<T: Real> {
 /// No estimators: the pipeline only excites and filters (recording, commissioning).
 impl<T: Real> EstimatorBank<T> for () {
     const LEN: usize = 0;
-    fn update(&mut self, _: &FilteredSample<T>) {}
     fn update_selected(&mut self, _: &FilteredSample<T>, _: u8) {}
     fn reset(&mut self) {}
 }
@@ -117,10 +119,6 @@ macro_rules! bank_for_tuple {
     ($len:expr; $($name:ident . $idx:tt),+) => {
         impl<T: Real, $($name: Estimator<T>),+> EstimatorBank<T> for ($($name,)+) {
             const LEN: usize = $len;
-            #[inline]
-            fn update(&mut self, sample: &FilteredSample<T>) {
-                $(self.$idx.update(sample);)+
-            }
             #[inline]
             fn update_selected(&mut self, sample: &FilteredSample<T>, mask: u8) {
                 $(if mask & (1 << $idx) != 0 {

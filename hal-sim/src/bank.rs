@@ -62,21 +62,6 @@ impl<T: Real> Bank<T> {
 
 impl<T: Real> EstimatorBank<T> for Bank<T> {
     const LEN: usize = 4;
-    #[inline]
-    fn update(&mut self, s: &FilteredSample<T>) {
-        if let Some(e) = &mut self.rls {
-            e.update(s);
-        }
-        if let Some(e) = &mut self.ekf {
-            e.update(s);
-        }
-        if let Some(e) = &mut self.hekf {
-            e.update(s);
-        }
-        if let Some(e) = &mut self.arx {
-            e.update(s);
-        }
-    }
     fn update_selected(&mut self, s: &FilteredSample<T>, mask: u8) {
         let on = |i: u8| mask & (1 << i) != 0;
         if let Some(e) = self.rls.as_mut().filter(|_| on(0)) {

@@ -324,8 +324,7 @@ fn main() -> ! {
             }
         }
     });
-    let e = &isr.pipeline.estimators;
-    bench_ok &= [e.0.params(), e.1.params(), e.2.params(), e.3.params()]
+    bench_ok &= isr.estimates().map(|(p, _)| p)
         == [
             w.pipeline.estimators.0.params(),
             w.pipeline.estimators.1.params(),

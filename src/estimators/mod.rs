@@ -37,12 +37,20 @@ pub struct Tuning {
 impl Tuning {
     /// `prbs`: the paper's Q2 and RLS settings (the default); `triangle`: Q1.
     pub fn preset(name: &str) -> Option<Self> {
-        let q = match name {
-            "prbs" => ekf::EkfDesign::Q2,
-            "triangle" => ekf::EkfDesign::Q1,
-            _ => return None,
+        match name {
+            "prbs" => Some(Self::of(crate::control::TuningPreset::Prbs)),
+            "triangle" => Some(Self::of(crate::control::TuningPreset::Triangle)),
+            _ => None,
+        }
+    }
+
+    /// The paper's tuning for an input: the EKFs' `Q2` for PRBS, `Q1` for the triangle; the RLS settings for both.
+    pub fn of(preset: crate::control::TuningPreset) -> Self {
+        let q = match preset {
+            crate::control::TuningPreset::Prbs => ekf::EkfDesign::Q2,
+            crate::control::TuningPreset::Triangle => ekf::EkfDesign::Q1,
         };
-        Some(Tuning { rls: crls::CrlsDesign::default(), ekf: ekf::EkfDesign::paper(q), arx: arx::ArxDesign::default() })
+        Tuning { rls: crls::CrlsDesign::default(), ekf: ekf::EkfDesign::paper(q), arx: arx::ArxDesign::default() }
     }
 
     /// Design every estimator's configuration in the working scalar.
