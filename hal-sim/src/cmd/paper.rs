@@ -35,22 +35,16 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         std::fs::create_dir_all(d)
             .map_err(|e| CliError(format!("{}: cannot create: {}", d.display(), super::io_reason(&e))))?;
     }
+    // Both inputs' simulations at once (one thread each); the identifications then use every core themselves.
+    let inputs = [(Scenario::Prbs, "prbs"), (Scenario::Triangle, "triangle")];
+    let simulated: Vec<Result<Simulated, CliError>> = std::thread::scope(|s| {
+        let jobs: Vec<_> =
+            inputs.iter().map(|&(scenario, _)| s.spawn(move || simulate(scenario, duration_s))).collect();
+        jobs.into_iter().map(|j| j.join().expect("a simulation does not panic")).collect()
+    });
     let mut runs = Vec::new();
-    for (scenario, input) in [(Scenario::Prbs, "prbs"), (Scenario::Triangle, "triangle")] {
-        let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
-        let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
-        let n = (duration_s * 1e4).round() as usize;
-        let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-        let mut truth: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
-        for _ in 0..n {
-            let (r, _) = sim.step();
-            t.push(r.t_s);
-            u.push(r.u_v);
-            y.push(r.y_um);
-            truth[0].push(r.truth.a0);
-            truth[1].push(r.truth.a1);
-            truth[2].push(r.truth.b0);
-        }
+    for ((_, input), sim) in inputs.into_iter().zip(simulated) {
+        let Simulated { t, u, y, truth } = sim?;
         let source = format!("paper/{input}");
         let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
         let tuning = Tuning::preset(input).expect("preset exists");
@@ -65,6 +59,33 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         runs.push(PaperRun { input, f64: r64, f32: r32, t_change: duration_s / 2.0 });
     }
     Ok(runs)
+}
+
+/// One simulated run: time, command, reading, and the truth's `a0`, `a1`, `b0`.
+struct Simulated {
+    t: Vec<f64>,
+    u: Vec<f64>,
+    y: Vec<f64>,
+    truth: Vec<Vec<f64>>,
+}
+
+/// The stage under `scenario` for `duration_s`, payload removed at half time.
+fn simulate(scenario: Scenario, duration_s: f64) -> Result<Simulated, CliError> {
+    let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
+    let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+    let n = (duration_s * 1e4).round() as usize;
+    let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    let mut truth: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
+    for _ in 0..n {
+        let (r, _) = sim.step();
+        t.push(r.t_s);
+        u.push(r.u_v);
+        y.push(r.y_um);
+        truth[0].push(r.truth.a0);
+        truth[1].push(r.truth.a1);
+        truth[2].push(r.truth.b0);
+    }
+    Ok(Simulated { t, u, y, truth })
 }
 
 /// The table.
