@@ -13,6 +13,10 @@
 //!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
 //!   health view of the same question: far above the noise floor, the model does not fit.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
+//!
+//! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
+//! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file and its columns are held
+//! whole, about 110 bytes per row of a simulated record (220 MB for 200 s at 10 kHz).
 
 use super::{fail, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
