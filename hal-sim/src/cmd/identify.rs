@@ -16,7 +16,7 @@
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
 //! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file and its columns are held
-//! whole, about 110 bytes per row of a simulated record (220 MB for 200 s at 10 kHz).
+//! whole: peak about 130 bytes per row of a simulated record (258 MB for 200 s at 10 kHz).
 
 use super::{fail, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
