@@ -193,10 +193,9 @@ pub fn identify_in<T: Real>(
             .expect("every estimator ran")
     };
     let columns: Vec<_> = names.iter().map(|n| column(n)).collect();
-    let estimates: Vec<Vec<StageParams<f64>>> =
-        (0..times.len()).map(|r| columns.iter().map(|(g, i)| g.estimates[r][*i]).collect()).collect();
-    let innovations: Vec<Vec<f32>> =
-        (0..times.len()).map(|r| columns.iter().map(|(g, i)| g.innovations[r][*i]).collect()).collect();
+    let (estimates, innovations): (Vec<Vec<StageParams<f64>>>, Vec<Vec<f32>>) = (0..times.len())
+        .map(|r| columns.iter().map(|(g, i)| (g.estimates[r][*i], g.innovations[r][*i])).unzip())
+        .unzip();
 
     let default_windows;
     let windows = if windows.is_empty() {
