@@ -15,6 +15,8 @@
 //! substeps = 4                   # hybrid prediction substeps
 //! gate_sigma = 5.0               # innovation gate (relative to the running level)
 //! change_samples = 20            # gated samples in a row that mean a plant change (0: off, gating off too)
+//! drift_ratio = 4.0              # short- over long-run nu^2/S that means a gentle change (0: off; else >= 1)
+//! reopen = 100.0                 # parameter variances after a drift, times P0 (1 to 100)
 //! pe_floor_v2 = 1e-6             # input power below which the parameters freeze
 //! [arx]
 //! lambda = 0.9998                # forgetting per sample
@@ -52,6 +54,8 @@ struct Ekf {
     substeps: Option<u32>,
     gate_sigma: Option<f64>,
     change_samples: Option<u32>,
+    drift_ratio: Option<f64>,
+    reopen: Option<f64>,
     pe_floor_v2: Option<f64>,
 }
 
@@ -138,6 +142,19 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
         if let Some(n) = e.change_samples {
             t.ekf.health.change_samples = n;
         }
+        if let Some(x) = e.drift_ratio {
+            if !(x == 0.0 || (x.is_finite() && x >= 1.0)) {
+                return fail(format!("{name}: [ekf] drift_ratio = {x}: 0 (off) or at least 1"));
+            }
+            t.ekf.health.drift_ratio = x;
+        }
+        if let Some(x) = e.reopen {
+            let ceiling = t.ekf.health.ceiling;
+            if !(1.0..=ceiling).contains(&x) {
+                return fail(format!("{name}: [ekf] reopen = {x}: between 1 and {ceiling} (the variance ceiling)"));
+            }
+            t.ekf.health.reopen = x;
+        }
         if let Some(x) = e.pe_floor_v2 {
             if !(x.is_finite() && x >= 0.0) {
                 return fail(format!("{name}: [ekf] pe_floor_v2 = {x}: must be zero or positive"));
@@ -166,9 +183,14 @@ mod tests {
 
     #[test]
     fn a_file_overrides_single_values_of_its_preset() {
-        let t = parse("t.toml", "preset = \"triangle\"\n[ekf]\nsubsteps = 8\n[rls]\ngamma = 0.5\n").unwrap();
+        let t = parse(
+            "t.toml",
+            "preset = \"triangle\"\n[ekf]\nsubsteps = 8\ndrift_ratio = 0\nreopen = 10\n[rls]\ngamma = 0.5\n",
+        )
+        .unwrap();
         assert_eq!(t.ekf.q_diag, EkfDesign::Q1);
         assert_eq!(t.ekf.substeps, 8);
+        assert_eq!((t.ekf.health.drift_ratio, t.ekf.health.reopen), (0.0, 10.0));
         assert_eq!(t.rls.gamma, 0.5);
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
         let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
@@ -185,6 +207,8 @@ mod tests {
             ("preset = \"fast\"\n", "preset 'fast' unknown"),
             ("[arx]\nlambda = 1.5\n", "[arx] lambda = 1.5: must be in (0, 1]"),
             ("[ekf\n", "t.toml:1:"),
+            ("[ekf]\ndrift_ratio = 0.5\n", "[ekf] drift_ratio = 0.5: 0 (off) or at least 1"),
+            ("[ekf]\nreopen = 1000\n", "[ekf] reopen = 1000: between 1 and 100 (the variance ceiling)"),
         ];
         for (text, want) in cases {
             let e = parse("t.toml", text).unwrap_err().0;

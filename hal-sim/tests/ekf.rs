@@ -218,17 +218,13 @@ fn crls_on_the_full_board_in_f64_and_f32() {
     assert!(d.iter().all(|x| x.abs() < 1e-4), "{d:?}");
 }
 
-#[test]
-#[ignore = "diagnosis: the triangle on the reference's ideal data (run with --ignored --nocapture)"]
-fn hekf_triangle_on_reference_data() {
-    let design = HekfDesign::paper(HekfDesign::Q1);
-    let (h, health) =
-        on_reference_data_health::<f64, _>(Hekf::new(design.design()), ExcitationDesign::PAPER_TRIANGLE, 2, 100.0);
-    eprintln!("health: {health:?}");
-    for (t0, t1, truth) in [(75.0, 100.0, StageParams::PAYLOAD), (175.0, 200.0, StageParams::NO_PAYLOAD)] {
-        let e = window_rel_errors(&h, t0, t1, &truth);
-        eprintln!("hekf triangle reference data {t0}-{t1}: a0 {:+.2e} a1 {:+.2e} b0 {:+.2e}", e[0], e[1], e[2]);
-    }
+/// Relock after the payload change at 100 s on the reference's triangle data: `a0` and `b0` within 1 % of the truth.
+fn triangle_relock<K: nanopos_id::estimators::ekf::EkfKind>(design: &HekfDesign) -> (Option<f64>, u32)
+where
+    nanopos_id::estimators::ekf::Ekf<f64, K>: Estimator<f64>,
+{
+    let est = nanopos_id::estimators::ekf::Ekf::<f64, K>::new(design.design());
+    let (h, health) = on_reference_data_health::<f64, _>(est, ExcitationDesign::PAPER_TRIANGLE, 2, 100.0);
     let samples: Vec<hal_sim::experiment::Sample> = h
         .iter()
         .map(|&(t_s, est)| hal_sim::experiment::Sample {
@@ -237,11 +233,29 @@ fn hekf_triangle_on_reference_data() {
             truth: if t_s <= 100.0 { StageParams::PAYLOAD } else { StageParams::NO_PAYLOAD },
         })
         .collect();
-    eprintln!(
-        "relock 1%: {:?}, 5%: {:?}",
-        hal_sim::experiment::relock_time(&samples, 100.0, 0.01),
-        hal_sim::experiment::relock_time(&samples, 100.0, 0.05)
-    );
+    (hal_sim::experiment::relock_time(&samples, 100.0, 0.01), health.changes_detected)
+}
+
+/// The smoothed triangle's payload change is too gentle for the gate (25x in `nu^2 / S`, within the per-sample
+/// spread): without drift detection nothing is detected and the filters relock slowly or not at all; with it, the
+/// change is seen about 0.24 s after it happens and the hybrid filter relocks within the 10 s goal. Measured
+/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous never without (a wrong solution, a0
+/// -39 %), 12.4 s with. Over seeds 3-6 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54 s; continuous 0.68, 1.19,
+/// 18.0, 0.57 s: the relock is a search through a landscape with little gradient, and its time varies.
+#[test]
+fn drift_detection_relocks_the_triangle() {
+    use nanopos_id::estimators::ekf::{Continuous, Hybrid};
+    let with = HekfDesign::paper(HekfDesign::Q1);
+    let without =
+        HekfDesign { health: nanopos_id::estimators::ekf::EkfHealthDesign { drift_ratio: 0.0, ..with.health }, ..with };
+    let hybrid = [triangle_relock::<Hybrid>(&with), triangle_relock::<Hybrid>(&without)];
+    let continuous = [triangle_relock::<Continuous>(&with), triangle_relock::<Continuous>(&without)];
+    eprintln!("triangle relock (s, changes detected), with and without drift detection: hybrid {hybrid:?}, continuous {continuous:?}");
+    assert_eq!([hybrid[0].1, hybrid[1].1, continuous[0].1, continuous[1].1], [1, 0, 1, 0]);
+    assert!(hybrid[0].0.is_some_and(|t| t <= 10.0), "the goal: {hybrid:?}");
+    assert!(hybrid[1].0.is_some_and(|t| t > 30.0), "{hybrid:?}");
+    // The continuous filter misses the 10 s goal on this seed; it relocks at all only with drift detection.
+    assert!(continuous[0].0.is_some_and(|t| t <= 15.0) && continuous[1].0.is_none(), "{continuous:?}");
 }
 
 /// The dense peer (nalgebra, full `F P + P F'`, full Joseph form) computes the same filter as the structured one:
