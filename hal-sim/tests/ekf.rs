@@ -239,8 +239,8 @@ where
 /// The smoothed triangle's payload change is too gentle for the gate (25x in `nu^2 / S`, within the per-sample
 /// spread): without drift detection nothing is detected and the filters relock slowly or not at all; with it, the
 /// change is seen about 0.24 s after it happens and the hybrid filter relocks within the 10 s goal. Measured
-/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous never without (a wrong solution, a0
-/// -39 %), 12.4 s with. Over seeds 3-6 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54 s; continuous 0.68, 1.19,
+/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous 74.41 s without (the reference's
+/// 74.4 s), 12.4 s with. Over seeds 3-6 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54 s; continuous 0.68, 1.19,
 /// 18.0, 0.57 s: the relock is a search through a landscape with little gradient, and its time varies.
 #[test]
 fn drift_detection_relocks_the_triangle() {
@@ -254,8 +254,9 @@ fn drift_detection_relocks_the_triangle() {
     assert_eq!([hybrid[0].1, hybrid[1].1, continuous[0].1, continuous[1].1], [1, 0, 1, 0]);
     assert!(hybrid[0].0.is_some_and(|t| t <= 10.0), "the goal: {hybrid:?}");
     assert!(hybrid[1].0.is_some_and(|t| t > 30.0), "{hybrid:?}");
-    // The continuous filter misses the 10 s goal on this seed; it relocks at all only with drift detection.
-    assert!(continuous[0].0.is_some_and(|t| t <= 15.0) && continuous[1].0.is_none(), "{continuous:?}");
+    // The continuous filter misses the 10 s goal on this seed, but still relocks six times faster.
+    assert!(continuous[0].0.is_some_and(|t| t <= 15.0), "{continuous:?}");
+    assert!(continuous[1].0.is_some_and(|t| t > 30.0), "{continuous:?}");
 }
 
 /// The dense peer (nalgebra, full `F P + P F'`, full Joseph form) computes the same filter as the structured one:

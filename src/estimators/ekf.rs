@@ -166,8 +166,8 @@ impl Default for EkfDesign {
 ///   lacks) would trigger it too: harmless, the filter relocks to the same parameters. Cost: 3 flops per sample.
 /// - **Reopening**: after a change the gate saw, to `P0`; after a drift, to `reopen` times `P0` (100, the ceiling).
 ///   The gate sees a change with a transient the model cannot describe (the payload-removal bump on the board):
-///   reopened wide then, the bump pulls the parameters far off (on the board's triangle a1 went to -160 % and took
-///   30 s to come back; the continuous filter settled on a wrong solution), where `P0` relocks. A drift is quiet, and
+///   reopened wide then, the bump pulls the parameters far off (on the board's triangle the hybrid filter's a1 went
+///   to -160 % and took 30 s to come back), where `P0` relocks. A drift is quiet, and
 ///   there `P0` is too narrow: on the reference's triangle the hybrid filter reopened to `P0` kept a0 at -25 % for
 ///   25 s while a1 grew threefold (the new resonance sits on the triangle's 47th harmonic, where a model tuned 12 %
 ///   lower has almost no gradient) and a0, b0 reached 1 % after 67 s; at `100 P0`, after 7.6 s.
@@ -631,8 +631,20 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
-    /// Parameter variances within their floor and ceiling.
+    /// Parameter variances within their floor and ceiling; a state variance below zero repaired.
     fn bound_covariance(&mut self) {
+        // The continuous filter integrates the Riccati equation in one RK4 step per sample, and a state variance
+        // swinging near zero can overshoot below it (on the board's triangle, 30 ms after the start, the x2 variance
+        // fell from 37.6 by 84 um^2/s^2 per sample). Decorrelate that state and give it its floor: `P` is then
+        // positive semidefinite again if the rest of it was, and the filter carries on instead of resetting.
+        for i in 0..2 {
+            if self.p[idx(i, i)] < T::zero() {
+                for j in 0..5 {
+                    self.p[idx(i, j)] = T::zero();
+                }
+                self.p[idx(i, i)] = self.cfg.p_floor[i];
+            }
+        }
         for i in 2..5 {
             let v = self.p[idx(i, i)];
             if v > self.cfg.p_ceiling[i] {
