@@ -34,8 +34,9 @@
 //! `W = sqrt(a0_init)`, so that every state is of order one and the covariance spans a few decades instead of
 //! twenty: an f32 step of `a0 ~ 7e6` would otherwise be 0.5, a few ulps per update. `P` is stored symmetric
 //! (15 entries); `F` has two non-zero rows, so `F P` costs 2 x 5 dot products instead of 25; `H = e1` makes the
-//! update a rank-one correction from column 0 of `P`. After each step a non-finite value or a negative diagonal
-//! resets the estimator (counted). Cost per update: hybrid, 4 x 4 RK4 stages of about 60 flops plus about 60 for
+//! update a rank-one correction from column 0 of `P`. After each step a state variance below zero is repaired (that
+//! state decorrelated, its variance floored), and a non-finite value or a negative diagonal left after that resets
+//! the estimator (counted). Cost per update: hybrid, 4 x 4 RK4 stages of about 60 flops plus about 60 for
 //! the update; continuous, 4 stages of about 80 flops.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
