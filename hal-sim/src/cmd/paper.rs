@@ -94,10 +94,18 @@ pub fn table(runs: &[PaperRun]) -> String {
     s += "input     prec estimator window      a0 err    a1 err    b0 err   RMSE nm  relock s\n";
     for run in runs {
         for (prec, r) in [("f64", &run.f64), ("f32", &run.f32)] {
+            // The truth's own validation RMSE: what model (1) can reach on this data at best.
+            for (w, _, truth) in &r.windows {
+                let rmse = truth.expect("simulated runs carry the truth").rmse_nm;
+                s += &format!(
+                    "{:9} {prec}  {:9} {:>5.0}-{:<5.0} {:>30} {rmse:8.2}\n",
+                    run.input, "truth", w.t0, w.t1, ""
+                );
+            }
             for (col, name) in r.names.iter().enumerate() {
                 let relock = r.relock_s(col, run.t_change).map_or("never".to_string(), |t| format!("{t:.2}"));
                 for (w, figs, truth) in &r.windows {
-                    let (m, tr) = (figs[col].mean, truth.expect("simulated runs carry the truth"));
+                    let (m, tr) = (figs[col].mean, truth.expect("simulated runs carry the truth").mean);
                     let e = |a: f64, b: f64| 100.0 * (a / b - 1.0);
                     s += &format!(
                         "{:9} {prec}  {name:9} {:>5.0}-{:<5.0} {:+8.3}% {:+8.3}% {:+8.3}% {:8.2} {:>9}\n",
