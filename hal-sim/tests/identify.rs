@@ -128,9 +128,9 @@ fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
     let out = nanopos_sim(&["paper", "--duration", "4", "--out-dir", "res"], dir.path());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let table = String::from_utf8(out.stdout).unwrap();
-    // Header, then 2 inputs x 2 precisions x 4 estimators x 2 windows.
-    assert_eq!(table.lines().count(), 1 + 32, "{table}");
-    for word in ["prbs", "triangle", "f32", "f64", "rls", "ekf", "hekf", "arx", "RMSE"] {
+    // Header, then 2 inputs x 2 precisions x (the truth and 4 estimators) x 2 windows.
+    assert_eq!(table.lines().count(), 1 + 40, "{table}");
+    for word in ["prbs", "triangle", "f32", "f64", "truth", "rls", "ekf", "hekf", "arx", "RMSE"] {
         assert!(table.contains(word), "{word}");
     }
     for f in ["prbs-summary.json", "triangle-summary.json"] {
