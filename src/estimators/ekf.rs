@@ -35,7 +35,7 @@
 //! twenty: an f32 step of `a0 ~ 7e6` would otherwise be 0.5, a few ulps per update. `P` is stored symmetric
 //! (15 entries); `F` has two non-zero rows, so `F P` costs 2 x 5 dot products instead of 25; `H = e1` makes the
 //! update a rank-one correction from column 0 of `P`. After each step a state variance below zero is repaired (that
-//! state decorrelated, its variance floored), and a non-finite value or a negative diagonal left after that resets
+//! state decorrelated, its variance floored; a parameter variance is floored anyway), and a non-finite value resets
 //! the estimator (counted). Cost per update: hybrid, 4 x 4 RK4 stages of about 60 flops plus about 60 for
 //! the update; continuous, 4 stages of about 80 flops.
 
@@ -111,7 +111,9 @@ impl EkfDesign {
             nis_alpha: T::of(t / hd.nis_tau_s),
             change_samples: hd.change_samples,
             holdoff_samples: libm::round(hd.holdoff_s / t) as u32,
-            drift_ratio: T::of(hd.drift_ratio),
+            // Off (0) as an infinite ratio, which no level exceeds (`inf * 0` is NaN, also never exceeded): no test
+            // for it per sample.
+            drift_ratio: T::of(if hd.drift_ratio > 0.0 { hd.drift_ratio } else { f64::INFINITY }),
             drift_alpha: T::of(t / hd.drift_tau_s),
             drift_wait_samples: libm::round(hd.drift_wait_s / t) as u32,
             pe_floor: T::of(hd.pe_floor_v2),
@@ -663,10 +665,12 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
+    /// Called after [`Self::bound_covariance`], which leaves no finite diagonal below zero: finiteness is all that
+    /// is left to check.
     fn healthy(&self) -> bool {
         // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
         let sum = self.z.iter().chain(self.p.iter()).fold(T::zero(), |acc, &x| acc + x);
-        sum.is_finite() && (0..5).all(|i| self.p[idx(i, i)] >= T::zero())
+        sum.is_finite()
     }
 }
 
@@ -714,7 +718,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             } else {
                 self.nis_long += drift_alpha * (nis - self.nis_long);
                 // A sustained rise: the plant drifted or changed by less than the gate sees.
-                (drift_ratio > T::zero() && self.nis_mean > drift_ratio * self.nis_long).then_some(true)
+                (self.nis_mean > drift_ratio * self.nis_long).then_some(true)
             }
         } else {
             self.gated_run += 1;

@@ -515,17 +515,8 @@ mod tests {
         let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
         board.plant.change_at_sample = u64::MAX;
         let mut sim = Simulation::new(board, &settings, ()).unwrap();
-        let (mut t, mut u, mut y, mut truth) = (Vec::new(), Vec::new(), Vec::new(), vec![Vec::new(); 3]);
-        for _ in 0..200_000 {
-            let (r, _) = sim.step();
-            t.push(r.t_s);
-            u.push(r.u_v);
-            y.push(r.y_um);
-            truth[0].push(r.truth.a0);
-            truth[1].push(r.truth.a1);
-            truth[2].push(r.truth.b0);
-        }
-        let rec = Recording { source: "test", t: &t, u: &u, y: &y, truth: Some(&truth) };
+        let s = crate::cmd::paper::record(&mut sim, 200_000);
+        let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
         let got =
             identify(&rec, &["hekf"], &Tuning::preset("prbs").unwrap(), &[Window { t0: 15.0, t1: 20.0 }]).unwrap();
         let (_, figs, truth) = &got.windows[0];

@@ -61,19 +61,23 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
     Ok(runs)
 }
 
-/// One simulated run: time, command, reading, and the truth's `a0`, `a1`, `b0`.
-struct Simulated {
-    t: Vec<f64>,
-    u: Vec<f64>,
-    y: Vec<f64>,
-    truth: Vec<Vec<f64>>,
+/// One simulated run: time, command, reading, and the truth's `a0`, `a1`, `b0` (the columns `identify` reads).
+pub(crate) struct Simulated {
+    pub(crate) t: Vec<f64>,
+    pub(crate) u: Vec<f64>,
+    pub(crate) y: Vec<f64>,
+    pub(crate) truth: Vec<Vec<f64>>,
 }
 
 /// The stage under `scenario` for `duration_s`, payload removed at half time.
 fn simulate(scenario: Scenario, duration_s: f64) -> Result<Simulated, CliError> {
     let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
     let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
-    let n = (duration_s * 1e4).round() as usize;
+    Ok(record(&mut sim, (duration_s * 1e4).round() as usize))
+}
+
+/// `n` samples of `sim`, recorded.
+pub(crate) fn record(sim: &mut Simulation<()>, n: usize) -> Simulated {
     let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
     let mut truth: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
     for _ in 0..n {
@@ -85,7 +89,7 @@ fn simulate(scenario: Scenario, duration_s: f64) -> Result<Simulated, CliError> 
         truth[1].push(r.truth.a1);
         truth[2].push(r.truth.b0);
     }
-    Ok(Simulated { t, u, y, truth })
+    Simulated { t, u, y, truth }
 }
 
 /// The table.
