@@ -434,8 +434,9 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     std::fs::create_dir_all(&dir).unwrap();
     let (capture, csv) = (dir.join("capture.txt"), dir.join("run.csv"));
     std::fs::write(&capture, &link).unwrap();
-    let rec = hal_sim::cmd::decode::run(&capture, &csv, 1).unwrap();
-    assert_eq!((rec.first_index, rec.samples.len(), rec.ended), (0, 20_001, Some(false)));
+    let (rec, files) = hal_sim::cmd::decode::run(&capture, &csv, 1, hal_sim::cmd::decode::Damage::Refuse).unwrap();
+    assert_eq!((rec.first_index(), rec.len(), rec.segments.len(), rec.ended), (0, 20_001, 1, Some(false)));
+    assert_eq!(files, [csv.clone()]);
     let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
 

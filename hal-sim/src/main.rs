@@ -91,6 +91,10 @@ enum Command {
         /// Which recording of the capture, counting from 1.
         #[arg(long, default_value_t = 1)]
         recording: usize,
+        /// Keep what is intact of a damaged capture: skip damaged frames and write each gap-free run of samples to
+        /// its own file, OUT with -1, -2, ... before the extension (without it, damage or a gap is an error).
+        #[arg(long)]
+        segments: bool,
     },
 }
 
@@ -140,16 +144,33 @@ fn run(cli: Cli) -> Result<(), CliError> {
             print!("{}", hal_sim::cmd::paper::table(&runs));
             Ok(())
         }
-        Command::Decode { input, out, recording } => {
-            let rec = hal_sim::cmd::decode::run(&input, &out, recording)?;
-            let n = rec.samples.len();
-            eprintln!(
-                "nanopos-sim: {n} samples ({} s at {} Hz) from board sample {} written to {}",
-                n as f64 / rec.header.rate_hz,
-                rec.header.rate_hz,
-                rec.first_index,
-                out.display()
-            );
+        Command::Decode { input, out, recording, segments } => {
+            use hal_sim::cmd::decode::{self, Damage};
+            let damage = if segments { Damage::Skip } else { Damage::Refuse };
+            let (rec, files) = decode::run(&input, &out, recording, damage)?;
+            let rate = rec.header.rate_hz;
+            let origin = rec.first_index();
+            for msg in &rec.damage {
+                eprintln!("nanopos-sim: skipped: {msg}");
+            }
+            let mut written = files.iter();
+            for seg in &rec.segments {
+                let n = seg.samples.len();
+                let at = (seg.first_index - origin) as f64 / rate;
+                match if n >= 2 { written.next() } else { None } {
+                    Some(path) => eprintln!(
+                        "nanopos-sim: {n} samples ({} s at {rate} Hz) from board sample {} (t = {at} s) written \
+                         to {}",
+                        n as f64 / rate,
+                        seg.first_index,
+                        path.display()
+                    ),
+                    None => eprintln!(
+                        "nanopos-sim: skipped: {n} sample at board sample {} (t = {at} s), too short to identify",
+                        seg.first_index
+                    ),
+                }
+            }
             match rec.ended {
                 Some(true) => eprintln!(
                     "nanopos-sim: note: the recording stopped early: the board's buffer overflowed (the link is \

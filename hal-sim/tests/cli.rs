@@ -148,6 +148,71 @@ fn decode_turns_a_capture_into_the_csv_identify_reads() {
 }
 
 #[test]
+fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
+    // Ten frames of 48 samples from line 4 on. Frame 2 is lost (frame 3 on line 6), frame 6 damaged (line 9),
+    // frame 8 repeated (lines 11 and 12).
+    let good = capture(480, 7000);
+    let lines: Vec<String> = good.lines().map(str::to_string).collect();
+    let frame = |i: usize| lines[3 + i].clone();
+    let mut damaged = lines.clone();
+    damaged[3 + 6] = damaged[3 + 6].replacen('A', "B", 1);
+    let mut text: Vec<String> = lines[..3].to_vec();
+    for i in 0..10 {
+        match i {
+            2 => {}
+            6 => text.push(damaged[3 + 6].clone()),
+            8 => text.extend([frame(8), frame(8)]),
+            _ => text.push(frame(i)),
+        }
+    }
+    text.extend_from_slice(&lines[13..]);
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cap.txt"), text.join("\n")).unwrap();
+
+    // Without --segments: refused, with the way out in the message, and nothing written.
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    assert_clean_failure(&out, "cap.txt:6: frame starts at sample 7144, expected 7096: 48 samples missing");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("decode --segments"));
+    assert!(!dir.path().join("run.csv").exists());
+
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv", "--segments"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    for msg in [
+        "skipped: cap.txt:6: frame starts at sample 7144, expected 7096: 48 samples missing",
+        "skipped: cap.txt:9: checksum mismatch",
+        "skipped: cap.txt:10: frame starts at sample 7336, expected 7288: 48 samples missing",
+        "skipped: cap.txt:12: frame starts at sample 7384, before the expected 7432",
+        "96 samples (0.0096 s at 10000 Hz) from board sample 7000 (t = 0 s) written to run-1.csv",
+        "144 samples (0.0144 s at 10000 Hz) from board sample 7144 (t = 0.0144 s) written to run-2.csv",
+        "144 samples (0.0144 s at 10000 Hz) from board sample 7336 (t = 0.0336 s) written to run-3.csv",
+    ] {
+        assert!(stderr.contains(msg), "{stderr} should mention {msg:?}");
+    }
+    assert!(!dir.path().join("run.csv").exists());
+    // Each file holds its samples at their time since the recording's start, with the values of the intact capture.
+    let whole = nanopos_sim(&["decode", "--input", "good.txt", "--out", "whole.csv"], {
+        std::fs::write(dir.path().join("good.txt"), &good).unwrap();
+        dir.path()
+    });
+    assert!(whole.status.success());
+    let whole = std::fs::read_to_string(dir.path().join("whole.csv")).unwrap();
+    let whole: Vec<&str> = whole.lines().skip(1).collect();
+    for (file, first, n) in [("run-1.csv", 0, 96), ("run-2.csv", 144, 144), ("run-3.csv", 336, 144)] {
+        let text = std::fs::read_to_string(dir.path().join(file)).unwrap();
+        let rows: Vec<&str> = text.lines().collect();
+        assert_eq!(rows[0], "t,u,y");
+        assert_eq!(&rows[1..], &whole[first..first + n], "{file}");
+    }
+    // identify reads a segment.
+    let out = nanopos_sim(
+        &["identify", "--input", "run-2.csv", "--estimators", "hekf", "--window", "0.014:0.0287"],
+        dir.path(),
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
 fn decode_refuses_damage_and_gaps_naming_the_line() {
     let good = capture(200, 0);
     let lines: Vec<&str> = good.lines().collect();

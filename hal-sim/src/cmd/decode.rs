@@ -4,26 +4,68 @@
 //! The capture may hold anything else the link carried (command replies, several recordings): only the chosen
 //! recording's header, frames and end line are read. `t` counts from the recording's first sample; `u` is the
 //! command in effect over the sample period (V) and `y` the probe reading at its start (um), the convention of
-//! `simulate` and of the pipeline. A damaged frame or a gap between frames is an error naming the capture's line:
-//! `identify` needs uniformly sampled data, and a hole would be silently bridged.
+//! `simulate` and of the pipeline.
+//!
+//! **Damage.** A frame whose checksum fails, and a gap between frames (lines lost in the capture), are errors that
+//! name the capture's line: `identify` needs uniformly sampled data, and a hole must not be bridged silently. With
+//! `--segments` nothing is refused and nothing good is thrown away: damaged frames are skipped (each reported), and
+//! every gap-free run of samples goes to its own file, `OUT` with `-1`, `-2`, ... before the extension. `t` keeps
+//! counting from the recording's first sample in every segment, so the segments keep their place in time.
 
 use super::{fail, io_reason, CliError, OutputFile};
 use nanopos_id::record::{decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG};
 use std::io::Write;
 use std::path::Path;
 
+/// A gap-free run of samples.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Segment {
+    /// Index of its first sample since the board started.
+    pub first_index: u64,
+    /// The samples.
+    pub samples: Vec<RawSample>,
+}
+
 /// What a decoded recording holds.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Recording {
     /// The header.
     pub header: RecordHeader,
-    /// Index of the first sample since the board started.
-    pub first_index: u64,
-    /// The samples.
-    pub samples: Vec<RawSample>,
+    /// The gap-free runs of samples, in order; exactly one unless damage was allowed ([`Damage::Skip`]).
+    pub segments: Vec<Segment>,
+    /// Every damaged or lost part, one line each, naming the capture's line (empty unless damage was allowed).
+    pub damage: Vec<String>,
     /// The end line: `Some(overflowed)` when present.
     pub ended: Option<bool>,
 }
+
+impl Recording {
+    /// Index of the recording's first decoded sample since the board started.
+    pub fn first_index(&self) -> u64 {
+        self.segments.first().map_or(0, |s| s.first_index)
+    }
+
+    /// Samples decoded, over all segments.
+    pub fn len(&self) -> usize {
+        self.segments.iter().map(|s| s.samples.len()).sum()
+    }
+
+    /// Whether no sample was decoded.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// What to do with a damaged frame or a gap.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Damage {
+    /// Refuse the capture, naming the line.
+    Refuse,
+    /// Skip the frame, start a new segment after a gap, and report each.
+    Skip,
+}
+
+const SEGMENTS_HINT: &str = "(`decode --segments` keeps the undamaged parts, one file per gap-free run)";
 
 fn header_value(name: &str, line_no: usize, line: &str, key: &str) -> Result<f64, CliError> {
     let word = line
@@ -53,7 +95,7 @@ fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, 
 }
 
 /// Recording number `which` (1-based) of the capture `text` (`name` for messages).
-pub fn parse(name: &str, text: &str, which: usize) -> Result<Recording, CliError> {
+pub fn parse(name: &str, text: &str, which: usize, damage: Damage) -> Result<Recording, CliError> {
     let mut found = 0;
     let mut rec: Option<Recording> = None;
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
@@ -67,7 +109,7 @@ pub fn parse(name: &str, text: &str, which: usize) -> Result<Recording, CliError
             found += 1;
             if found == which {
                 let header = parse_header(name, line_no, line)?;
-                rec = Some(Recording { header, first_index: 0, samples: Vec::new(), ended: None });
+                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None });
             }
             continue;
         }
@@ -79,49 +121,102 @@ pub fn parse(name: &str, text: &str, which: usize) -> Result<Recording, CliError
         if !line.starts_with('R') {
             continue;
         }
-        let (index, n) =
-            decode_frame(line.as_bytes(), &mut frame).map_err(|e| CliError(format!("{name}:{line_no}: {e}")))?;
-        if r.samples.is_empty() {
-            r.first_index = index;
-        } else {
-            let expected = r.first_index + r.samples.len() as u64;
-            if index != expected {
-                return fail(format!(
-                    "{name}:{line_no}: frame starts at sample {index}, expected {expected}: {} samples missing \
-                     (lines lost in the capture)",
-                    index as i64 - expected as i64
-                ));
+        let problem = match decode_frame(line.as_bytes(), &mut frame) {
+            Err(e) => Err(format!("{name}:{line_no}: {e}")),
+            Ok((index, n)) => match r.segments.last() {
+                Some(last) => {
+                    let expected = last.first_index + last.samples.len() as u64;
+                    if index == expected {
+                        r.segments.last_mut().expect("a last segment").samples.extend_from_slice(&frame[..n]);
+                        Ok(())
+                    } else if index > expected {
+                        let gap = format!(
+                            "{name}:{line_no}: frame starts at sample {index}, expected {expected}: {} samples \
+                             missing (lines lost in the capture)",
+                            index - expected
+                        );
+                        if damage == Damage::Skip {
+                            r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
+                        }
+                        Err(gap)
+                    } else {
+                        Err(format!(
+                            "{name}:{line_no}: frame starts at sample {index}, before the expected {expected} \
+                             (a line repeated in the capture)"
+                        ))
+                    }
+                }
+                None => {
+                    r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
+                    Ok(())
+                }
+            },
+        };
+        if let Err(msg) = problem {
+            match damage {
+                Damage::Refuse => return fail(format!("{msg} {SEGMENTS_HINT}")),
+                Damage::Skip => r.damage.push(msg),
             }
         }
-        r.samples.extend_from_slice(&frame[..n]);
     }
     match rec {
-        Some(r) if r.samples.len() >= 2 => Ok(r),
-        Some(_) => fail(format!("{name}: recording {which} holds fewer than 2 samples")),
+        Some(r) if r.segments.iter().any(|s| s.samples.len() >= 2) => Ok(r),
+        Some(_) => fail(format!("{name}: recording {which} holds no run of 2 or more samples")),
         None if found == 0 => fail(format!("{name}: no recording in the capture (no '{HEADER_TAG}' line)")),
         None => fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     }
 }
 
-/// Decode recording `which` of `input` into `out`; returns it, for the caller's report.
-pub fn run(input: &Path, out: &Path, which: usize) -> Result<Recording, CliError> {
+/// Where segment `k` (1-based) of a decode into `out` goes: `run.csv` -> `run-2.csv`.
+pub fn segment_path(out: &Path, k: usize) -> std::path::PathBuf {
+    let stem = out.file_stem().map_or_else(String::new, |s| s.to_string_lossy().into_owned());
+    let name = match out.extension() {
+        Some(ext) => format!("{stem}-{k}.{}", ext.to_string_lossy()),
+        None => format!("{stem}-{k}"),
+    };
+    out.with_file_name(name)
+}
+
+/// Decode recording `which` of `input` into `out` (with [`Damage::Skip`], into one file per segment of 2 or more
+/// samples, numbered from 1 in time order by [`segment_path`]; a lone sample between two gaps is not written);
+/// returns the recording and the files written, for the caller's report.
+pub fn run(
+    input: &Path,
+    out: &Path,
+    which: usize,
+    damage: Damage,
+) -> Result<(Recording, Vec<std::path::PathBuf>), CliError> {
     let name = input.display().to_string();
     let bytes = std::fs::read(input).map_err(|e| CliError(format!("{name}: cannot read: {}", io_reason(&e))))?;
     // Captures can hold noise from before the link settled: decode what is text, the frames carry their checksums.
     let text = String::from_utf8_lossy(&bytes);
-    let rec = parse(&name, &text, which.max(1))?;
-    let mut file = OutputFile::create(out)?;
+    let rec = parse(&name, &text, which.max(1), damage)?;
     let h = rec.header;
-    let result = (|| -> std::io::Result<()> {
-        let w = file.writer();
-        writeln!(w, "t,u,y")?;
-        for (k, s) in rec.samples.iter().enumerate() {
-            let (u, y) = h.physical(*s);
-            writeln!(w, "{},{},{}", k as f64 / h.rate_hz, u, y)?;
-        }
-        Ok(())
-    })();
-    result.map_err(|e| file.write_error(e))?;
-    file.commit()?;
-    Ok(rec)
+    let origin = rec.first_index();
+    // Every file is complete before any is moved into place.
+    let mut files = Vec::new();
+    for (k, seg) in rec.segments.iter().filter(|s| s.samples.len() >= 2).enumerate() {
+        let path = match damage {
+            Damage::Refuse => out.to_path_buf(),
+            Damage::Skip => segment_path(out, k + 1),
+        };
+        let mut file = OutputFile::create(&path)?;
+        let result = (|| -> std::io::Result<()> {
+            let w = file.writer();
+            writeln!(w, "t,u,y")?;
+            for (j, s) in seg.samples.iter().enumerate() {
+                let (u, y) = h.physical(*s);
+                writeln!(w, "{},{},{}", (seg.first_index - origin + j as u64) as f64 / h.rate_hz, u, y)?;
+            }
+            Ok(())
+        })();
+        result.map_err(|e| file.write_error(e))?;
+        files.push((path, file));
+    }
+    let mut written = Vec::new();
+    for (path, file) in files {
+        file.commit()?;
+        written.push(path);
+    }
+    Ok((rec, written))
 }
