@@ -32,28 +32,14 @@ pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, 
 }
 
 /// [`read_columns`], plus the `optional` columns in the same pass if the header names all of them (then returned
-/// as a second [`Columns`], else `None`).
-///
-/// The file is read whole and its rows parsed in parallel, one chunk per core (a 200 s record at 10 kHz is 2 million
-/// rows and 118 MB): the rows are split at line ends, so each chunk is whole lines, and the columns are joined in
-/// order. Line numbers in messages are the file's.
+/// as a second [`Columns`], else `None`). Reads through a [`Reader`], so messages are the same.
 pub fn read_columns_optional(
     path: &Path,
     names: &[&str],
     optional: &[&str],
     time: Time,
 ) -> Result<(Columns, Option<Columns>), CliError> {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(8);
-    read_columns_in(path, names, optional, time, Chunks { most: threads, least_bytes: 1 << 16 })
-}
-
-/// How the rows are cut for parsing in parallel.
-#[derive(Clone, Copy, Debug)]
-struct Chunks {
-    /// At most this many pieces.
-    most: usize,
-    /// None smaller than this (but the last).
-    least_bytes: usize,
+    read_columns_in(path, names, optional, time, Chunks::for_this_machine())
 }
 
 fn read_columns_in(
@@ -63,80 +49,319 @@ fn read_columns_in(
     time: Time,
     chunks: Chunks,
 ) -> Result<(Columns, Option<Columns>), CliError> {
-    let shown = path.display();
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .map_err(|e| CliError(format!("{shown}: cannot open: {}", crate::cmd::io_reason(&e))))?
-        .read_to_end(&mut bytes)
-        .map_err(|e| CliError(format!("{shown}: cannot read: {}", crate::cmd::io_reason(&e))))?;
-    if is_blank(&bytes) {
-        return Err(CliError(format!("{shown}: empty file (a header line naming {} is needed)", names.join(","))));
-    }
-    let header_end = bytes.iter().position(|&b| b == b'\n').unwrap_or(bytes.len());
-    let header = std::str::from_utf8(&bytes[..header_end])
-        .map_err(|_| CliError(format!("{shown}:1: the header is not text")))?;
-    let fields: Vec<&str> = header.split(',').map(str::trim).collect();
-    let mut names: Vec<&str> = names.to_vec();
-    if !names.contains(&"t") && (time == Time::Required || fields.contains(&"t")) {
-        names.push("t");
-    }
-    let required = names.len();
-    let with_optional = !optional.is_empty() && optional.iter().all(|o| fields.contains(o));
-    if with_optional {
-        names.extend_from_slice(optional);
-    }
-    // For each field of a row: the output column it fills, if any.
-    let mut slot = vec![None; fields.len()];
-    for (c, name) in names.iter().enumerate() {
-        match fields.iter().position(|f| f == name) {
-            Some(i) => slot[i] = Some(c),
-            None => {
-                return Err(CliError(format!(
-                    "{shown}:1: no column '{name}' in the header (found: {})",
-                    fields.join(",")
-                )))
+    let mut reader = Reader::open_in(path, names, optional, time, chunks)?;
+    let mut data: Vec<Vec<f64>> = vec![Vec::new(); reader.width()];
+    while let Some(block) = reader.next_block()? {
+        for (column, part) in data.iter_mut().zip(block) {
+            if column.is_empty() {
+                *column = part;
+            } else {
+                column.extend_from_slice(&part);
             }
         }
     }
-    let body = &bytes[(header_end + 1).min(bytes.len())..];
-    let pieces = split_lines(body, chunks);
-    let parse = |piece: &[u8]| parse_rows(piece, &slot, &names, fields.len());
-    // The first piece on this thread, the others on their own.
-    let parsed: Vec<Parsed> = std::thread::scope(|s| {
-        let jobs: Vec<_> = pieces[1..].iter().map(|&piece| s.spawn(move || parse(piece))).collect();
-        let first = parse(pieces[0]);
-        core::iter::once(first)
-            .chain(jobs.into_iter().map(|j| j.join().expect("a CSV chunk's parser does not panic")))
-            .collect()
-    });
-    let mut parts = Vec::with_capacity(parsed.len());
-    for (i, result) in parsed.into_iter().enumerate() {
-        match result {
-            Ok(columns) => parts.push(columns),
-            Err((line, what)) => {
-                // Lines before this piece: the header's and the earlier pieces'.
-                let before: usize = pieces[..i].iter().map(|p| line_ends(p)).sum();
-                return Err(CliError(format!("{shown}:{}: {what}", 1 + before + line)));
-            }
-        }
-    }
-    let mut parts = parts.into_iter();
-    let mut data = parts.next().unwrap_or_else(|| vec![Vec::new(); names.len()]);
-    let rest: Vec<_> = parts.collect();
-    for (c, column) in data.iter_mut().enumerate() {
-        column.reserve_exact(rest.iter().map(|p| p[c].len()).sum());
-        for part in &rest {
-            column.extend_from_slice(&part[c]);
-        }
-    }
-    let mut out = Columns { data, sample_period_s: None };
-    if let Some(tc) = names[..required].iter().position(|&n| n == "t") {
-        let step = check_uniform(&out.data[tc])
-            .map_err(|(row, what)| CliError(format!("{shown}:{}: {what}", 1 + line_of_row(body, row))))?;
-        out.sample_period_s = step;
-    }
-    let extra = with_optional.then(|| Columns { data: out.data.split_off(required), sample_period_s: None });
+    let mut out = Columns { data, sample_period_s: reader.sample_period_s() };
+    let extra =
+        reader.has_optional().then(|| Columns { data: out.data.split_off(reader.required), sample_period_s: None });
     Ok((out, extra))
+}
+
+/// How the file is cut: into blocks read one after the other, each block into pieces parsed in parallel.
+#[derive(Clone, Copy, Debug)]
+struct Chunks {
+    /// Bytes read per block (more if a line is longer).
+    block_bytes: usize,
+    /// At most this many pieces per block.
+    most: usize,
+    /// No piece smaller than this (but the last).
+    least_bytes: usize,
+}
+
+impl Chunks {
+    /// 8 MiB blocks (about 140 000 rows of `simulate`'s output), one piece per core, up to 8.
+    fn for_this_machine() -> Chunks {
+        let most = std::thread::available_parallelism().map_or(1, |n| n.get()).min(8);
+        Chunks { block_bytes: 8 << 20, most, least_bytes: 1 << 16 }
+    }
+}
+
+/// A CSV file read a block of rows at a time, so that a long record (an hour at 10 kHz is 2 GB of text) never has
+/// to be in memory whole. Each block is whole lines, parsed in parallel, one piece per core; time is checked
+/// across blocks, and line numbers in messages are the file's.
+pub struct Reader {
+    shown: String,
+    file: std::fs::File,
+    /// The output columns: the requested, `t` if it is read, then the optional ones when all are present.
+    names: Vec<String>,
+    /// How many of `names` are not optional.
+    required: usize,
+    with_optional: bool,
+    /// For each field of a row: the output column it fills, if any.
+    slot: Vec<Option<usize>>,
+    /// Fields per row.
+    fields: usize,
+    /// The field of `t` in a row, and its output column, when `t` is read.
+    t_field: Option<(usize, usize)>,
+    chunks: Chunks,
+    /// Bytes read but not yet parsed (the start of a line).
+    carry: Vec<u8>,
+    eof: bool,
+    /// Lines of the file before `carry` (the header's and those of earlier blocks).
+    lines_before: usize,
+    bytes_done: u64,
+    file_len: u64,
+    rows: usize,
+    /// The first time and the step, once known.
+    t0: Option<f64>,
+    step: Option<f64>,
+}
+
+impl Reader {
+    /// Open `path` and read its header: the columns `names`, `t` as [`Time`] says, and the `optional` columns if the
+    /// header names all of them ([`Reader::has_optional`]). Blocks come in that order.
+    pub fn open(path: &Path, names: &[&str], optional: &[&str], time: Time) -> Result<Reader, CliError> {
+        Reader::open_in(path, names, optional, time, Chunks::for_this_machine())
+    }
+
+    fn open_in(path: &Path, names: &[&str], optional: &[&str], time: Time, chunks: Chunks) -> Result<Reader, CliError> {
+        let shown = path.display().to_string();
+        let file = std::fs::File::open(path)
+            .map_err(|e| CliError(format!("{shown}: cannot open: {}", crate::cmd::io_reason(&e))))?;
+        let file_len = file.metadata().map_or(0, |m| m.len());
+        let mut r = Reader {
+            shown,
+            file,
+            names: Vec::new(),
+            required: 0,
+            with_optional: false,
+            slot: Vec::new(),
+            fields: 0,
+            t_field: None,
+            chunks,
+            carry: Vec::new(),
+            eof: false,
+            lines_before: 1,
+            bytes_done: 0,
+            file_len,
+            rows: 0,
+            t0: None,
+            step: None,
+        };
+        // The header: the first line, whatever its length.
+        let header_end = loop {
+            if let Some(i) = r.carry.iter().position(|&b| b == b'\n') {
+                break i;
+            }
+            if r.eof {
+                break r.carry.len();
+            }
+            r.fill(1 << 16)?;
+        };
+        if is_blank(&r.carry[..header_end]) {
+            // Blank: an empty file, unless rows follow (then the missing columns are named below).
+            while !r.eof && is_blank(&r.carry) {
+                r.fill(1 << 16)?;
+            }
+            if is_blank(&r.carry) {
+                return Err(CliError(format!(
+                    "{}: empty file (a header line naming {} is needed)",
+                    r.shown,
+                    names.join(",")
+                )));
+            }
+        }
+        let header = std::str::from_utf8(&r.carry[..header_end])
+            .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
+        let fields: Vec<String> = header.split(',').map(|f| f.trim().to_string()).collect();
+        let has = |name: &str| fields.iter().any(|f| f == name);
+        let mut wanted: Vec<&str> = names.to_vec();
+        if !wanted.contains(&"t") && (time == Time::Required || has("t")) {
+            wanted.push("t");
+        }
+        r.required = wanted.len();
+        r.with_optional = !optional.is_empty() && optional.iter().all(|o| has(o));
+        if r.with_optional {
+            wanted.extend_from_slice(optional);
+        }
+        r.slot = vec![None; fields.len()];
+        for (c, name) in wanted.iter().enumerate() {
+            match fields.iter().position(|f| f == name) {
+                Some(i) => {
+                    r.slot[i] = Some(c);
+                    if *name == "t" && c < r.required {
+                        r.t_field = Some((i, c));
+                    }
+                }
+                None => {
+                    return Err(CliError(format!(
+                        "{}:1: no column '{name}' in the header (found: {})",
+                        r.shown,
+                        fields.join(",")
+                    )))
+                }
+            }
+        }
+        r.fields = fields.len();
+        r.names = wanted.iter().map(|n| n.to_string()).collect();
+        let body_start = (header_end + 1).min(r.carry.len());
+        r.carry.drain(..body_start);
+        r.bytes_done = body_start as u64;
+        Ok(r)
+    }
+
+    /// Read up to `bytes` more into `carry`.
+    fn fill(&mut self, bytes: usize) -> Result<(), CliError> {
+        let start = self.carry.len();
+        self.carry.resize(start + bytes, 0);
+        let mut got = 0;
+        while got < bytes {
+            match self.file.read(&mut self.carry[start + got..]) {
+                Ok(0) => {
+                    self.eof = true;
+                    break;
+                }
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(CliError(format!("{}: cannot read: {}", self.shown, crate::cmd::io_reason(&e)))),
+            }
+        }
+        self.carry.truncate(start + got);
+        Ok(())
+    }
+
+    /// Columns per block.
+    pub fn width(&self) -> usize {
+        self.names.len()
+    }
+
+    /// Whether the optional columns are read (after the others).
+    pub fn has_optional(&self) -> bool {
+        self.with_optional
+    }
+
+    /// Bytes of the file parsed so far, and its length: progress.
+    pub fn progress(&self) -> (u64, u64) {
+        (self.bytes_done, self.file_len)
+    }
+
+    /// The sample period once two rows are read (when `t` is read).
+    pub fn sample_period_s(&self) -> Option<f64> {
+        self.step
+    }
+
+    /// The time on the file's last line that is not blank, read from its end without reading the rest; `None` if
+    /// there is no `t` or that line does not give one (reading the blocks then reports what is wrong with it).
+    pub fn last_time(&self) -> Option<f64> {
+        use std::io::{Seek, SeekFrom};
+        let (field, _) = self.t_field?;
+        let mut file = std::fs::File::open(&self.shown).ok()?;
+        let len = file.metadata().ok()?.len();
+        let tail = len.min(1 << 16);
+        file.seek(SeekFrom::Start(len - tail)).ok()?;
+        let mut bytes = Vec::with_capacity(tail as usize);
+        file.read_to_end(&mut bytes).ok()?;
+        let mut lines = bytes.split(|&b| b == b'\n').filter(|l| !is_blank(l));
+        let last = lines.next_back()?;
+        // The first line of the tail may be cut; a whole line has a line end before it.
+        if lines.next().is_none() && (tail as usize) < len as usize {
+            return None;
+        }
+        std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim().parse().ok().filter(|t: &f64| t.is_finite())
+    }
+
+    /// The next block of rows, one vector per column (`None` at the end of the file).
+    pub fn next_block(&mut self) -> Result<Option<Vec<Vec<f64>>>, CliError> {
+        // Whole lines: up to the last line end, reading on while there is none.
+        let mut cut = None;
+        while cut.is_none() {
+            if !self.eof && self.carry.len() < self.chunks.block_bytes {
+                self.fill(self.chunks.block_bytes - self.carry.len())?;
+            }
+            cut = if self.eof {
+                Some(self.carry.len())
+            } else {
+                match self.carry.iter().rposition(|&b| b == b'\n') {
+                    Some(i) => Some(i + 1),
+                    None => {
+                        self.fill(self.chunks.block_bytes.max(1))?;
+                        None
+                    }
+                }
+            };
+        }
+        let cut = cut.expect("a cut");
+        if cut == 0 {
+            return Ok(None);
+        }
+        let rest = self.carry.split_off(cut);
+        let body = std::mem::replace(&mut self.carry, rest);
+        let pieces = split_lines(&body, self.chunks);
+        let names: Vec<&str> = self.names.iter().map(String::as_str).collect();
+        let parse = |piece: &[u8]| parse_rows(piece, &self.slot, &names, self.fields);
+        // The first piece on this thread, the others on their own.
+        let parsed: Vec<Parsed> = std::thread::scope(|s| {
+            let jobs: Vec<_> = pieces[1..].iter().map(|&piece| s.spawn(move || parse(piece))).collect();
+            let first = parse(pieces[0]);
+            core::iter::once(first)
+                .chain(jobs.into_iter().map(|j| j.join().expect("a CSV chunk's parser does not panic")))
+                .collect()
+        });
+        let mut parts = Vec::with_capacity(parsed.len());
+        for (i, result) in parsed.into_iter().enumerate() {
+            match result {
+                Ok(columns) => parts.push(columns),
+                Err((line, what)) => {
+                    let before: usize = pieces[..i].iter().map(|p| line_ends(p)).sum();
+                    return Err(CliError(format!("{}:{}: {what}", self.shown, self.lines_before + before + line)));
+                }
+            }
+        }
+        let mut parts = parts.into_iter();
+        let mut data = parts.next().unwrap_or_else(|| vec![Vec::new(); names.len()]);
+        let rest: Vec<_> = parts.collect();
+        for (c, column) in data.iter_mut().enumerate() {
+            column.reserve_exact(rest.iter().map(|p| p[c].len()).sum());
+            for part in &rest {
+                column.extend_from_slice(&part[c]);
+            }
+        }
+        if let Some((_, tc)) = self.t_field {
+            self.check_time(&data[tc]).map_err(|(row, what)| {
+                CliError(format!("{}:{}: {what}", self.shown, self.lines_before + line_of_row(&body, row)))
+            })?;
+        }
+        self.rows += data.first().map_or(0, Vec::len);
+        self.lines_before += line_ends(&body);
+        self.bytes_done += body.len() as u64;
+        Ok(Some(data))
+    }
+
+    /// Check that time advances by a constant step (to a relative 1e-6 of the step, which printed decimal times
+    /// meet) over the block `t`, which follows the rows read so far; or the row of the block that breaks it.
+    fn check_time(&mut self, t: &[f64]) -> Result<(), (usize, String)> {
+        for (i, &now) in t.iter().enumerate() {
+            let k = self.rows + i;
+            match (self.t0, self.step) {
+                (None, _) => self.t0 = Some(now),
+                (Some(t0), None) => {
+                    if now - t0 <= 0.0 {
+                        return Err((i, format!("time {now} does not advance from {t0}")));
+                    }
+                    self.step = Some(now - t0);
+                }
+                (Some(t0), Some(step)) => {
+                    let expected = t0 + k as f64 * step;
+                    if (now - expected).abs() > 1e-6 * step + 1e-12 * now.abs() {
+                        return Err((
+                            i,
+                            format!("time {now} breaks the uniform sampling (expected {expected}, step {step})"),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// `body` cut into pieces of whole lines as `chunks` says (each but the last ends with its line's `\n`).
@@ -198,25 +423,6 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
     Ok(data)
 }
 
-/// The step of a uniformly advancing time column (to a relative 1e-6 of the step, which printed decimal times
-/// meet), `None` with fewer than two rows; or the first row that breaks it, with why.
-fn check_uniform(t: &[f64]) -> Result<Option<f64>, (usize, String)> {
-    if t.len() < 2 {
-        return Ok(None);
-    }
-    let (t0, step) = (t[0], t[1] - t[0]);
-    if step <= 0.0 {
-        return Err((1, format!("time {} does not advance from {t0}", t[1])));
-    }
-    for (k, &now) in t.iter().enumerate().skip(2) {
-        let expected = t0 + k as f64 * step;
-        if (now - expected).abs() > 1e-6 * step + 1e-12 * now.abs() {
-            return Err((k, format!("time {now} breaks the uniform sampling (expected {expected}, step {step})")));
-        }
-    }
-    Ok(Some(step))
-}
-
 /// The line of `body` (counted from 1) that holds data row `row` (counted from 0; blank lines hold none).
 fn line_of_row(body: &[u8], row: usize) -> usize {
     body.split(|&b| b == b'\n').enumerate().filter(|(_, l)| !is_blank(l)).nth(row).map_or(0, |(i, _)| i + 1)
@@ -244,8 +450,8 @@ mod tests {
         path
     }
 
-    /// Cut into pieces of a line or two: every piece boundary is exercised.
-    const TINY: Chunks = Chunks { most: 64, least_bytes: 1 };
+    /// Cut into blocks of a few lines and pieces of a line or two: every boundary is exercised.
+    const TINY: Chunks = Chunks { block_bytes: 100, most: 64, least_bytes: 1 };
 
     fn rows(n: usize) -> String {
         let mut s = String::from("t, u ,y,extra\n");
@@ -262,7 +468,7 @@ mod tests {
     fn pieces_are_whole_lines_and_join_in_order() {
         let body = b"1,2\n3,4\n5,6\n7,8";
         for least in 1..body.len() + 2 {
-            let pieces = split_lines(body, Chunks { most: 3, least_bytes: least });
+            let pieces = split_lines(body, Chunks { block_bytes: 1, most: 3, least_bytes: least });
             assert_eq!(pieces.concat(), body, "least {least}");
             assert!(pieces[..pieces.len() - 1].iter().all(|p| p.ends_with(b"\n")), "least {least}");
         }
@@ -271,7 +477,14 @@ mod tests {
     #[test]
     fn parallel_pieces_read_exactly_what_one_piece_reads() {
         let path = file("many.csv", &rows(500));
-        let one = read_columns_in(&path, &["y", "u"], &[], Time::Required, Chunks { most: 1, least_bytes: 1 }).unwrap();
+        let one = read_columns_in(
+            &path,
+            &["y", "u"],
+            &[],
+            Time::Required,
+            Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 },
+        )
+        .unwrap();
         let many = read_columns_in(&path, &["y", "u"], &[], Time::Required, TINY).unwrap();
         assert_eq!(one.0.data, many.0.data);
         assert_eq!(one.0.data[0].len(), 500);
@@ -286,7 +499,7 @@ mod tests {
         let bad_line = lines.len() - 5; // 1-based line number of the line replaced below
         lines[bad_line - 1] = "0.5,zz,1,x";
         let path = file("late.csv", &(lines.join("\n") + "\n"));
-        for chunks in [Chunks { most: 1, least_bytes: 1 }, TINY] {
+        for chunks in [Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 }, TINY] {
             let e = read_columns_in(&path, &["u"], &[], Time::Required, chunks).unwrap_err();
             assert!(e.0.ends_with(&format!("late.csv:{bad_line}: column 'u': 'zz' is not a number")), "{}", e.0);
         }
@@ -308,5 +521,17 @@ mod tests {
         std::fs::write(&path, bytes).unwrap();
         let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
         assert!(e.0.ends_with("bytes.csv:3: not text (invalid UTF-8)"), "{}", e.0);
+    }
+
+    #[test]
+    fn the_last_time_is_read_from_the_end() {
+        let read = |text: &str| Reader::open(&file("tail.csv", text), &["u"], &[], Time::Required).unwrap().last_time();
+        assert_eq!(read(&rows(500)), Some(499e-4));
+        assert_eq!(read("t,u\n0,1\n0.5,2"), Some(0.5), "no line end at the end");
+        assert_eq!(read("t,u\n0,1\n0.5,2\n\n  \n"), Some(0.5), "blank lines at the end");
+        assert_eq!(read("t,u\n0,1\nzz,2\n"), None, "reading the rows says what is wrong");
+        assert_eq!(read("t,u\n"), None, "no rows");
+        let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
+        assert!(e.0.ends_with("blank.csv: empty file (a header line naming u is needed)"), "{}", e.0);
     }
 }

@@ -15,13 +15,15 @@
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
-//! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file and its columns are held
-//! whole: peak about 130 bytes per row of a simulated record (258 MB for 200 s at 10 kHz).
+//! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file is read a block (8 MiB) at
+//! a time; what is held is the 100 Hz rows (about 130 bytes each with four estimators and the truth) and, for each
+//! window's validation, the replicas' `u'`, `y'` and `t` from a second before it to its end (24 bytes a sample).
+//! The default windows need the record's last time before the rest: it is read from the end of the file.
 
 use super::{fail, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
 use crate::board::SimBoard;
-use crate::csv::{read_columns_optional, Time};
+use crate::csv::{Reader, Time};
 use nanopos_id::estimator::{EstimatorBank, FilteredSample};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
@@ -128,10 +130,71 @@ pub fn identify_in<T: Real>(
 ) -> Result<Identified, CliError> {
     let Recording { source, t, u, y, truth } = *rec;
     let n = t.len();
-    if n < 4 {
-        return fail(format!("{source}: too few rows ({n}): identification needs a record of at least 4 samples"));
+    const ROWS: usize = 1 << 16;
+    let blocks = (0..n).step_by(ROWS).map(|start| {
+        let end = (start + ROWS).min(n);
+        let mut block = vec![u[start..end].to_vec(), y[start..end].to_vec(), t[start..end].to_vec()];
+        block.extend(truth.into_iter().flatten().map(|c| c[start..end].to_vec()));
+        Ok((block, end as u64))
+    });
+    let record = Stream { source, last_t: t.last().copied(), has_truth: truth.is_some(), progress_total: n as u64 };
+    identify_blocks::<T>(&record, names, tuning, windows, blocks)
+}
+
+/// A recorded run as it arrives in blocks (see [`identify_blocks`]).
+struct Stream<'a> {
+    /// Where it came from (for messages).
+    source: &'a str,
+    /// The time of the last row, when known before the blocks are read (needed for the default windows; without
+    /// it every row's `u'` and `y'` are kept until the end).
+    last_t: Option<f64>,
+    /// Whether the blocks carry the truth.
+    has_truth: bool,
+    /// Progress units of the whole record (each block says how far it reaches).
+    progress_total: u64,
+}
+
+/// What is kept of the pipeline's output for the validation of one window: `t`, `u'`, `y'` from a second before the
+/// window to its end (or everything, when the windows are not known before the end).
+#[derive(Default)]
+struct Kept {
+    from: f64,
+    to: f64,
+    t: Vec<f64>,
+    u: Vec<f64>,
+    y: Vec<f64>,
+}
+
+/// The identification of a record that comes in blocks, each the columns `u`, `y`, `t` and, when the record has
+/// it, the truth's `a0`, `a1`, `b0`, with how far into the record it reaches (progress units). Nothing of the record
+/// is held but the 100 Hz rows and the samples the windows' validation needs.
+fn identify_blocks<T: Real>(
+    record: &Stream,
+    names: &[&'static str],
+    tuning: &Tuning,
+    windows: &[Window],
+    mut blocks: impl Iterator<Item = Result<(Vec<Vec<f64>>, u64), CliError>>,
+) -> Result<Identified, CliError> {
+    let source = record.source;
+    let defaulted = windows.is_empty();
+    // The start and the sample period, from the first rows.
+    let mut head: Vec<Vec<f64>> = Vec::new();
+    let mut done = 0;
+    while head.first().map_or(0, Vec::len) < 4 {
+        let Some(next) = blocks.next() else { break };
+        let (block, reached) = next?;
+        done = reached;
+        if head.is_empty() {
+            head = block;
+        } else {
+            head.iter_mut().zip(block).for_each(|(c, b)| c.extend_from_slice(&b));
+        }
     }
-    let dt = t[1] - t[0];
+    let n_head = head.first().map_or(0, Vec::len);
+    if n_head < 4 {
+        return fail(format!("{source}: too few rows ({n_head}): identification needs a record of at least 4 samples"));
+    }
+    let (t_first, dt) = (head[2][0], head[2][1] - head[2][0]);
     let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() };
     let board = SimBoard::new(Default::default());
     let cfg = settings
@@ -141,6 +204,21 @@ pub fn identify_in<T: Real>(
     tuning.rls.sample_period_s = dt;
     tuning.ekf.sample_period_s = dt;
     tuning.arx.sample_period_s = dt;
+    let default_windows = |t_last: f64| {
+        let (start, end) = (t_first, t_last + dt);
+        let half = (end - start) / 2.0;
+        vec![Window { t0: start + 0.75 * half, t1: start + half }, Window { t0: start + 1.75 * half, t1: end }]
+    };
+    let planned = match (windows.is_empty(), record.last_t) {
+        (false, _) => Some(windows.to_vec()),
+        (true, Some(t_last)) => Some(default_windows(t_last)),
+        (true, None) => None,
+    };
+    let mut kept: Vec<Kept> = match &planned {
+        Some(ws) => ws.iter().map(|w| Kept { from: w.t0 - 1.0, to: w.t1, ..Kept::default() }).collect(),
+        None => vec![Kept { from: f64::NEG_INFINITY, to: f64::INFINITY, ..Kept::default() }],
+    };
+
     // The pipeline runs here; the estimators, which only read its output, run on worker threads in groups of about
     // equal cost, fed blocks of filtered samples. Each estimator sees exactly the sequence it would in one loop.
     let mut pipeline = Pipeline::new(&cfg, ());
@@ -149,9 +227,9 @@ pub fn identify_in<T: Real>(
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get());
     let groups = cost_groups(&names, workers);
     let (mut times, mut truth_rows) = (Vec::new(), Vec::new());
-    let (mut u_rep, mut y_rep) = (Vec::with_capacity(n), Vec::with_capacity(n));
-    let mut progress = Progress::new("identify", n as u64);
-    let results: Vec<GroupRows> = std::thread::scope(|scope| {
+    let (mut n, mut t_last) = (0usize, t_first);
+    let mut progress = Progress::new("identify", record.progress_total);
+    let results: Result<Vec<GroupRows>, CliError> = std::thread::scope(|scope| {
         let (feeds, jobs): (Vec<_>, Vec<_>) = groups
             .iter()
             .map(|group| {
@@ -160,32 +238,70 @@ pub fn identify_in<T: Real>(
                 (tx, scope.spawn(move || run_group::<T>(group, tuning, every, rx)))
             })
             .unzip();
-        let mut block = Vec::with_capacity(BLOCK);
-        for k in 0..n {
-            let s = pipeline.replay(&cfg, T::of(u[k]), T::of(y[k]));
-            u_rep.push(s.u.as_f64());
-            y_rep.push(s.y.as_f64());
-            block.push(s);
-            if (k + 1) % every == 0 {
-                times.push(t[k]);
-                if let Some(tr) = truth {
-                    truth_rows.push(StageParams { a0: tr[0][k], a1: tr[1][k], b0: tr[2][k] });
+        let mut filtered = Vec::with_capacity(BLOCK);
+        let mut run = |cols: &[Vec<f64>]| {
+            let (u, y, t) = (&cols[0], &cols[1], &cols[2]);
+            for k in 0..t.len() {
+                let s = pipeline.replay(&cfg, T::of(u[k]), T::of(y[k]));
+                for keep in kept.iter_mut().filter(|keep| t[k] >= keep.from && t[k] < keep.to) {
+                    keep.t.push(t[k]);
+                    keep.u.push(s.u.as_f64());
+                    keep.y.push(s.y.as_f64());
+                }
+                filtered.push(s);
+                n += 1;
+                if n % every == 0 {
+                    times.push(t[k]);
+                    if record.has_truth {
+                        truth_rows.push(StageParams { a0: cols[3][k], a1: cols[4][k], b0: cols[5][k] });
+                    }
+                }
+                if filtered.len() == BLOCK {
+                    let full = Arc::new(std::mem::replace(&mut filtered, Vec::with_capacity(BLOCK)));
+                    for feed in &feeds {
+                        feed.send(Arc::clone(&full)).expect("an estimator worker runs until its feed closes");
+                    }
                 }
             }
-            if block.len() == BLOCK || k + 1 == n {
-                let full = Arc::new(std::mem::replace(&mut block, Vec::with_capacity(BLOCK)));
-                for feed in &feeds {
-                    feed.send(Arc::clone(&full)).expect("an estimator worker runs until its feed closes");
+            t_last = t.last().copied().unwrap_or(t_last);
+        };
+        run(&head);
+        progress.update(done);
+        let mut failed = None;
+        for next in blocks.by_ref() {
+            match next {
+                Ok((cols, reached)) => {
+                    run(&cols);
+                    progress.update(reached);
+                }
+                Err(e) => {
+                    failed = Some(e);
+                    break;
                 }
             }
-            if k % 65_536 == 0 {
-                progress.update(k as u64);
+        }
+        if !filtered.is_empty() {
+            let last = Arc::new(filtered);
+            for feed in &feeds {
+                feed.send(Arc::clone(&last)).expect("an estimator worker runs until its feed closes");
             }
         }
         drop(feeds);
-        jobs.into_iter().map(|j| j.join().expect("an estimator worker does not panic")).collect()
+        let rows = jobs.into_iter().map(|j| j.join().expect("an estimator worker does not panic")).collect();
+        match failed {
+            Some(e) => Err(e),
+            None => Ok(rows),
+        }
     });
     progress.finish();
+    let results = results?;
+    let windows = match planned {
+        Some(ws) => ws,
+        None => default_windows(t_last),
+    };
+    if defaulted && record.last_t.is_some_and(|t| t != t_last) {
+        return fail(format!("{source}: the file changed while it was read (its last time {t_last} s)"));
+    }
     // Rows in report order: each estimator's column from its group.
     let column = |name: &str| {
         results
@@ -198,28 +314,17 @@ pub fn identify_in<T: Real>(
         .map(|r| columns.iter().map(|(g, i)| (g.estimates[r][*i], g.innovations[r][*i])).unzip())
         .unzip();
 
-    let default_windows;
-    let windows = if windows.is_empty() {
-        let (start, end) = (t[0], t[n - 1] + dt);
-        let half = (end - start) / 2.0;
-        default_windows =
-            [Window { t0: start + 0.75 * half, t1: start + half }, Window { t0: start + 1.75 * half, t1: end }];
-        &default_windows[..]
-    } else {
-        windows
-    };
     let mut summary = Vec::new();
-    for w in windows {
+    for (i, w) in windows.iter().enumerate() {
+        let keep = &kept[i.min(kept.len() - 1)];
         let rows: Vec<usize> = (0..times.len()).filter(|&i| times[i] >= w.t0 && times[i] < w.t1).collect();
         if rows.is_empty() {
             return fail(format!(
-                "{source}: window {}:{} holds no estimate (the record covers {} to {} s)",
-                w.t0,
-                w.t1,
-                t[0],
-                t[n - 1]
+                "{source}: window {}:{} holds no estimate (the record covers {t_first} to {t_last} s)",
+                w.t0, w.t1
             ));
         }
+        let validation = |p: &StageParams<f64>| validation_rmse_nm(p, &keep.t, &keep.u, &keep.y, dt, w);
         let mean_of = |col: usize| -> StageParams<f64> {
             let m = |f: fn(&StageParams<f64>) -> f64| {
                 rows.iter().map(|&i| f(&estimates[i][col])).sum::<f64>() / rows.len() as f64
@@ -231,20 +336,20 @@ pub fn identify_in<T: Real>(
                 let mean = mean_of(col);
                 let innovation_rms_nm =
                     1e3 * rows.iter().map(|&i| innovations[i][col] as f64).sum::<f64>() / rows.len() as f64;
-                WindowFigures { mean, rmse_nm: validation_rmse_nm(&mean, t, &u_rep, &y_rep, dt, w), innovation_rms_nm }
+                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm }
             })
             .collect();
-        let window_truth = truth.map(|_| {
+        let window_truth = record.has_truth.then(|| {
             let m = |f: fn(&StageParams<f64>) -> f64| {
                 rows.iter().map(|&i| f(&truth_rows[i])).sum::<f64>() / rows.len() as f64
             };
             let mean = StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) };
-            let rmse_nm = validation_rmse_nm(&mean, t, &u_rep, &y_rep, dt, w);
-            WindowFigures { mean, rmse_nm, innovation_rms_nm: f64::NAN }
+            WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm: f64::NAN }
         });
         summary.push((*w, figures, window_truth));
     }
-    Ok(Identified { names, times, estimates, innovations, truth: truth.map(|_| truth_rows), windows: summary })
+    let truth = record.has_truth.then_some(truth_rows);
+    Ok(Identified { names, times, estimates, innovations, truth, windows: summary })
 }
 
 /// Filtered samples per block handed to the estimator workers (256 KiB in f64).
@@ -350,14 +455,23 @@ pub struct IdentifyArgs<'a> {
     pub plot: Option<&'a Path>,
 }
 
-/// Run the command.
+/// Run the command: the input is read a block at a time ([`Reader`]); what is held is what the report needs (the
+/// 100 Hz rows and the windows' samples), not the record.
 pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let source = args.input.display().to_string();
-    let (cols, truth_cols) = read_columns_optional(args.input, &["u", "y"], &["a0", "a1", "b0"], Time::Required)?;
-    let (u, y, t) = (&cols.data[0], &cols.data[1], &cols.data[2]);
-    let truth = truth_cols.as_ref().map(|c| &c.data[..3]);
-    let rec = Recording { source: &source, t, u, y, truth };
-    let result = identify(&rec, &args.estimators, &args.tuning, &args.windows)?;
+    let mut reader = Reader::open(args.input, &["u", "y"], &["a0", "a1", "b0"], Time::Required)?;
+    let record = Stream {
+        source: &source,
+        last_t: reader.last_time(),
+        has_truth: reader.has_optional(),
+        progress_total: reader.progress().1,
+    };
+    let blocks = std::iter::from_fn(|| match reader.next_block() {
+        Ok(Some(block)) => Some(Ok((block, reader.progress().0))),
+        Ok(None) => None,
+        Err(e) => Some(Err(e)),
+    });
+    let result = identify_blocks::<f64>(&record, &args.estimators, &args.tuning, &args.windows, blocks)?;
     // Both files are prepared before either is moved into place.
     let est = args.out.map(|p| write_estimates(p, &result)).transpose()?;
     let sum = args.summary.map(|p| write_summary(p, &result)).transpose()?;
@@ -525,5 +639,51 @@ mod tests {
         assert!(truth.rmse_nm > 1.3 * 3.33, "{}", truth.rmse_nm);
         assert!((figs[0].rmse_nm / truth.rmse_nm - 1.0).abs() < 0.05, "{} vs {}", figs[0].rmse_nm, truth.rmse_nm);
         assert!(summary_json(&got).contains(&format!("\"rmse_nm\": {:?}}}", truth.rmse_nm)));
+    }
+
+    /// The command reads its file a block at a time (16 s of `simulate` is two blocks of 8 MiB): the result is the
+    /// one of the whole record in memory, bit for bit, and so it is when the record's end is not known beforehand
+    /// (the default windows are then placed at the end, from everything kept).
+    #[test]
+    fn a_file_read_in_blocks_identifies_as_the_record_in_memory() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("run.csv");
+        let sim =
+            crate::cmd::simulate::SimulateArgs { scenario: Scenario::Prbs, duration_s: 16.0, seed: None, out: &input };
+        crate::cmd::simulate::run(&sim).unwrap();
+        assert!(std::fs::metadata(&input).unwrap().len() > 8 << 20, "more than one block");
+        let tuning = Tuning::preset("prbs").unwrap();
+        let args = IdentifyArgs {
+            input: &input,
+            estimators: NAMES.to_vec(),
+            tuning,
+            windows: Vec::new(),
+            out: None,
+            summary: None,
+            plot: None,
+        };
+        let streamed = run(&args).unwrap();
+
+        let (cols, truth) =
+            crate::csv::read_columns_optional(&input, &["u", "y"], &["a0", "a1", "b0"], Time::Required).unwrap();
+        let (u, y, t) = (&cols.data[0], &cols.data[1], &cols.data[2]);
+        let truth = truth.as_ref().map(|c| &c.data[..]);
+        let whole = identify(&Recording { source: "test", t, u, y, truth }, &NAMES, &tuning, &[]).unwrap();
+        let unknown_end = {
+            let blocks = (0..t.len()).step_by(50_000).map(|a| {
+                let b = (a + 50_000).min(t.len());
+                let mut block = vec![u[a..b].to_vec(), y[a..b].to_vec(), t[a..b].to_vec()];
+                block.extend(truth.into_iter().flatten().map(|c| c[a..b].to_vec()));
+                Ok((block, b as u64))
+            });
+            let record = Stream { source: "test", last_t: None, has_truth: true, progress_total: t.len() as u64 };
+            identify_blocks::<f64>(&record, &NAMES, &tuning, &[], blocks).unwrap()
+        };
+        for other in [&whole, &unknown_end] {
+            assert_eq!(streamed.times, other.times);
+            assert_eq!(streamed.estimates, other.estimates);
+            assert_eq!(summary_json(&streamed), summary_json(other));
+        }
+        assert_eq!(streamed.windows[1].0, Window { t0: 14.0, t1: 16.0 });
     }
 }
