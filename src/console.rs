@@ -244,10 +244,11 @@ impl Controller {
             };
             writeln!(
                 w,
-                "{state} rejected={} changes={} resets={} innovation_rms_um={}",
+                "{state} rejected={} changes={} resets={} repairs={} innovation_rms_um={}",
                 h.rejected_samples,
                 h.changes_detected,
                 h.numeric_resets,
+                h.covariance_repairs,
                 Num(h.innovation_rms_um as f64, 4)
             )?;
         }

@@ -49,6 +49,10 @@ pub struct Health {
     pub rejected_samples: u32,
     /// Times a plant change was detected and the covariance reopened.
     pub changes_detected: u32,
+    /// Times a state variance fell below zero in the covariance's integration and was repaired in place (the state
+    /// decorrelated, its variance floored) instead of resetting the estimator. Rare and harmless one by one; a
+    /// steady count means the integration of the covariance is marginal for this tuning and input.
+    pub covariance_repairs: u32,
     /// Running RMS of the innovations (output minus the model's prediction), um; `NaN` if the estimator has no
     /// such notion. With a right model it is the measurement noise; far above it, the model does not fit the data
     /// (wrong tuning for the input, a plant the model cannot describe).
@@ -63,6 +67,7 @@ impl Health {
             numeric_resets: 0,
             rejected_samples: 0,
             changes_detected: 0,
+            covariance_repairs: 0,
             innovation_rms_um: f32::NAN,
         }
     }

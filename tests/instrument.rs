@@ -133,6 +133,8 @@ fn every_command_is_answered_and_does_what_it_says() {
     let r = lab.send("status\n");
     assert!(verdict(&r).starts_with("ok status samples="), "{r}");
     assert_eq!(r.lines().filter(|l| l.starts_with("est ")).count(), 4, "{r}");
+    // Every estimator line carries the health counters, the covariance repairs among them.
+    assert_eq!(r.lines().filter(|l| l.starts_with("est ") && l.contains(" resets=0 repairs=0 ")).count(), 4, "{r}");
     assert!(r.contains("excitation=prbs 1 V running"), "{r}");
 
     // Selection: only hekf runs; the others hold their estimates; selecting them again restarts them.
@@ -436,7 +438,7 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     std::fs::write(&capture, &link).unwrap();
     let (rec, files) = hal_sim::cmd::decode::run(&capture, &csv, 1, hal_sim::cmd::decode::Damage::Refuse).unwrap();
     assert_eq!((rec.first_index(), rec.len(), rec.segments.len(), rec.ended), (0, 20_001, 1, Some(false)));
-    assert_eq!(files, [csv.clone()]);
+    assert_eq!(files, std::slice::from_ref(&csv));
     let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
 

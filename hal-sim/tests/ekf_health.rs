@@ -177,8 +177,14 @@ fn drift_detection_stays_quiet_on_an_unchanging_plant() {
         assert_eq!((h.changes_detected, c.changes_detected), (0, 0), "{scenario:?}");
         // No numeric reset either. The continuous filter had one on the triangle, 30 ms after the start: its x2
         // variance went below zero in one RK4 step of the Riccati equation. It is now repaired in place
-        // (`bound_covariance`), and the filter carries on.
+        // (`bound_covariance`), counted, and the filter carries on.
         assert_eq!((h.numeric_resets, c.numeric_resets), (0, 0), "{scenario:?}");
+        assert_eq!(h.covariance_repairs, 0, "{scenario:?}: the hybrid filter's 4 substeps never need it");
+        match scenario {
+            // Measured: 1, the one 30 ms after the start.
+            Scenario::Triangle => assert!((1..=10).contains(&c.covariance_repairs), "{c:?}"),
+            Scenario::Prbs => assert_eq!(c.covariance_repairs, 0),
+        }
     }
 }
 

@@ -634,8 +634,9 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
-    /// Parameter variances within their floor and ceiling; a state variance below zero repaired.
-    fn bound_covariance(&mut self) {
+    /// Parameter variances within their floor and ceiling; a state variance below zero repaired, and counted in
+    /// `repairs`.
+    fn bound_covariance(&mut self, repairs: &mut u32) {
         // The continuous filter integrates the Riccati equation in one RK4 step per sample, and a state variance
         // swinging near zero can overshoot below it (on the board's triangle, 30 ms after the start, the x2 variance
         // fell from 37.6 by 84 um^2/s^2 per sample). Decorrelate that state and give it its floor: `P` is then
@@ -646,6 +647,7 @@ impl<T: Real> EkfCore<T> {
                     self.p[idx(i, j)] = T::zero();
                 }
                 self.p[idx(i, i)] = self.cfg.p_floor[i];
+                *repairs += 1;
             }
         }
         for i in 2..5 {
@@ -734,7 +736,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.holdoff = holdoff_samples;
             self.drift_wait = drift_wait_samples;
         }
-        self.core.bound_covariance();
+        self.core.bound_covariance(&mut self.health.covariance_repairs);
         if !self.core.healthy() {
             self.reset_state();
             self.health.numeric_resets += 1;
