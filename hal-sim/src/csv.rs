@@ -89,6 +89,7 @@ impl Chunks {
 /// to be in memory whole. Each block is whole lines, parsed in parallel, one piece per core; time is checked
 /// across blocks, and line numbers in messages are the file's.
 pub struct Reader {
+    path: std::path::PathBuf,
     shown: String,
     file: std::fs::File,
     /// The output columns: the requested, `t` if it is read, then the optional ones when all are present.
@@ -129,6 +130,7 @@ impl Reader {
             .map_err(|e| CliError(format!("{shown}: cannot open: {}", crate::cmd::io_reason(&e))))?;
         let file_len = file.metadata().map_or(0, |m| m.len());
         let mut r = Reader {
+            path: path.to_path_buf(),
             shown,
             file,
             names: Vec::new(),
@@ -254,7 +256,7 @@ impl Reader {
     pub fn last_time(&self) -> Option<f64> {
         use std::io::{Seek, SeekFrom};
         let (field, _) = self.t_field?;
-        let mut file = std::fs::File::open(&self.shown).ok()?;
+        let mut file = std::fs::File::open(&self.path).ok()?;
         let len = file.metadata().ok()?.len();
         let tail = len.min(1 << 16);
         file.seek(SeekFrom::Start(len - tail)).ok()?;
