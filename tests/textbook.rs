@@ -175,12 +175,12 @@ fn lecture_forgetting_forms_match_the_reference_and_errors_obey_eq_13() {
 
 #[test]
 fn constant_gain_row_leaves_f_and_theta_alone_as_lambda2_vanishes() {
-    let (rls, history, _) = run_example_13_4(RlsGain { lambda1: 1.0, lambda2: 0.0, max_trace: f64::INFINITY });
+    let (rls, history, _) = run_example_13_4(RlsGain::new(1.0, 0.0, f64::INFINITY));
     assert_eq!(rls.covariance()[0][0], 1e4);
     assert_eq!(rls.covariance()[0][1], 0.0);
     assert_eq!(history.last().unwrap(), &THETA0);
     // lambda2 = 1e-12: F moves by at most ~ lambda2 phi'F phi F (reference: 2e-3 of 1e4), theta by ~1e-7.
-    let (rls, _, _) = run_example_13_4(RlsGain { lambda1: 1.0, lambda2: 1e-12, max_trace: f64::INFINITY });
+    let (rls, _, _) = run_example_13_4(RlsGain::new(1.0, 1e-12, f64::INFINITY));
     let f = rls.covariance();
     for i in 0..4 {
         assert!((f[i][i] - 1e4).abs() < 3e-3);

@@ -115,7 +115,7 @@ impl ArxDesign {
     pub fn design<T: Scalar>(&self) -> ArxConfig<T> {
         let n = arx_of_stage(&self.initial, self.sample_period_s);
         ArxConfig {
-            gain: RlsGain { lambda1: T::of(self.lambda), lambda2: T::one(), max_trace: T::of(self.max_trace) },
+            gain: RlsGain::forgetting(T::of(self.lambda), T::of(self.max_trace)),
             f0: self.f0_diag.map(T::of),
             nominal: n.map(T::of),
             nominal64: n,

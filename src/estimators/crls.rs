@@ -71,6 +71,8 @@ pub struct CrlsConfig<T> {
     scale: [T; 3],
     r0_sq: T,
     h: T,
+    /// `h / 6`.
+    h6: T,
     /// `[-d0, -d1, -d2]` and `w_p^2` of the pre-filter's realisation.
     accel: [T; 3],
     gain: T,
@@ -89,6 +91,7 @@ impl CrlsDesign {
             scale: scale.map(T::of),
             r0_sq: T::of(self.r0 * self.r0),
             h: T::of(self.sample_period_s),
+            h6: T::of(self.sample_period_s) / T::of(6.0),
             accel: {
                 let (d, _) = self.prefilter.continuous();
                 [T::of(-d[0]), T::of(-d[1]), T::of(-d[2])]
@@ -228,7 +231,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_at(half), adapt_p);
         let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_at(half), adapt_p);
         let k4 = self.derivative(&axpy(&x, &k3, h), u, y_at(T::one()), adapt_p);
-        rk4_combine(&mut x, [&k1, &k2, &k3, &k4], h);
+        rk4_combine(&mut x, [&k1, &k2, &k3, &k4], self.cfg.h6);
         self.theta.copy_from_slice(&x[..3]);
         self.p.copy_from_slice(&x[3..9]);
         self.xi_u.copy_from_slice(&x[9..12]);

@@ -134,7 +134,9 @@ impl EkfDesign {
             c1: T::of(p.a1),
             c2: T::of(p.b0 / w),
             h: T::of(h),
+            h6: T::of(h) / T::of(6.0),
             period: T::of(h * self.substeps.max(1) as f64),
+            period6: T::of(h * self.substeps.max(1) as f64) / T::of(6.0),
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -252,8 +254,12 @@ pub struct EkfConfig<T> {
     c1: T,
     c2: T,
     h: T,
+    /// `h / 6`, rounded as the step would round it (no division per sample).
+    h6: T,
     /// The continuous filter's step, `h * substeps` (the sample period).
     period: T,
+    /// `period / 6`.
+    period6: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -304,14 +310,14 @@ impl EkfKind for Continuous {
         let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
         let bow = -x1_dd * h * h * T::of(0.5);
         let before = (core.z, core.p);
-        core.rk4(u, h, Some((y_prev, y, bow)));
+        core.rk4(u, Some((y_prev, y, bow)));
         // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
         // step is taken again without the measurement.
         let nu = y - core.z[0];
         let s = core.p[idx(0, 0)] + core.cfg.r_d;
         if nu * nu > gate_nis * s {
             (core.z, core.p) = before;
-            core.rk4(u, h, None);
+            core.rk4(u, None);
             return (nu, None);
         }
         (nu, Some(nu * nu / s))
@@ -440,7 +446,7 @@ impl<T: Real> EkfCore<T> {
     fn predict(&mut self, u: T) {
         let c = &self.cfg;
         let (half, two) = (T::of(0.5), T::of(2.0));
-        let (h, hh, h6) = (c.h, c.h * half, c.h / T::of(6.0));
+        let (h, hh, h6) = (c.h, c.h * half, c.h6);
         let (w, g0, g1, bu, e2) = (c.w, -c.c0 * self.z[2], -c.c1 * self.z[3], c.c2 * self.z[4] * u, c.c2 * u);
         let (q0, q1, w2) = (c.q[0], c.q[1], two * c.w);
         // Unpacked: s = [x1, x2, a00, a01, a11, b00, b01, b02, b10, b11, b12].
@@ -565,10 +571,10 @@ impl<T: Real> EkfCore<T> {
         (dz, dp)
     }
 
-    /// One RK4 step of length `h` with `u` held; with `ys = (y_start, y_end, bow)` the continuous measurement,
+    /// One RK4 step over the sample period with `u` held; with `ys = (y_start, y_end, bow)` the continuous measurement,
     /// `y_start + (y_end - y_start) f + bow f (1 - f)` at the fraction `f` of the step.
-    fn rk4(&mut self, u: T, h: T, ys: Option<(T, T, T)>) {
-        let half = T::of(0.5);
+    fn rk4(&mut self, u: T, ys: Option<(T, T, T)>) {
+        let (h, h6, half) = (self.cfg.period, self.cfg.period6, T::of(0.5));
         let hh = h * half;
         let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
         let (z, p) = (self.z, self.p);
@@ -579,8 +585,8 @@ impl<T: Real> EkfCore<T> {
         let (k3z, k3p) = self.derivative(&z3, &p3, u, y_at(half));
         let (z4, p4) = (axpy(&z, &k3z, h), axpy(&p, &k3p, h));
         let (k4z, k4p) = self.derivative(&z4, &p4, u, y_at(T::one()));
-        rk4_combine(&mut self.z, [&k1z, &k2z, &k3z, &k4z], h);
-        rk4_combine(&mut self.p, [&k1p, &k2p, &k3p, &k4p], h);
+        rk4_combine(&mut self.z, [&k1z, &k2z, &k3z, &k4z], h6);
+        rk4_combine(&mut self.p, [&k1p, &k2p, &k3p, &k4p], h6);
     }
 
     /// Joseph-form update with the innovation `innovation` of `x1`, its variance `s = P00 + R_d` and `1 / s`.

@@ -86,10 +86,11 @@ pub(crate) fn axpy<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T;
     core::array::from_fn(|i| a[i] + h * b[i])
 }
 
-/// `x += h / 6 (k1 + 2 k2 + 2 k3 + k4)`, the RK4 step.
+/// `x += h6 (k1 + 2 k2 + 2 k3 + k4)`, the RK4 step, with `h6 = h / 6` computed once in the configuration (the
+/// same rounding as per step, without a division per sample: VDIV takes 14 cycles on the M4F).
 #[inline(always)]
-pub(crate) fn rk4_combine<T: Real, const N: usize>(x: &mut [T; N], k: [&[T; N]; 4], h: T) {
-    let (h6, two) = (h / T::of(6.0), T::of(2.0));
+pub(crate) fn rk4_combine<T: Real, const N: usize>(x: &mut [T; N], k: [&[T; N]; 4], h6: T) {
+    let two = T::of(2.0);
     for i in 0..N {
         x[i] += h6 * (k[0][i] + two * (k[1][i] + k[2][i]) + k[3][i]);
     }

@@ -41,25 +41,34 @@ use crate::{Real, Scalar};
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RlsGain<T> {
     /// Forgetting, `0 < lambda1 <= 1`.
-    pub lambda1: T,
+    lambda1: T,
     /// Weight of the new sample, `0 <= lambda2 <= 2`.
-    pub lambda2: T,
+    lambda2: T,
     /// Forgetting pauses while `trace F` would exceed this (windup bound).
-    pub max_trace: T,
+    max_trace: T,
+    /// `lambda1 / lambda2` (0 without new samples) and `1 / lambda1`: computed here once, not per sample.
+    r: T,
+    inv_lambda1: T,
 }
 
 impl<T: Scalar> RlsGain<T> {
+    /// The general gain: forgetting `0 < lambda1 <= 1`, weight of the new sample `0 <= lambda2 <= 2`, forgetting
+    /// paused while `trace F` would exceed `max_trace`.
+    pub fn new(lambda1: T, lambda2: T, max_trace: T) -> Self {
+        let r = if lambda2 > T::zero() { lambda1 / lambda2 } else { T::zero() };
+        RlsGain { lambda1, lambda2, max_trace, r, inv_lambda1: T::one() / lambda1 }
+    }
     /// Ordinary least squares.
     pub fn least_squares() -> Self {
-        RlsGain { lambda1: T::one(), lambda2: T::one(), max_trace: T::greatest() }
+        Self::new(T::one(), T::one(), T::greatest())
     }
     /// Least squares with forgetting factor `lambda`.
     pub fn forgetting(lambda: T, max_trace: T) -> Self {
-        RlsGain { lambda1: lambda, lambda2: T::one(), max_trace }
+        Self::new(lambda, T::one(), max_trace)
     }
     /// The textbook's weights `a gamma^(N-k)`: `lambda1 = gamma`, `lambda2 = a`.
     pub fn textbook(a: T, gamma: T) -> Self {
-        RlsGain { lambda1: gamma, lambda2: a, max_trace: T::greatest() }
+        Self::new(gamma, a, T::greatest())
     }
 }
 
@@ -186,7 +195,7 @@ impl<T: Scalar, const N: usize> DiscreteRls<T, N> {
                 f[j] = acc;
             }
             let mut b = [T::zero(); N];
-            let mut alpha = gain.lambda1 / gain.lambda2;
+            let mut alpha = gain.r;
             let r = alpha;
             for j in 0..N {
                 let v = self.d[j] * f[j];
@@ -209,9 +218,8 @@ impl<T: Scalar, const N: usize> DiscreteRls<T, N> {
             a_posteriori = a_priori * r / alpha;
         }
         if gain.lambda1 < T::one() && self.trace() <= gain.max_trace * gain.lambda1 {
-            let inv = T::one() / gain.lambda1;
             for d in self.d.iter_mut() {
-                *d *= inv;
+                *d *= gain.inv_lambda1;
             }
         }
         RlsErrors { a_priori, a_posteriori }
