@@ -1,9 +1,11 @@
 //! `--tuning`: a preset name (`prbs`, `triangle`) or a TOML file that starts from a preset and overrides any single
 //! value. Every key is optional; an unknown key, a wrong type or an out-of-range value is an error naming the file,
-//! the key and the problem.
+//! the key and the problem. The values are checked by the core's [`Tuning::set`], as the firmware's `tune` command
+//! checks them (see [`nanopos_id::estimators::tuning`] for the keys and ranges).
 //!
 //! ```toml
 //! preset = "triangle"            # the base (default: prbs)
+//! initial = [5e5, 70, 6e6]       # every estimator's initial [b0, a1, a0] (another stage: near its own values)
 //! [rls]                          # continuous-time RLS
 //! gamma = 0.25                   # forgetting, 1/s
 //! p0 = [1e6, 1e1, 1e7]           # diag P(0) for [b0, a1, a0]
@@ -25,6 +27,7 @@
 
 use crate::bank::Tuning;
 use crate::cmd::{fail, CliError};
+use nanopos_id::estimators::TuningKey;
 use serde::Deserialize;
 use std::path::Path;
 
@@ -32,6 +35,7 @@ use std::path::Path;
 #[serde(deny_unknown_fields)]
 struct File {
     preset: Option<String>,
+    initial: Option<[f64; 3]>,
     rls: Option<Rls>,
     ekf: Option<Ekf>,
     arx: Option<Arx>,
@@ -90,87 +94,37 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
     let preset = file.preset.as_deref().unwrap_or("prbs");
     let mut t = Tuning::preset(preset)
         .ok_or_else(|| CliError(format!("{name}: preset '{preset}' unknown (known: prbs, triangle)")))?;
-    let positive = |key: &str, x: f64| -> Result<f64, CliError> {
-        if x.is_finite() && x > 0.0 {
-            Ok(x)
-        } else {
-            fail(format!("{name}: {key} = {x}: must be a positive number"))
-        }
+    // Every value through the core's one check (the console's `tune` uses it too), in the file's section order;
+    // `q` before `p0`, since `q` also sets `p0` to 10 Q.
+    let mut set = |key: TuningKey, values: &[f64]| -> Result<(), CliError> {
+        t.set(key, values).map_err(|r| {
+            let shown = values[r.index];
+            CliError(format!("{name}: {key} = {shown}: {}", r.expected))
+        })
     };
-    let all_positive = |key: &str, v: &[f64]| -> Result<(), CliError> {
-        for x in v {
-            positive(key, *x)?;
-        }
-        Ok(())
-    };
-    if let Some(r) = file.rls {
-        if let Some(x) = r.gamma {
-            t.rls.gamma = positive("[rls] gamma", x)?;
-        }
-        if let Some(v) = r.p0 {
-            all_positive("[rls] p0", &v)?;
-            t.rls.p0_diag = v;
-        }
-        if let Some(x) = r.r0 {
-            t.rls.r0 = positive("[rls] r0", x)?;
-        }
-    }
-    if let Some(e) = file.ekf {
-        if let Some(v) = e.q {
-            all_positive("[ekf] q", &v)?;
-            t.ekf.q_diag = v;
-            if e.p0.is_none() {
-                t.ekf.p0_diag = v.map(|x| 10.0 * x);
-            }
-        }
-        if let Some(v) = e.p0 {
-            all_positive("[ekf] p0", &v)?;
-            t.ekf.p0_diag = v;
-        }
-        if let Some(x) = e.r {
-            t.ekf.r = positive("[ekf] r", x)?;
-        }
-        if let Some(n) = e.substeps {
-            if !(1..=64).contains(&n) {
-                return fail(format!("{name}: [ekf] substeps = {n}: between 1 and 64"));
-            }
-            t.ekf.substeps = n;
-        }
-        if let Some(x) = e.gate_sigma {
-            t.ekf.health.gate_sigma = positive("[ekf] gate_sigma", x)?;
-        }
-        if let Some(n) = e.change_samples {
-            t.ekf.health.change_samples = n;
-        }
-        if let Some(x) = e.drift_ratio {
-            if !(x == 0.0 || (x.is_finite() && x >= 1.0)) {
-                return fail(format!("{name}: [ekf] drift_ratio = {x}: 0 (off) or at least 1"));
-            }
-            t.ekf.health.drift_ratio = x;
-        }
-        if let Some(x) = e.reopen {
-            let ceiling = t.ekf.health.ceiling;
-            if !(1.0..=ceiling).contains(&x) {
-                return fail(format!("{name}: [ekf] reopen = {x}: between 1 and {ceiling} (the variance ceiling)"));
-            }
-            t.ekf.health.reopen = x;
-        }
-        if let Some(x) = e.pe_floor_v2 {
-            if !(x.is_finite() && x >= 0.0) {
-                return fail(format!("{name}: [ekf] pe_floor_v2 = {x}: must be zero or positive"));
-            }
-            t.ekf.health.pe_floor_v2 = x;
-        }
-    }
-    if let Some(a) = file.arx {
-        if let Some(x) = a.lambda {
-            if !(x > 0.0 && x <= 1.0) {
-                return fail(format!("{name}: [arx] lambda = {x}: must be in (0, 1]"));
-            }
-            t.arx.lambda = x;
-        }
-        if let Some(x) = a.max_trace {
-            t.arx.max_trace = positive("[arx] max_trace", x)?;
+    let one = |x: Option<f64>| x.map(|x| vec![x]);
+    let whole = |n: Option<u32>| n.map(|n| vec![n as f64]);
+    let (r, e, a) = (file.rls.unwrap_or_default(), file.ekf.unwrap_or_default(), file.arx.unwrap_or_default());
+    let values: [(TuningKey, Option<Vec<f64>>); 15] = [
+        (TuningKey::Initial, file.initial.map(|v| v.to_vec())),
+        (TuningKey::RlsGamma, one(r.gamma)),
+        (TuningKey::RlsP0, r.p0.map(|v| v.to_vec())),
+        (TuningKey::RlsR0, one(r.r0)),
+        (TuningKey::EkfQ, e.q.map(|v| v.to_vec())),
+        (TuningKey::EkfP0, e.p0.map(|v| v.to_vec())),
+        (TuningKey::EkfR, one(e.r)),
+        (TuningKey::EkfSubsteps, whole(e.substeps)),
+        (TuningKey::EkfGateSigma, one(e.gate_sigma)),
+        (TuningKey::EkfChangeSamples, whole(e.change_samples)),
+        (TuningKey::EkfDriftRatio, one(e.drift_ratio)),
+        (TuningKey::EkfReopen, one(e.reopen)),
+        (TuningKey::EkfPeFloor, one(e.pe_floor_v2)),
+        (TuningKey::ArxLambda, one(a.lambda)),
+        (TuningKey::ArxMaxTrace, one(a.max_trace)),
+    ];
+    for (key, v) in values {
+        if let Some(v) = v {
+            set(key, &v)?;
         }
     }
     Ok(t)
@@ -195,6 +149,10 @@ mod tests {
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
         let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
         assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
+        // Another stage: every estimator starts from its parameters.
+        let other = parse("t.toml", "initial = [1e6, 90, 3.9e7]\n").unwrap();
+        let p = nanopos_id::StageParams { b0: 1e6, a1: 90.0, a0: 3.9e7 };
+        assert_eq!((other.rls.initial, other.ekf.initial, other.arx.initial), (p, p, p));
     }
 
     #[test]
@@ -209,6 +167,8 @@ mod tests {
             ("[ekf\n", "t.toml:1:"),
             ("[ekf]\ndrift_ratio = 0.5\n", "[ekf] drift_ratio = 0.5: 0 (off) or at least 1"),
             ("[ekf]\nreopen = 1000\n", "[ekf] reopen = 1000: between 1 and 100 (the variance ceiling)"),
+            ("initial = [5e5, 70, -6e6]\n", "t.toml: initial = -6000000: must be a positive number"),
+            ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
         ];
         for (text, want) in cases {
             let e = parse("t.toml", text).unwrap_err().0;

@@ -5,12 +5,16 @@
 //! - [`ekf`]: the paper's continuous and hybrid extended Kalman filters (Sections IV-A, IV-B).
 //! - [`lsq`]: batch and exponentially weighted least squares (textbook 13.2-13.4) by a streaming QR factorisation.
 //! - [`rls`]: discrete recursive least squares, every form of the lecture notes, in Bierman UD form.
+//! - [`tuning`]: tuning values set one at a time by name, the same checks for the host's TOML and the console.
 
 pub mod arx;
 pub mod crls;
 pub mod ekf;
 pub mod lsq;
 pub mod rls;
+pub mod tuning;
+
+pub use tuning::{Expected, Refused, TuningKey};
 
 use crate::Real;
 

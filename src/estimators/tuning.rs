@@ -1,0 +1,325 @@
+//! Tuning values set one at a time, by name: the keys of the host's `--tuning` TOML files and of the console's
+//! `tune` command, checked in one place ([`Tuning::set`]) so that both accept and refuse exactly the same values.
+//!
+//! | key | values | range |
+//! |---|---|---|
+//! | `initial` | `b0 a1 a0`: every estimator's initial parameters (and the normalisation of the continuous RLS and the EKFs) | positive |
+//! | `rls gamma` | forgetting, 1/s | positive |
+//! | `rls p0` | diag `P(0)` for `[b0, a1, a0]` | positive |
+//! | `rls r0` | bound on `||P||_F` | positive |
+//! | `ekf q` | diag `Q` for `[x1, x2, a0, a1, b0]`; also sets `p0` to `10 Q` (SPEC 6.4), which `ekf p0` then overrides | positive |
+//! | `ekf p0` | diag `P(0)` | positive |
+//! | `ekf r` | measurement noise, um^2 | positive |
+//! | `ekf substeps` | the hybrid filter's prediction substeps | whole, 1 to 64 |
+//! | `ekf gate_sigma` | innovation gate, relative to the running level | positive |
+//! | `ekf change_samples` | gated samples in a row that mean a change (0: off, gating off too) | whole, 0 or more |
+//! | `ekf drift_ratio` | short- over long-run `nu^2/S` that means a gentle change | 0 (off) or at least 1 |
+//! | `ekf reopen` | parameter variances after a drift, times `P0` | 1 to the variance ceiling (100) |
+//! | `ekf pe_floor_v2` | input power below which the parameters freeze, V^2 | 0 or more |
+//! | `arx lambda` | forgetting per sample | in (0, 1] |
+//! | `arx max_trace` | windup bound on `trace F` | positive |
+
+use super::Tuning;
+use crate::StageParams;
+use core::fmt;
+
+/// A tuning value that can be set by name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TuningKey {
+    /// Every estimator's initial `[b0, a1, a0]`.
+    Initial,
+    /// Continuous-time RLS forgetting.
+    RlsGamma,
+    /// Continuous-time RLS `diag P(0)`.
+    RlsP0,
+    /// Continuous-time RLS covariance bound.
+    RlsR0,
+    /// EKF `diag Q` (and `P(0) = 10 Q`).
+    EkfQ,
+    /// EKF `diag P(0)`.
+    EkfP0,
+    /// EKF measurement noise.
+    EkfR,
+    /// Hybrid EKF prediction substeps.
+    EkfSubsteps,
+    /// EKF innovation gate.
+    EkfGateSigma,
+    /// EKF change detection: gated samples in a row.
+    EkfChangeSamples,
+    /// EKF drift detection ratio.
+    EkfDriftRatio,
+    /// EKF covariance reopening after a drift.
+    EkfReopen,
+    /// EKF persistent-excitation floor.
+    EkfPeFloor,
+    /// ARX forgetting.
+    ArxLambda,
+    /// ARX windup bound.
+    ArxMaxTrace,
+}
+
+impl TuningKey {
+    /// Every key, in the order of the table above.
+    pub const ALL: [TuningKey; 15] = [
+        TuningKey::Initial,
+        TuningKey::RlsGamma,
+        TuningKey::RlsP0,
+        TuningKey::RlsR0,
+        TuningKey::EkfQ,
+        TuningKey::EkfP0,
+        TuningKey::EkfR,
+        TuningKey::EkfSubsteps,
+        TuningKey::EkfGateSigma,
+        TuningKey::EkfChangeSamples,
+        TuningKey::EkfDriftRatio,
+        TuningKey::EkfReopen,
+        TuningKey::EkfPeFloor,
+        TuningKey::ArxLambda,
+        TuningKey::ArxMaxTrace,
+    ];
+
+    /// `(section, name)`: the section is `""` for `initial`, else `rls`, `ekf` or `arx`.
+    pub const fn path(self) -> (&'static str, &'static str) {
+        match self {
+            TuningKey::Initial => ("", "initial"),
+            TuningKey::RlsGamma => ("rls", "gamma"),
+            TuningKey::RlsP0 => ("rls", "p0"),
+            TuningKey::RlsR0 => ("rls", "r0"),
+            TuningKey::EkfQ => ("ekf", "q"),
+            TuningKey::EkfP0 => ("ekf", "p0"),
+            TuningKey::EkfR => ("ekf", "r"),
+            TuningKey::EkfSubsteps => ("ekf", "substeps"),
+            TuningKey::EkfGateSigma => ("ekf", "gate_sigma"),
+            TuningKey::EkfChangeSamples => ("ekf", "change_samples"),
+            TuningKey::EkfDriftRatio => ("ekf", "drift_ratio"),
+            TuningKey::EkfReopen => ("ekf", "reopen"),
+            TuningKey::EkfPeFloor => ("ekf", "pe_floor_v2"),
+            TuningKey::ArxLambda => ("arx", "lambda"),
+            TuningKey::ArxMaxTrace => ("arx", "max_trace"),
+        }
+    }
+
+    /// The key `name` of `section` (`""` for `initial`).
+    pub fn parse(section: &str, name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.path() == (section, name))
+    }
+
+    /// The keys of a section, for messages (`None` for a section that does not exist).
+    pub const fn names_of(section: &str) -> Option<&'static str> {
+        match section.as_bytes() {
+            b"rls" => Some("gamma, p0 or r0"),
+            b"ekf" => Some("q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2"),
+            b"arx" => Some("lambda or max_trace"),
+            _ => None,
+        }
+    }
+
+    /// How many values it takes.
+    pub const fn len(self) -> usize {
+        match self {
+            TuningKey::Initial | TuningKey::RlsP0 => 3,
+            TuningKey::EkfQ | TuningKey::EkfP0 => 5,
+            _ => 1,
+        }
+    }
+
+    /// Never: every key takes at least one value (for clippy's `len_without_is_empty`).
+    pub const fn is_empty(self) -> bool {
+        false
+    }
+}
+
+impl fmt::Display for TuningKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.path() {
+            ("", name) => f.write_str(name),
+            (section, name) => write!(f, "[{section}] {name}"),
+        }
+    }
+}
+
+/// What a refused value should have been.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Expected {
+    /// Above zero and finite.
+    Positive,
+    /// Zero or above, finite.
+    NonNegative,
+    /// A whole number from 1 to 64.
+    Substeps,
+    /// A whole number, zero or more.
+    Whole,
+    /// Zero or at least one.
+    DriftRatio,
+    /// From 1 to the variance ceiling.
+    Reopen {
+        /// The ceiling, times `P0`.
+        ceiling: f64,
+    },
+    /// In `(0, 1]`.
+    Forgetting,
+}
+
+impl fmt::Display for Expected {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Expected::Positive => f.write_str("must be a positive number"),
+            Expected::NonNegative => f.write_str("must be zero or positive"),
+            Expected::Substeps => f.write_str("between 1 and 64"),
+            Expected::Whole => f.write_str("must be a whole number, 0 or more"),
+            Expected::DriftRatio => f.write_str("0 (off) or at least 1"),
+            Expected::Reopen { ceiling } => write!(f, "between 1 and {ceiling} (the variance ceiling)"),
+            Expected::Forgetting => f.write_str("must be in (0, 1]"),
+        }
+    }
+}
+
+/// A refused value: its index among the key's values and what it should have been.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Refused {
+    /// Index of the value.
+    pub index: usize,
+    /// What was expected.
+    pub expected: Expected,
+}
+
+impl Tuning {
+    /// Set `key` to `values` (exactly [`TuningKey::len`] of them). A refused value leaves the tuning unchanged.
+    pub fn set(&mut self, key: TuningKey, values: &[f64]) -> Result<(), Refused> {
+        assert_eq!(values.len(), key.len(), "{key}: the caller counts the values");
+        let check = |ok: fn(f64) -> bool, expected: Expected| -> Result<(), Refused> {
+            match values.iter().position(|&x| !ok(x)) {
+                Some(index) => Err(Refused { index, expected }),
+                None => Ok(()),
+            }
+        };
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        let v = values;
+        match key {
+            TuningKey::Initial => {
+                check(positive, Expected::Positive)?;
+                let p = StageParams { b0: v[0], a1: v[1], a0: v[2] };
+                self.rls.initial = p;
+                self.ekf.initial = p;
+                self.arx.initial = p;
+            }
+            TuningKey::RlsGamma => {
+                check(positive, Expected::Positive)?;
+                self.rls.gamma = v[0];
+            }
+            TuningKey::RlsP0 => {
+                check(positive, Expected::Positive)?;
+                self.rls.p0_diag = [v[0], v[1], v[2]];
+            }
+            TuningKey::RlsR0 => {
+                check(positive, Expected::Positive)?;
+                self.rls.r0 = v[0];
+            }
+            TuningKey::EkfQ => {
+                check(positive, Expected::Positive)?;
+                self.ekf.q_diag = core::array::from_fn(|i| v[i]);
+                self.ekf.p0_diag = self.ekf.q_diag.map(|x| 10.0 * x);
+            }
+            TuningKey::EkfP0 => {
+                check(positive, Expected::Positive)?;
+                self.ekf.p0_diag = core::array::from_fn(|i| v[i]);
+            }
+            TuningKey::EkfR => {
+                check(positive, Expected::Positive)?;
+                self.ekf.r = v[0];
+            }
+            TuningKey::EkfSubsteps => {
+                check(|x| x.fract() == 0.0 && (1.0..=64.0).contains(&x), Expected::Substeps)?;
+                self.ekf.substeps = v[0] as u32;
+            }
+            TuningKey::EkfGateSigma => {
+                check(positive, Expected::Positive)?;
+                self.ekf.health.gate_sigma = v[0];
+            }
+            TuningKey::EkfChangeSamples => {
+                check(|x| x.fract() == 0.0 && (0.0..=u32::MAX as f64).contains(&x), Expected::Whole)?;
+                self.ekf.health.change_samples = v[0] as u32;
+            }
+            TuningKey::EkfDriftRatio => {
+                check(|x| x == 0.0 || (x.is_finite() && x >= 1.0), Expected::DriftRatio)?;
+                self.ekf.health.drift_ratio = v[0];
+            }
+            TuningKey::EkfReopen => {
+                let ceiling = self.ekf.health.ceiling;
+                if !(1.0..=ceiling).contains(&v[0]) {
+                    return Err(Refused { index: 0, expected: Expected::Reopen { ceiling } });
+                }
+                self.ekf.health.reopen = v[0];
+            }
+            TuningKey::EkfPeFloor => {
+                check(|x| x.is_finite() && x >= 0.0, Expected::NonNegative)?;
+                self.ekf.health.pe_floor_v2 = v[0];
+            }
+            TuningKey::ArxLambda => {
+                check(|x| x > 0.0 && x <= 1.0, Expected::Forgetting)?;
+                self.arx.lambda = v[0];
+            }
+            TuningKey::ArxMaxTrace => {
+                check(positive, Expected::Positive)?;
+                self.arx.max_trace = v[0];
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::TuningPreset;
+
+    #[test]
+    fn every_key_parses_from_its_path_and_takes_its_count() {
+        for key in TuningKey::ALL {
+            let (section, name) = key.path();
+            assert_eq!(TuningKey::parse(section, name), Some(key));
+            if !section.is_empty() {
+                assert!(TuningKey::names_of(section).unwrap().contains(name), "{key}");
+            }
+            let mut t = Tuning::of(TuningPreset::Prbs);
+            let ones = [1.0; 5];
+            assert_eq!(t.set(key, &ones[..key.len()]), Ok(()), "{key}: 1 is in every range");
+        }
+        assert_eq!(TuningKey::parse("ekf", "gamma"), None);
+        assert_eq!(TuningKey::parse("", "q"), None);
+    }
+
+    #[test]
+    fn a_refused_value_names_its_index_and_changes_nothing() {
+        let base = Tuning::of(TuningPreset::Triangle);
+        let cases: [(TuningKey, &[f64], usize, Expected); 9] = [
+            (TuningKey::EkfQ, &[1e-12, 1e-6, -1.0, 1.0, 1.0], 2, Expected::Positive),
+            (TuningKey::Initial, &[5e5, 70.0, f64::NAN], 2, Expected::Positive),
+            (TuningKey::EkfSubsteps, &[0.0], 0, Expected::Substeps),
+            (TuningKey::EkfSubsteps, &[2.5], 0, Expected::Substeps),
+            (TuningKey::EkfChangeSamples, &[-1.0], 0, Expected::Whole),
+            (TuningKey::EkfDriftRatio, &[0.5], 0, Expected::DriftRatio),
+            (TuningKey::EkfReopen, &[1000.0], 0, Expected::Reopen { ceiling: 100.0 }),
+            (TuningKey::EkfPeFloor, &[f64::INFINITY], 0, Expected::NonNegative),
+            (TuningKey::ArxLambda, &[1.5], 0, Expected::Forgetting),
+        ];
+        for (key, values, index, expected) in cases {
+            let mut t = base;
+            assert_eq!(t.set(key, values), Err(Refused { index, expected }), "{key}");
+            assert_eq!(t, base, "{key}");
+        }
+    }
+
+    #[test]
+    fn q_sets_p0_to_ten_q_and_initial_reaches_every_estimator() {
+        let mut t = Tuning::of(TuningPreset::Prbs);
+        t.set(TuningKey::EkfQ, &[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
+        assert_eq!(t.ekf.p0_diag, [10.0, 20.0, 30.0, 40.0, 50.0]);
+        t.set(TuningKey::EkfP0, &[1.0; 5]).unwrap();
+        assert_eq!((t.ekf.q_diag[4], t.ekf.p0_diag[4]), (5.0, 1.0));
+        t.set(TuningKey::Initial, &[1e6, 90.0, 3.9e7]).unwrap();
+        let p = StageParams { b0: 1e6, a1: 90.0, a0: 3.9e7 };
+        assert_eq!((t.rls.initial, t.ekf.initial, t.arx.initial), (p, p, p));
+        assert_eq!(format!("{}", TuningKey::EkfReopen), "[ekf] reopen");
+    }
+}
