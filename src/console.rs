@@ -8,7 +8,7 @@
 
 use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
 use crate::estimator::Adaptation;
-use crate::estimators::{Tuning, TuningConfig};
+use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
 use crate::instrument::{Change, RecordStatus, Status};
@@ -26,7 +26,10 @@ pub struct Controller {
     /// The excitation `start` runs.
     chosen: ExcitationDesign,
     running: bool,
-    tuning: TuningPreset,
+    /// The tuning in use: `preset`, with values changed by `tune` if `tuned`.
+    tuning: Tuning,
+    preset: TuningPreset,
+    tuned: bool,
     frozen: EstimatorSet,
 }
 
@@ -39,7 +42,9 @@ impl Controller {
             settings,
             board,
             running,
-            tuning: TuningPreset::Prbs,
+            tuning: Tuning::of(TuningPreset::Prbs),
+            preset: TuningPreset::Prbs,
+            tuned: false,
             frozen: EstimatorSet(0),
         };
         c.design::<f32>(&c.settings, running)?;
@@ -55,7 +60,7 @@ impl Controller {
 
     /// The current tuning, designed.
     pub fn tuning<T: Real>(&self) -> TuningConfig<T> {
-        Tuning::of(self.tuning).design()
+        self.tuning.design()
     }
 
     /// The settings in use (the excitation of a stopped controller is the constant safe value).
@@ -177,8 +182,29 @@ impl Controller {
                 change.tuning = Some(Tuning::of(p).design());
                 // The estimators restart with the new tuning; frozen ones stay frozen.
                 change.freeze = self.frozen;
-                self.tuning = p;
+                self.preset = p;
+                self.tuning = Tuning::of(p);
+                self.tuned = false;
                 writeln!(reply, "ok tuning {} (estimators restarted)", tuning_name(p))?;
+            }
+            Command::Tune { key, values } => {
+                let values = &values[..key.len()];
+                let mut t = self.tuning;
+                t.set(key, values).map_err(|r| Refusal::Value {
+                    // `tune initial V...` has its values from word 3, `tune SECTION KEY V...` from word 4.
+                    word: r.index + if key == TuningKey::Initial { 3 } else { 4 },
+                    value: values[r.index],
+                    expected: r.expected,
+                })?;
+                change.tuning = Some(t.design());
+                change.freeze = self.frozen;
+                self.tuning = t;
+                self.tuned = true;
+                write!(reply, "ok tune {key} =")?;
+                for v in values {
+                    write!(reply, " {}", Num(*v, 6))?;
+                }
+                writeln!(reply, " (estimators restarted)")?;
             }
             Command::Limits { min_v, max_v, slew_v_per_s } => {
                 let mut s = self.settings;
@@ -256,7 +282,7 @@ impl Controller {
         writeln!(
             w,
             "ok status samples={} excitation={} {} faults={} over_range={} stuck={} not_finite={} deadline_misses={} \
-             adc_overruns={} command_v={} selected={} tuning={} record={}",
+             adc_overruns={} command_v={} selected={} tuning={}{} record={}",
             s.samples,
             Exc(&self.chosen),
             if self.running { "running" } else { "stopped" },
@@ -268,7 +294,8 @@ impl Controller {
             c.adc_overruns,
             Num(s.command_v.to_f64().unwrap_or(f64::NAN), 6),
             Names(s.selected),
-            tuning_name(self.tuning),
+            tuning_name(self.preset),
+            if self.tuned { "+tune" } else { "" },
             Rec(s.record)
         )
     }
@@ -282,6 +309,12 @@ pub fn write_record_end(r: &RecordStatus, w: &mut impl Write) -> fmt::Result {
 /// Why a command was refused.
 enum Refusal {
     Settings(SettingsError),
+    /// A tuning value out of its range.
+    Value {
+        word: usize,
+        value: f64,
+        expected: Expected,
+    },
     Text(&'static str),
     /// The reply did not fit its buffer (it was cut, and says so).
     Reply,
@@ -303,6 +336,7 @@ impl fmt::Display for Refusal {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Refusal::Settings(e) => write!(f, "{e}"),
+            Refusal::Value { word, value, expected } => write!(f, "word {word}: {}: {expected}", Num(*value, 6)),
             Refusal::Text(t) => f.write_str(t),
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }

@@ -12,8 +12,11 @@
 //! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
+//! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`) |
 //! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0) |
 //! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
+
+use crate::estimators::TuningKey;
 
 /// Longest accepted line, bytes (without the terminator).
 pub const MAX_LINE: usize = 96;
@@ -101,6 +104,13 @@ pub enum Command {
     Adapt(EstimatorSet),
     /// Load a preset tuning.
     Tuning(TuningPreset),
+    /// Set one tuning value by name (the first [`TuningKey::len`] of `values`).
+    Tune {
+        /// Which.
+        key: TuningKey,
+        /// Its values.
+        values: [f64; 5],
+    },
     /// Output clamp and slew limit.
     Limits {
         /// Lowest command, V.
@@ -157,7 +167,7 @@ impl core::fmt::Display for ParseError {
             ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
             ParseError::UnknownCommand => write!(
                 f,
-                "unknown command (status, excite, start, stop, select, reset, freeze, adapt, tuning, limits, record)"
+                "unknown command (status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, limits, record)"
             ),
             ParseError::Missing { word, expected } => write!(f, "word {word}: missing, expected {expected}"),
             ParseError::Invalid { word, expected } => write!(f, "word {word}: expected {expected}"),
@@ -184,6 +194,12 @@ impl<'a> Words<'a> {
             Some(x) if x.is_finite() && ok(x) => Ok(x),
             _ => Err(ParseError::Invalid { word, expected }),
         }
+    }
+
+    /// A finite number, in full precision (a tuning value: its range is checked by [`crate::estimators::Tuning::set`]).
+    fn number64(&mut self, expected: &'static str) -> Result<f64, ParseError> {
+        let (word, w) = self.next(expected)?;
+        crate::text::parse_decimal(w).filter(|x| x.is_finite()).ok_or(ParseError::Invalid { word, expected })
     }
 
     fn end(mut self) -> Result<(), ParseError> {
@@ -266,6 +282,26 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
                 "triangle" => TuningPreset::Triangle,
                 _ => return Err(ParseError::Invalid { word, expected: "prbs or triangle" }),
             })
+        }
+        "tune" => {
+            const SECTIONS: &str = "initial, rls, ekf or arx";
+            let (word, section) = words.next(SECTIONS)?;
+            let key = if section == "initial" {
+                TuningKey::Initial
+            } else {
+                let names = TuningKey::names_of(section).ok_or(ParseError::Invalid { word, expected: SECTIONS })?;
+                let (word, name) = words.next(names)?;
+                TuningKey::parse(section, name).ok_or(ParseError::Invalid { word, expected: names })?
+            };
+            let mut values = [0.0; 5];
+            for v in values.iter_mut().take(key.len()) {
+                *v = words.number64(match key.len() {
+                    1 => "a number",
+                    3 => "3 numbers: b0 a1 a0 for initial, diag P(0) of b0 a1 a0 for rls p0",
+                    _ => "5 numbers, for x1 x2 a0 a1 b0",
+                })?;
+            }
+            Command::Tune { key, values }
         }
         "limits" => {
             let min_v = words.number("the lowest command in V, -10 to 10", volts)?;
@@ -361,12 +397,26 @@ mod tests {
         assert_eq!(p("limits -5 5 1000"), Ok(Command::Limits { min_v: -5.0, max_v: 5.0, slew_v_per_s: 1000.0 }));
         assert_eq!(p("record burst 20000"), Ok(Command::Record(Recording::Burst(20000))));
         assert_eq!(p("record on"), Ok(Command::Record(Recording::On)));
+        assert_eq!(
+            p("tune initial 1e6 90 3.9e7"),
+            Ok(Command::Tune { key: TuningKey::Initial, values: [1e6, 90.0, 3.9e7, 0.0, 0.0] })
+        );
+        assert_eq!(
+            p("tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8"),
+            Ok(Command::Tune { key: TuningKey::EkfQ, values: [1e-12, 1e-6, 1.5e9, 0.25, 5e8] })
+        );
+        // Out of range parses: `Tuning::set` refuses it with the range (the console's test).
+        assert_eq!(
+            p("tune ekf reopen 1000"),
+            Ok(Command::Tune { key: TuningKey::EkfReopen, values: [1000.0, 0.0, 0.0, 0.0, 0.0] })
+        );
     }
 
     #[test]
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
-        let cases: [(&[u8], ParseError); 22] = [
+        const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
+        let cases: [(&[u8], ParseError); 28] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -392,6 +442,12 @@ mod tests {
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
             (b"status\xff", NotAscii { at: 6 }),
+            (b"tune", Missing { word: 2, expected: "initial, rls, ekf or arx" }),
+            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, rls, ekf or arx" }),
+            (b"tune ekf gamma 1", Invalid { word: 3, expected: EKF_KEYS }),
+            (b"tune ekf q 1 2 3", Missing { word: 7, expected: "5 numbers, for x1 x2 a0 a1 b0" }),
+            (b"tune rls gamma x", Invalid { word: 4, expected: "a number" }),
+            (b"tune arx lambda 0.5 1", Extra { word: 5 }),
         ];
         for (line, err) in cases {
             assert_eq!(parse(line), Err(err), "{:?}", core::str::from_utf8(line));

@@ -177,6 +177,20 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Adapting);
     assert!(lab.send("status\n").contains("tuning=triangle"));
 
+    // One tuning value: another stage's initial parameters; the estimators restart from them.
+    let r = lab.send("tune initial 1e6 90 3.9e7\n");
+    assert_eq!(verdict(&r), "ok tune initial = 1e6 90 3.9e7 (estimators restarted)", "{r}");
+    let p = lab.params(2);
+    assert!((p.a0 / 3.9e7 - 1.0).abs() < 1e-3 && (p.b0 / 1e6 - 1.0).abs() < 1e-3, "{p:?}");
+    assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen, "frozen ones stay frozen");
+    assert!(lab.send("status\n").contains("tuning=triangle+tune "));
+    assert_eq!(verdict(&lab.send("tune ekf drift_ratio 0\n")), "ok tune [ekf] drift_ratio = 0 (estimators restarted)");
+    // A preset replaces every value.
+    lab.send("tuning triangle\n");
+    assert!(lab.send("status\n").contains("tuning=triangle "));
+    lab.send("reset all\n");
+    assert!((lab.params(2).a0 / initial.a0 - 1.0).abs() < 1e-3);
+
     // Excitation: a sine, then stop (output ramps to 0 V), then start.
     assert_eq!(verdict(&lab.send("excite sine 0.5 200\n")), "ok excite sine 0.5 V 200 Hz (running)");
     let peak = lab.run(500).iter().map(|o| o.u_v.abs()).fold(0.0, f32::max);
@@ -220,6 +234,14 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "limits 1 5 1000",
         "record burst 0",
         "status\u{7f}",
+        "tune",
+        "tune kalman q 1",
+        "tune ekf q 1 2 3",
+        "tune rls gamma x",
+        // Parse, but out of range.
+        "tune ekf reopen 1000",
+        "tune ekf q 1 1 -1 1 1",
+        "tune initial 5e5 70 0",
     ];
     for line in bad {
         let r = lab.send(&format!("{line}\n"));
@@ -231,6 +253,13 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         lab.send("limits 1 5 1000\n").trim_end(),
         "error: output limits need min_v < max_v, safe_v between them, and a positive slew limit"
     );
+    assert_eq!(
+        lab.send("tune ekf reopen 1000\n").trim_end(),
+        "error: word 4: 1000: between 1 and 100 (the variance ceiling)"
+    );
+    assert_eq!(lab.send("tune ekf q 1 1 -1 1 1\n").trim_end(), "error: word 6: -1: must be a positive number");
+    assert_eq!(lab.send("tune initial 5e5 70 0\n").trim_end(), "error: word 5: 0: must be a positive number");
+    assert!(lab.send("status\n").contains(" tuning=prbs "), "no refused value was kept");
     let r = lab.send(&format!("{}\n", "x".repeat(200)));
     assert!(r.starts_with("error: line longer than 96 bytes"), "{r}");
 

@@ -168,7 +168,10 @@ impl fmt::Display for Expected {
             Expected::Substeps => f.write_str("between 1 and 64"),
             Expected::Whole => f.write_str("must be a whole number, 0 or more"),
             Expected::DriftRatio => f.write_str("0 (off) or at least 1"),
-            Expected::Reopen { ceiling } => write!(f, "between 1 and {ceiling} (the variance ceiling)"),
+            // The crate's number formatting, not `f64`'s `Display` (which would add 30 KiB of flash to the firmware).
+            Expected::Reopen { ceiling } => {
+                write!(f, "between 1 and {} (the variance ceiling)", crate::text::Num(*ceiling, 6))
+            }
             Expected::Forgetting => f.write_str("must be in (0, 1]"),
         }
     }
@@ -183,86 +186,70 @@ pub struct Refused {
     pub expected: Expected,
 }
 
+impl Expected {
+    /// Whether `x` is in the range.
+    fn accepts(self, x: f64) -> bool {
+        let whole = libm::trunc(x) == x;
+        match self {
+            Expected::Positive => x.is_finite() && x > 0.0,
+            Expected::NonNegative => x.is_finite() && x >= 0.0,
+            Expected::Substeps => whole && (1.0..=64.0).contains(&x),
+            Expected::Whole => whole && (0.0..=u32::MAX as f64).contains(&x),
+            Expected::DriftRatio => x == 0.0 || (x.is_finite() && x >= 1.0),
+            Expected::Reopen { ceiling } => (1.0..=ceiling).contains(&x),
+            Expected::Forgetting => x > 0.0 && x <= 1.0,
+        }
+    }
+}
+
 impl Tuning {
+    /// The range of `key`'s values in this tuning.
+    pub fn expected(&self, key: TuningKey) -> Expected {
+        match key {
+            TuningKey::EkfSubsteps => Expected::Substeps,
+            TuningKey::EkfChangeSamples => Expected::Whole,
+            TuningKey::EkfDriftRatio => Expected::DriftRatio,
+            TuningKey::EkfReopen => Expected::Reopen { ceiling: self.ekf.health.ceiling },
+            TuningKey::EkfPeFloor => Expected::NonNegative,
+            TuningKey::ArxLambda => Expected::Forgetting,
+            _ => Expected::Positive,
+        }
+    }
+
     /// Set `key` to `values` (exactly [`TuningKey::len`] of them). A refused value leaves the tuning unchanged.
+    ///
+    /// Not inlined: it runs at a command's pace, and one copy keeps the firmware small (the core is built for speed).
+    #[inline(never)]
     pub fn set(&mut self, key: TuningKey, values: &[f64]) -> Result<(), Refused> {
-        assert_eq!(values.len(), key.len(), "{key}: the caller counts the values");
-        let check = |ok: fn(f64) -> bool, expected: Expected| -> Result<(), Refused> {
-            match values.iter().position(|&x| !ok(x)) {
-                Some(index) => Err(Refused { index, expected }),
-                None => Ok(()),
-            }
-        };
-        let positive = |x: f64| x.is_finite() && x > 0.0;
-        let v = values;
+        assert!(values.len() == key.len(), "tuning: a wrong count of values");
+        let expected = self.expected(key);
+        if let Some(index) = values.iter().position(|&x| !expected.accepts(x)) {
+            return Err(Refused { index, expected });
+        }
+        let (v, x) = (values, values[0]);
+        let ekf = &mut self.ekf;
         match key {
             TuningKey::Initial => {
-                check(positive, Expected::Positive)?;
                 let p = StageParams { b0: v[0], a1: v[1], a0: v[2] };
-                self.rls.initial = p;
-                self.ekf.initial = p;
-                self.arx.initial = p;
+                (self.rls.initial, ekf.initial, self.arx.initial) = (p, p, p);
             }
-            TuningKey::RlsGamma => {
-                check(positive, Expected::Positive)?;
-                self.rls.gamma = v[0];
-            }
-            TuningKey::RlsP0 => {
-                check(positive, Expected::Positive)?;
-                self.rls.p0_diag = [v[0], v[1], v[2]];
-            }
-            TuningKey::RlsR0 => {
-                check(positive, Expected::Positive)?;
-                self.rls.r0 = v[0];
-            }
+            TuningKey::RlsGamma => self.rls.gamma = x,
+            TuningKey::RlsP0 => self.rls.p0_diag.copy_from_slice(v),
+            TuningKey::RlsR0 => self.rls.r0 = x,
             TuningKey::EkfQ => {
-                check(positive, Expected::Positive)?;
-                self.ekf.q_diag = core::array::from_fn(|i| v[i]);
-                self.ekf.p0_diag = self.ekf.q_diag.map(|x| 10.0 * x);
+                ekf.q_diag.copy_from_slice(v);
+                ekf.p0_diag = ekf.q_diag.map(|q| 10.0 * q);
             }
-            TuningKey::EkfP0 => {
-                check(positive, Expected::Positive)?;
-                self.ekf.p0_diag = core::array::from_fn(|i| v[i]);
-            }
-            TuningKey::EkfR => {
-                check(positive, Expected::Positive)?;
-                self.ekf.r = v[0];
-            }
-            TuningKey::EkfSubsteps => {
-                check(|x| x.fract() == 0.0 && (1.0..=64.0).contains(&x), Expected::Substeps)?;
-                self.ekf.substeps = v[0] as u32;
-            }
-            TuningKey::EkfGateSigma => {
-                check(positive, Expected::Positive)?;
-                self.ekf.health.gate_sigma = v[0];
-            }
-            TuningKey::EkfChangeSamples => {
-                check(|x| x.fract() == 0.0 && (0.0..=u32::MAX as f64).contains(&x), Expected::Whole)?;
-                self.ekf.health.change_samples = v[0] as u32;
-            }
-            TuningKey::EkfDriftRatio => {
-                check(|x| x == 0.0 || (x.is_finite() && x >= 1.0), Expected::DriftRatio)?;
-                self.ekf.health.drift_ratio = v[0];
-            }
-            TuningKey::EkfReopen => {
-                let ceiling = self.ekf.health.ceiling;
-                if !(1.0..=ceiling).contains(&v[0]) {
-                    return Err(Refused { index: 0, expected: Expected::Reopen { ceiling } });
-                }
-                self.ekf.health.reopen = v[0];
-            }
-            TuningKey::EkfPeFloor => {
-                check(|x| x.is_finite() && x >= 0.0, Expected::NonNegative)?;
-                self.ekf.health.pe_floor_v2 = v[0];
-            }
-            TuningKey::ArxLambda => {
-                check(|x| x > 0.0 && x <= 1.0, Expected::Forgetting)?;
-                self.arx.lambda = v[0];
-            }
-            TuningKey::ArxMaxTrace => {
-                check(positive, Expected::Positive)?;
-                self.arx.max_trace = v[0];
-            }
+            TuningKey::EkfP0 => ekf.p0_diag.copy_from_slice(v),
+            TuningKey::EkfR => ekf.r = x,
+            TuningKey::EkfSubsteps => ekf.substeps = x as u32,
+            TuningKey::EkfGateSigma => ekf.health.gate_sigma = x,
+            TuningKey::EkfChangeSamples => ekf.health.change_samples = x as u32,
+            TuningKey::EkfDriftRatio => ekf.health.drift_ratio = x,
+            TuningKey::EkfReopen => ekf.health.reopen = x,
+            TuningKey::EkfPeFloor => ekf.health.pe_floor_v2 = x,
+            TuningKey::ArxLambda => self.arx.lambda = x,
+            TuningKey::ArxMaxTrace => self.arx.max_trace = x,
         }
         Ok(())
     }
