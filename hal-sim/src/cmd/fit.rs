@@ -8,7 +8,7 @@
 //! present, must be uniformly sampled.
 
 use super::{fail, CliError};
-use crate::csv::{read_columns, Time};
+use crate::csv::{Reader, Time};
 use nanopos_id::estimators::lsq::{LsError, WeightedLs};
 use std::path::Path;
 
@@ -112,14 +112,40 @@ fn column_name(o: &ArxOrders, j: usize) -> String {
     }
 }
 
-/// Fit `orders` to the `u`, `y` of `path`.
+/// Fit `orders` to the `u`, `y` of `path`. The file is read a block at a time ([`Reader`]): the rows go into the
+/// streaming QR factorisation as they come, with the last samples of a block kept as the next one's history, so a
+/// record of any length fits in a few MiB.
 pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<Weight>) -> Result<ArxFit, CliError> {
-    let cols = read_columns(path, &["u", "y"], Time::IfPresent)?;
-    let (u, y) = (&cols.data[0], &cols.data[1]);
+    let mut reader = Reader::open(path, &["u", "y"], &[], Time::IfPresent)?;
     let n = orders.na + orders.nb;
     let history = orders.na.max(if orders.nb > 0 { orders.nk + orders.nb - 1 } else { 0 });
     let first = if zero_initial { 0 } else { history };
-    let samples = y.len();
+    let Weight { a, gamma } = weight.unwrap_or(Weight { a: 1.0, gamma: 1.0 });
+    let mut ls = WeightedLs::<f64, MAX_PARAMETERS>::new(n);
+    let mut row = vec![0.0; n];
+    // The samples of this block, after up to `history` of the ones before it; `start` is the index of `u[0]`.
+    let (mut u, mut y, mut start) = (Vec::new(), Vec::new(), 0usize);
+    while let Some(block) = reader.next_block()? {
+        let kept = u.len();
+        u.extend_from_slice(&block[0]);
+        y.extend_from_slice(&block[1]);
+        // Sample k of the record is u[k - start]; a lag before the record's start reads 0 (--zero-initial).
+        let at = |s: &[f64], k: usize, lag: usize| if k >= lag { s[k - lag - start] } else { 0.0 };
+        for k in (start + kept).max(first)..start + u.len() {
+            for (j, r) in row.iter_mut().enumerate() {
+                *r = if j < orders.na { at(&y, k, j + 1) } else { at(&u, k, orders.nk + (j - orders.na)) };
+            }
+            if gamma < 1.0 {
+                ls.forget(gamma);
+            }
+            ls.add_row(&row, y[k - start], a);
+        }
+        let drop = u.len().saturating_sub(history);
+        u.drain(..drop);
+        y.drain(..drop);
+        start += drop;
+    }
+    let samples = start + u.len();
     let rows = samples.saturating_sub(first);
     if rows < n {
         return fail(format!(
@@ -127,19 +153,6 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
             path.display(),
             if zero_initial { "" } else { " with full history" }
         ));
-    }
-    let Weight { a, gamma } = weight.unwrap_or(Weight { a: 1.0, gamma: 1.0 });
-    let at = |s: &[f64], k: usize, lag: usize| if k >= lag { s[k - lag] } else { 0.0 };
-    let mut ls = WeightedLs::<f64, MAX_PARAMETERS>::new(n);
-    let mut row = vec![0.0; n];
-    for k in first..samples {
-        for (j, r) in row.iter_mut().enumerate() {
-            *r = if j < orders.na { at(y, k, j + 1) } else { at(u, k, orders.nk + (j - orders.na)) };
-        }
-        if gamma < 1.0 {
-            ls.forget(gamma);
-        }
-        ls.add_row(&row, y[k], a);
     }
     match ls.solve() {
         Ok(s) => {
@@ -164,6 +177,51 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
         }
         Err(LsError::TooFewRows { rows, parameters }) => {
             fail(format!("{}: too few rows: {rows} for {parameters} parameters", path.display()))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Read in blocks (this file is two of them), the fit adds exactly the rows of the whole record in memory, in
+    /// the same order: the same solution bit for bit, with full history and with zero initial conditions.
+    #[test]
+    fn a_file_read_in_blocks_fits_as_the_record_in_memory() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("arx.csv");
+        let (mut u, mut y) = (Vec::new(), Vec::new());
+        let mut text = String::from("t,u,y\n");
+        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        for k in 0..400_000usize {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            let uk = if seed & 1 == 0 { 1.0 } else { -1.0 };
+            let noise = ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 1e-3;
+            let yk =
+                if k < 2 { 0.0 } else { 1.6 * y[k - 1] - 0.8 * y[k - 2] + 0.3 * u[k - 1] + 0.1 * u[k - 2] + noise };
+            u.push(uk);
+            y.push(yk);
+            text += &format!("{},{uk},{yk}\n", k as f64 * 1e-4);
+        }
+        std::fs::write(&path, text).unwrap();
+        assert!(std::fs::metadata(&path).unwrap().len() > 8 << 20, "two blocks");
+        let orders = ArxOrders { na: 2, nb: 2, nk: 1 };
+        for zero_initial in [false, true] {
+            let weight = Some(Weight { a: 1.0, gamma: 0.99999 });
+            let got = run(&path, orders, zero_initial, weight).unwrap();
+            let mut ls = WeightedLs::<f64, MAX_PARAMETERS>::new(4);
+            let at = |s: &[f64], k: usize, lag: usize| if k >= lag { s[k - lag] } else { 0.0 };
+            for k in if zero_initial { 0 } else { 2 }..u.len() {
+                ls.forget(0.99999);
+                ls.add_row(&[at(&y, k, 1), at(&y, k, 2), at(&u, k, 1), at(&u, k, 2)], y[k], 1.0);
+            }
+            let s = ls.solve().unwrap();
+            assert_eq!((got.a.as_slice(), got.b.as_slice()), (&s.theta[..2], &s.theta[2..4]), "{zero_initial}");
+            assert_eq!((got.sse, got.rows), (s.sse, s.rows));
+            assert!((got.a[0] - 1.6).abs() < 1e-3 && (got.b[1] - 0.1).abs() < 1e-3, "{got:?}");
         }
     }
 }
