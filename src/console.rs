@@ -187,7 +187,15 @@ impl Controller {
                 self.tuned = false;
                 writeln!(reply, "ok tuning {} (estimators restarted)", tuning_name(p))?;
             }
-            Command::Tune { key, values } => {
+            Command::Tune { key, values: None } => {
+                write!(reply, "ok tune {key} =")?;
+                for v in &self.tuning.get(key)[..key.len()] {
+                    write!(reply, " {}", Num(*v, 6))?;
+                }
+                writeln!(reply)?;
+                return Ok(None);
+            }
+            Command::Tune { key, values: Some(values) } => {
                 let values = &values[..key.len()];
                 let mut t = self.tuning;
                 t.set(key, values).map_err(|r| Refusal::Value {

@@ -12,7 +12,7 @@
 //! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
-//! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`) |
+//! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
 //! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0) |
 //! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
 
@@ -104,12 +104,12 @@ pub enum Command {
     Adapt(EstimatorSet),
     /// Load a preset tuning.
     Tuning(TuningPreset),
-    /// Set one tuning value by name (the first [`TuningKey::len`] of `values`).
+    /// Set one tuning value by name (the first [`TuningKey::len`] of `values`), or, without values, report it.
     Tune {
         /// Which.
         key: TuningKey,
-        /// Its values.
-        values: [f64; 5],
+        /// Its new values, if any.
+        values: Option<[f64; 5]>,
     },
     /// Output clamp and slew limit.
     Limits {
@@ -200,6 +200,11 @@ impl<'a> Words<'a> {
     fn number64(&mut self, expected: &'static str) -> Result<f64, ParseError> {
         let (word, w) = self.next(expected)?;
         crate::text::parse_decimal(w).filter(|x| x.is_finite()).ok_or(ParseError::Invalid { word, expected })
+    }
+
+    /// Whether no word is left.
+    fn is_done(&self) -> bool {
+        self.it.clone().next().is_none()
     }
 
     fn end(mut self) -> Result<(), ParseError> {
@@ -293,14 +298,20 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
                 let (word, name) = words.next(names)?;
                 TuningKey::parse(section, name).ok_or(ParseError::Invalid { word, expected: names })?
             };
-            let mut values = [0.0; 5];
-            for v in values.iter_mut().take(key.len()) {
-                *v = words.number64(match key.len() {
-                    1 => "a number",
-                    3 => "3 numbers: b0 a1 a0 for initial, diag P(0) of b0 a1 a0 for rls p0",
-                    _ => "5 numbers, for x1 x2 a0 a1 b0",
-                })?;
-            }
+            // Without values: a query.
+            let values = if words.is_done() {
+                None
+            } else {
+                let mut values = [0.0; 5];
+                for v in values.iter_mut().take(key.len()) {
+                    *v = words.number64(match key.len() {
+                        1 => "a number",
+                        3 => "3 numbers: b0 a1 a0 for initial, diag P(0) of b0 a1 a0 for rls p0",
+                        _ => "5 numbers, for x1 x2 a0 a1 b0",
+                    })?;
+                }
+                Some(values)
+            };
             Command::Tune { key, values }
         }
         "limits" => {
@@ -399,16 +410,17 @@ mod tests {
         assert_eq!(p("record on"), Ok(Command::Record(Recording::On)));
         assert_eq!(
             p("tune initial 1e6 90 3.9e7"),
-            Ok(Command::Tune { key: TuningKey::Initial, values: [1e6, 90.0, 3.9e7, 0.0, 0.0] })
+            Ok(Command::Tune { key: TuningKey::Initial, values: Some([1e6, 90.0, 3.9e7, 0.0, 0.0]) })
         );
         assert_eq!(
             p("tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8"),
-            Ok(Command::Tune { key: TuningKey::EkfQ, values: [1e-12, 1e-6, 1.5e9, 0.25, 5e8] })
+            Ok(Command::Tune { key: TuningKey::EkfQ, values: Some([1e-12, 1e-6, 1.5e9, 0.25, 5e8]) })
         );
+        assert_eq!(p("tune ekf q"), Ok(Command::Tune { key: TuningKey::EkfQ, values: None }));
         // Out of range parses: `Tuning::set` refuses it with the range (the console's test).
         assert_eq!(
             p("tune ekf reopen 1000"),
-            Ok(Command::Tune { key: TuningKey::EkfReopen, values: [1000.0, 0.0, 0.0, 0.0, 0.0] })
+            Ok(Command::Tune { key: TuningKey::EkfReopen, values: Some([1000.0, 0.0, 0.0, 0.0, 0.0]) })
         );
     }
 

@@ -190,6 +190,15 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert!(lab.send("status\n").contains("tuning=triangle "));
     lab.send("reset all\n");
     assert!((lab.params(2).a0 / initial.a0 - 1.0).abs() < 1e-3);
+    // Without values: the value in use, and nothing restarts.
+    lab.run(2000);
+    let moved = lab.params(2);
+    assert!((moved.b0 / initial.b0 - 1.0).abs() > 0.1, "{moved:?}");
+    assert_eq!(verdict(&lab.send("tune initial\n")), "ok tune initial = 500000 70 6e6");
+    assert_eq!(verdict(&lab.send("tune ekf q\n")), "ok tune [ekf] q = 1e-12 1e-6 1.5e11 25 5e10", "Q1, the triangle's");
+    lab.run(1);
+    // A restart would put b0 back at its initial value, one sample away from it.
+    assert!((lab.params(2).b0 / initial.b0 - 1.0).abs() > 0.1, "not restarted: {:?}", lab.params(2));
 
     // Excitation: a sine, then stop (output ramps to 0 V), then start.
     assert_eq!(verdict(&lab.send("excite sine 0.5 200\n")), "ok excite sine 0.5 V 200 Hz (running)");

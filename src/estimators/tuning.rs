@@ -216,6 +216,30 @@ impl Tuning {
         }
     }
 
+    /// The values of `key` (the first [`TuningKey::len`] of the array).
+    pub fn get(&self, key: TuningKey) -> [f64; 5] {
+        let (e, mut v) = (&self.ekf, [0.0; 5]);
+        match key {
+            // `set` gives every estimator the same initial parameters.
+            TuningKey::Initial => v[..3].copy_from_slice(&[e.initial.b0, e.initial.a1, e.initial.a0]),
+            TuningKey::RlsGamma => v[0] = self.rls.gamma,
+            TuningKey::RlsP0 => v[..3].copy_from_slice(&self.rls.p0_diag),
+            TuningKey::RlsR0 => v[0] = self.rls.r0,
+            TuningKey::EkfQ => v = e.q_diag,
+            TuningKey::EkfP0 => v = e.p0_diag,
+            TuningKey::EkfR => v[0] = e.r,
+            TuningKey::EkfSubsteps => v[0] = e.substeps as f64,
+            TuningKey::EkfGateSigma => v[0] = e.health.gate_sigma,
+            TuningKey::EkfChangeSamples => v[0] = e.health.change_samples as f64,
+            TuningKey::EkfDriftRatio => v[0] = e.health.drift_ratio,
+            TuningKey::EkfReopen => v[0] = e.health.reopen,
+            TuningKey::EkfPeFloor => v[0] = e.health.pe_floor_v2,
+            TuningKey::ArxLambda => v[0] = self.arx.lambda,
+            TuningKey::ArxMaxTrace => v[0] = self.arx.max_trace,
+        }
+        v
+    }
+
     /// Set `key` to `values` (exactly [`TuningKey::len`] of them). A refused value leaves the tuning unchanged.
     ///
     /// Not inlined: it runs at a command's pace, and one copy keeps the firmware small (the core is built for speed).
@@ -271,6 +295,12 @@ mod tests {
             let mut t = Tuning::of(TuningPreset::Prbs);
             let ones = [1.0; 5];
             assert_eq!(t.set(key, &ones[..key.len()]), Ok(()), "{key}: 1 is in every range");
+            // What is set reads back, and a preset's values set again change nothing.
+            assert_eq!(t.get(key)[..key.len()], ones[..key.len()], "{key}");
+            let preset = Tuning::of(TuningPreset::Triangle);
+            let mut again = preset;
+            again.set(key, &preset.get(key)[..key.len()]).unwrap();
+            assert_eq!(again, preset, "{key}");
         }
         assert_eq!(TuningKey::parse("ekf", "gamma"), None);
         assert_eq!(TuningKey::parse("", "q"), None);
