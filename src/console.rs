@@ -8,7 +8,7 @@
 
 use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
 use crate::estimator::Adaptation;
-use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey};
+use crate::estimators::{Expected, Tuning, TuningConfig};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
 use crate::instrument::{Change, RecordStatus, Status};
@@ -37,14 +37,17 @@ impl Controller {
     /// Start from `settings` (its excitation is the one `start` runs), running it or not. Fails if the settings do
     /// not design for `board`.
     pub fn new(settings: PipelineSettings, board: BoardDescription, running: bool) -> Result<Self, SettingsError> {
+        let mut tuning = Tuning::of(TuningPreset::Prbs);
+        // One pre-filter for the stage, as in the paper: the pipeline's, and the continuous-time RLS's own.
+        tuning.rls.prefilter = settings.prefilter;
         let c = Controller {
             chosen: settings.excitation,
             settings,
             board,
             running,
-            tuning: Tuning::of(TuningPreset::Prbs),
+            tuning,
             preset: TuningPreset::Prbs,
-            tuned: false,
+            tuned: tuning != Tuning::of(TuningPreset::Prbs),
             frozen: EstimatorSet(0),
         };
         c.design::<f32>(&c.settings, running)?;
@@ -179,12 +182,14 @@ impl Controller {
                 writeln!(reply, "ok adapt {}", Names(set))?;
             }
             Command::Tuning(p) => {
-                change.tuning = Some(Tuning::of(p).design());
+                // The preset for the input; the stage's initial parameters and pre-filter stay.
+                let t = Tuning::of(p).with_stage_of(&self.tuning);
+                change.tuning = Some(t.design());
                 // The estimators restart with the new tuning; frozen ones stay frozen.
                 change.freeze = self.frozen;
                 self.preset = p;
-                self.tuning = Tuning::of(p);
-                self.tuned = false;
+                self.tuned = t != Tuning::of(p);
+                self.tuning = t;
                 writeln!(reply, "ok tuning {} (estimators restarted)", tuning_name(p))?;
             }
             Command::Tune { key, values: None } => {
@@ -200,10 +205,17 @@ impl Controller {
                 let mut t = self.tuning;
                 t.set(key, values).map_err(|r| Refusal::Value {
                     // `tune initial V...` has its values from word 3, `tune SECTION KEY V...` from word 4.
-                    word: r.index + if key == TuningKey::Initial { 3 } else { 4 },
+                    word: r.index + if key.path().0.is_empty() { 3 } else { 4 },
                     value: values[r.index],
                     expected: r.expected,
                 })?;
+                // The stage's pre-filter: the pipeline's and the continuous-time RLS's change together, in one sample.
+                if t.rls.prefilter != self.settings.prefilter {
+                    let mut s = self.settings;
+                    s.prefilter = t.rls.prefilter;
+                    change.config = Some(self.design(&s, self.running)?);
+                    self.settings = s;
+                }
                 change.tuning = Some(t.design());
                 change.freeze = self.frozen;
                 self.tuning = t;

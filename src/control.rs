@@ -289,10 +289,10 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             })
         }
         "tune" => {
-            const SECTIONS: &str = "initial, rls, ekf or arx";
+            const SECTIONS: &str = "initial, prefilter, rls, ekf or arx";
             let (word, section) = words.next(SECTIONS)?;
-            let key = if section == "initial" {
-                TuningKey::Initial
+            let key = if let Some(key) = TuningKey::parse("", section) {
+                key
             } else {
                 let names = TuningKey::names_of(section).ok_or(ParseError::Invalid { word, expected: SECTIONS })?;
                 let (word, name) = words.next(names)?;
@@ -304,11 +304,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             } else {
                 let mut values = [0.0; 5];
                 for v in values.iter_mut().take(key.len()) {
-                    *v = words.number64(match key.len() {
-                        1 => "a number",
-                        3 => "3 numbers: b0 a1 a0 for initial, diag P(0) of b0 a1 a0 for rls p0",
-                        _ => "5 numbers, for x1 x2 a0 a1 b0",
-                    })?;
+                    *v = words.number64(key.values_hint())?;
                 }
                 Some(values)
             };
@@ -454,8 +450,8 @@ mod tests {
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
             (b"status\xff", NotAscii { at: 6 }),
-            (b"tune", Missing { word: 2, expected: "initial, rls, ekf or arx" }),
-            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, rls, ekf or arx" }),
+            (b"tune", Missing { word: 2, expected: "initial, prefilter, rls, ekf or arx" }),
+            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, prefilter, rls, ekf or arx" }),
             (b"tune ekf gamma 1", Invalid { word: 3, expected: EKF_KEYS }),
             (b"tune ekf q 1 2 3", Missing { word: 7, expected: "5 numbers, for x1 x2 a0 a1 b0" }),
             (b"tune rls gamma x", Invalid { word: 4, expected: "a number" }),

@@ -185,11 +185,31 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen, "frozen ones stay frozen");
     assert!(lab.send("status\n").contains("tuning=triangle+tune "));
     assert_eq!(verdict(&lab.send("tune ekf drift_ratio 0\n")), "ok tune [ekf] drift_ratio = 0 (estimators restarted)");
-    // A preset replaces every value.
+    // A preset replaces every value but the stage's (initial parameters, pre-filter).
     lab.send("tuning triangle\n");
-    assert!(lab.send("status\n").contains("tuning=triangle "));
-    lab.send("reset all\n");
-    assert!((lab.params(2).a0 / initial.a0 - 1.0).abs() < 1e-3);
+    assert_eq!(verdict(&lab.send("tune ekf drift_ratio\n")), "ok tune [ekf] drift_ratio = 4");
+    assert_eq!(verdict(&lab.send("tune initial\n")), "ok tune initial = 1e6 90 3.9e7");
+    assert!(lab.send("status\n").contains("tuning=triangle+tune "));
+    // The stage's pre-filter: the pipeline's and the continuous-time RLS's own change together.
+    let before = *lab.isr.config();
+    assert_eq!(
+        verdict(&lab.send("tune prefilter 100 600 0.1\n")),
+        "ok tune prefilter = 100 600 0.1 (estimators restarted)"
+    );
+    assert_ne!(lab.isr.config().prefilter, before.prefilter);
+    assert_eq!(lab.ctl.settings().prefilter.f_p_hz, 600.0);
+    // One the pipeline cannot design (f_p above the Nyquist frequency) is refused, and nothing changes.
+    let r = lab.send("tune prefilter 100 6000 0.1\n");
+    assert!(verdict(&r).starts_with("error: ") && r.contains("pre-filter"), "{r}");
+    assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
+    lab.send("tune prefilter 100 450 0.1\n");
+    lab.send("tune initial 5e5 70 6e6\n");
+    // Frozen, so that the sample that applies a restart does not also move the estimate.
+    lab.send("freeze hekf\n");
+    lab.send("tuning triangle\n");
+    assert!(lab.send("status\n").contains("tuning=triangle "), "the paper's stage again: no change left");
+    assert_eq!(lab.params(2), initial, "restarted from the paper's initial parameters");
+    lab.send("adapt hekf\n");
     // Without values: the value in use, and nothing restarts.
     lab.run(2000);
     let moved = lab.params(2);

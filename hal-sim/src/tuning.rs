@@ -6,6 +6,7 @@
 //! ```toml
 //! preset = "triangle"            # the base (default: prbs)
 //! initial = [5e5, 70, 6e6]       # every estimator's initial [b0, a1, a0] (another stage: near its own values)
+//! prefilter = [100, 450, 0.1]    # W_p: f_lc Hz, f_p Hz (near the stage's resonance), zeta_p
 //! [rls]                          # continuous-time RLS
 //! gamma = 0.25                   # forgetting, 1/s
 //! p0 = [1e6, 1e1, 1e7]           # diag P(0) for [b0, a1, a0]
@@ -36,6 +37,7 @@ use std::path::Path;
 struct File {
     preset: Option<String>,
     initial: Option<[f64; 3]>,
+    prefilter: Option<[f64; 3]>,
     rls: Option<Rls>,
     ekf: Option<Ekf>,
     arx: Option<Arx>,
@@ -105,8 +107,9 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
     let one = |x: Option<f64>| x.map(|x| vec![x]);
     let whole = |n: Option<u32>| n.map(|n| vec![n as f64]);
     let (r, e, a) = (file.rls.unwrap_or_default(), file.ekf.unwrap_or_default(), file.arx.unwrap_or_default());
-    let values: [(TuningKey, Option<Vec<f64>>); 15] = [
+    let values: [(TuningKey, Option<Vec<f64>>); 16] = [
         (TuningKey::Initial, file.initial.map(|v| v.to_vec())),
+        (TuningKey::Prefilter, file.prefilter.map(|v| v.to_vec())),
         (TuningKey::RlsGamma, one(r.gamma)),
         (TuningKey::RlsP0, r.p0.map(|v| v.to_vec())),
         (TuningKey::RlsR0, one(r.r0)),
@@ -150,7 +153,11 @@ mod tests {
         let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
         assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
         // Another stage: every estimator starts from its parameters.
-        let other = parse("t.toml", "initial = [1e6, 90, 3.9e7]\n").unwrap();
+        let other = parse("t.toml", "initial = [1e6, 90, 3.9e7]\nprefilter = [150, 1000, 0.2]\n").unwrap();
+        assert_eq!(
+            (other.rls.prefilter.f_lc_hz, other.rls.prefilter.f_p_hz, other.rls.prefilter.zeta_p),
+            (150.0, 1000.0, 0.2)
+        );
         let p = nanopos_id::StageParams { b0: 1e6, a1: 90.0, a0: 3.9e7 };
         assert_eq!((other.rls.initial, other.ekf.initial, other.arx.initial), (p, p, p));
     }

@@ -4,6 +4,7 @@
 //! | key | values | range |
 //! |---|---|---|
 //! | `initial` | `b0 a1 a0`: every estimator's initial parameters (and the normalisation of the continuous RLS and the EKFs) | positive |
+//! | `prefilter` | `f_lc f_p zeta_p` of the stage's pre-filter `W_p` (SPEC 4), one for all as in the paper: the pipeline's (whose output the EKFs and the ARX read) and the continuous-time RLS's own (inside its RK4 step); put `f_p` near the stage's resonance | positive, the frequencies below the Nyquist frequency (checked when the pipeline is designed) |
 //! | `rls gamma` | forgetting, 1/s | positive |
 //! | `rls p0` | diag `P(0)` for `[b0, a1, a0]` | positive |
 //! | `rls r0` | bound on `||P||_F` | positive |
@@ -20,6 +21,7 @@
 //! | `arx max_trace` | windup bound on `trace F` | positive |
 
 use super::Tuning;
+use crate::filters::prefilter::PrefilterDesign;
 use crate::StageParams;
 use core::fmt;
 
@@ -28,6 +30,8 @@ use core::fmt;
 pub enum TuningKey {
     /// Every estimator's initial `[b0, a1, a0]`.
     Initial,
+    /// The pre-filter `W_p`.
+    Prefilter,
     /// Continuous-time RLS forgetting.
     RlsGamma,
     /// Continuous-time RLS `diag P(0)`.
@@ -60,8 +64,9 @@ pub enum TuningKey {
 
 impl TuningKey {
     /// Every key, in the order of the table above.
-    pub const ALL: [TuningKey; 15] = [
+    pub const ALL: [TuningKey; 16] = [
         TuningKey::Initial,
+        TuningKey::Prefilter,
         TuningKey::RlsGamma,
         TuningKey::RlsP0,
         TuningKey::RlsR0,
@@ -78,10 +83,11 @@ impl TuningKey {
         TuningKey::ArxMaxTrace,
     ];
 
-    /// `(section, name)`: the section is `""` for `initial`, else `rls`, `ekf` or `arx`.
+    /// `(section, name)`: the section is `""` for `initial` and `prefilter`, else `rls`, `ekf` or `arx`.
     pub const fn path(self) -> (&'static str, &'static str) {
         match self {
             TuningKey::Initial => ("", "initial"),
+            TuningKey::Prefilter => ("", "prefilter"),
             TuningKey::RlsGamma => ("rls", "gamma"),
             TuningKey::RlsP0 => ("rls", "p0"),
             TuningKey::RlsR0 => ("rls", "r0"),
@@ -114,12 +120,26 @@ impl TuningKey {
         }
     }
 
+    /// The keys that describe the stage rather than the input: a preset chosen on the console keeps them.
+    pub const STAGE: [TuningKey; 2] = [TuningKey::Initial, TuningKey::Prefilter];
+
     /// How many values it takes.
     pub const fn len(self) -> usize {
         match self {
-            TuningKey::Initial | TuningKey::RlsP0 => 3,
+            TuningKey::Initial | TuningKey::Prefilter | TuningKey::RlsP0 => 3,
             TuningKey::EkfQ | TuningKey::EkfP0 => 5,
             _ => 1,
+        }
+    }
+
+    /// What its values are, for messages.
+    pub const fn values_hint(self) -> &'static str {
+        match self {
+            TuningKey::Initial => "3 numbers: b0 a1 a0",
+            TuningKey::Prefilter => "3 numbers: f_lc_hz f_p_hz zeta_p",
+            TuningKey::RlsP0 => "3 numbers: diag P(0) for b0 a1 a0",
+            TuningKey::EkfQ | TuningKey::EkfP0 => "5 numbers, for x1 x2 a0 a1 b0",
+            _ => "a number",
         }
     }
 
@@ -216,12 +236,25 @@ impl Tuning {
         }
     }
 
+    /// This tuning with the stage's values ([`TuningKey::STAGE`]) of `stage`.
+    pub fn with_stage_of(mut self, stage: &Tuning) -> Tuning {
+        self.rls.initial = stage.rls.initial;
+        self.ekf.initial = stage.ekf.initial;
+        self.arx.initial = stage.arx.initial;
+        self.rls.prefilter = stage.rls.prefilter;
+        self
+    }
+
     /// The values of `key` (the first [`TuningKey::len`] of the array).
     pub fn get(&self, key: TuningKey) -> [f64; 5] {
         let (e, mut v) = (&self.ekf, [0.0; 5]);
         match key {
             // `set` gives every estimator the same initial parameters.
             TuningKey::Initial => v[..3].copy_from_slice(&[e.initial.b0, e.initial.a1, e.initial.a0]),
+            TuningKey::Prefilter => {
+                let f = &self.rls.prefilter;
+                v[..3].copy_from_slice(&[f.f_lc_hz, f.f_p_hz, f.zeta_p]);
+            }
             TuningKey::RlsGamma => v[0] = self.rls.gamma,
             TuningKey::RlsP0 => v[..3].copy_from_slice(&self.rls.p0_diag),
             TuningKey::RlsR0 => v[0] = self.rls.r0,
@@ -256,6 +289,9 @@ impl Tuning {
             TuningKey::Initial => {
                 let p = StageParams { b0: v[0], a1: v[1], a0: v[2] };
                 (self.rls.initial, ekf.initial, self.arx.initial) = (p, p, p);
+            }
+            TuningKey::Prefilter => {
+                self.rls.prefilter = PrefilterDesign { f_lc_hz: v[0], f_p_hz: v[1], zeta_p: v[2] };
             }
             TuningKey::RlsGamma => self.rls.gamma = x,
             TuningKey::RlsP0 => self.rls.p0_diag.copy_from_slice(v),
@@ -324,6 +360,20 @@ mod tests {
             let mut t = base;
             assert_eq!(t.set(key, values), Err(Refused { index, expected }), "{key}");
             assert_eq!(t, base, "{key}");
+        }
+    }
+
+    #[test]
+    fn a_preset_with_the_stage_of_another_takes_exactly_the_stage_keys() {
+        let mut stage = Tuning::of(TuningPreset::Prbs);
+        stage.set(TuningKey::Initial, &[1e6, 90.0, 3.9e7]).unwrap();
+        stage.set(TuningKey::Prefilter, &[150.0, 1000.0, 0.2]).unwrap();
+        stage.set(TuningKey::EkfR, &[1e-3]).unwrap();
+        let preset = Tuning::of(TuningPreset::Triangle);
+        let both = preset.with_stage_of(&stage);
+        for key in TuningKey::ALL {
+            let from = if TuningKey::STAGE.contains(&key) { &stage } else { &preset };
+            assert_eq!(both.get(key), from.get(key), "{key}");
         }
     }
 

@@ -195,7 +195,9 @@ fn identify_blocks<T: Real>(
         return fail(format!("{source}: too few rows ({n_head}): identification needs a record of at least 4 samples"));
     }
     let (t_first, dt) = (head[2][0], head[2][1] - head[2][0]);
-    let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() };
+    // The stage's pre-filter is the tuning's: the continuous-time RLS has its own copy of it.
+    let settings =
+        PipelineSettings { sample_rate_hz: 1.0 / dt, prefilter: tuning.rls.prefilter, ..PipelineSettings::default() };
     let board = SimBoard::new(Default::default());
     let cfg = settings
         .design::<T>(&board.description())
@@ -685,5 +687,33 @@ mod tests {
             assert_eq!(summary_json(&streamed), summary_json(other));
         }
         assert_eq!(streamed.windows[1].0, Window { t0: 14.0, t1: 16.0 });
+    }
+
+    /// The tuning's pre-filter is the stage's `W_p` for the pipeline (the EKFs and the ARX read its output) and for
+    /// the continuous-time RLS (which filters `u'`, `y'` with its own `W_p` inside its RK4 step): moved to 600 Hz,
+    /// both estimates change, and the EKF's stays on the truth.
+    #[test]
+    fn the_tunings_prefilter_reaches_the_pipeline_and_the_rls() {
+        let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
+        board.plant.change_at_sample = u64::MAX;
+        let mut sim = Simulation::new(board, &settings, ()).unwrap();
+        let s = crate::cmd::paper::record(&mut sim, 200_000);
+        let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
+        let truth = StageParams { a0: s.truth[0][0], a1: s.truth[1][0], b0: s.truth[2][0] };
+        let err = |p: &StageParams<f64>| [p.a0 / truth.a0 - 1.0, p.a1 / truth.a1 - 1.0, p.b0 / truth.b0 - 1.0];
+        let window = [Window { t0: 15.0, t1: 20.0 }];
+        let paper = Tuning::preset("prbs").unwrap();
+        let mut moved = paper;
+        moved.set(nanopos_id::estimators::TuningKey::Prefilter, &[100.0, 600.0, 0.1]).unwrap();
+        let hekf = |t: &Tuning| err(&identify(&rec, &["hekf"], t, &window).unwrap().windows[0].1[0].mean);
+        let (hekf_450, hekf_600) = (hekf(&paper), hekf(&moved));
+        let rls = |t: &Tuning| err(&identify(&rec, &["rls"], t, &window).unwrap().windows[0].1[0].mean);
+        let (rls_450, rls_600) = (rls(&paper), rls(&moved));
+        eprintln!("hekf {hekf_450:?} -> {hekf_600:?}; rls {rls_450:?} -> {rls_600:?}");
+        assert_ne!(hekf_450, hekf_600);
+        assert_ne!(rls_450, rls_600);
+        for e in [hekf_450, hekf_600] {
+            assert!(e[0].abs() < 1e-3 && e[2].abs() < 1e-2, "{e:?}");
+        }
     }
 }
