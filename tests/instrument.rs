@@ -496,7 +496,7 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     std::fs::write(&capture, &link).unwrap();
     let (rec, files) = hal_sim::cmd::decode::run(&capture, &csv, 1, hal_sim::cmd::decode::Damage::Refuse).unwrap();
     assert_eq!((rec.first_index(), rec.len(), rec.segments.len(), rec.ended), (0, 20_001, 1, Some(false)));
-    assert_eq!(files, std::slice::from_ref(&csv));
+    assert_eq!(files, [Some(csv.clone())]);
     let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
 

@@ -52,13 +52,7 @@ fn read_columns_in(
     let mut reader = Reader::open_in(path, names, optional, time, chunks)?;
     let mut data: Vec<Vec<f64>> = vec![Vec::new(); reader.width()];
     while let Some(block) = reader.next_block()? {
-        for (column, part) in data.iter_mut().zip(block) {
-            if column.is_empty() {
-                *column = part;
-            } else {
-                column.extend_from_slice(&part);
-            }
-        }
+        append_columns(&mut data, block);
     }
     let mut out = Columns { data, sample_period_s: reader.sample_period_s() };
     let extra =
@@ -273,25 +267,19 @@ impl Reader {
 
     /// The next block of rows, one vector per column (`None` at the end of the file).
     pub fn next_block(&mut self) -> Result<Option<Vec<Vec<f64>>>, CliError> {
-        // Whole lines: up to the last line end, reading on while there is none.
-        let mut cut = None;
-        while cut.is_none() {
-            if !self.eof && self.carry.len() < self.chunks.block_bytes {
-                self.fill(self.chunks.block_bytes - self.carry.len())?;
-            }
-            cut = if self.eof {
-                Some(self.carry.len())
-            } else {
-                match self.carry.iter().rposition(|&b| b == b'\n') {
-                    Some(i) => Some(i + 1),
-                    None => {
-                        self.fill(self.chunks.block_bytes.max(1))?;
-                        None
-                    }
-                }
-            };
+        // Whole lines: a block's worth, cut at its last line end (read on while a line is longer than that).
+        if !self.eof && self.carry.len() < self.chunks.block_bytes {
+            self.fill(self.chunks.block_bytes - self.carry.len())?;
         }
-        let cut = cut.expect("a cut");
+        let cut = loop {
+            if self.eof {
+                break self.carry.len();
+            }
+            if let Some(i) = self.carry.iter().rposition(|&b| b == b'\n') {
+                break i + 1;
+            }
+            self.fill(self.chunks.block_bytes.max(1))?;
+        };
         if cut == 0 {
             return Ok(None);
         }
@@ -318,14 +306,9 @@ impl Reader {
                 }
             }
         }
-        let mut parts = parts.into_iter();
-        let mut data = parts.next().unwrap_or_else(|| vec![Vec::new(); names.len()]);
-        let rest: Vec<_> = parts.collect();
-        for (c, column) in data.iter_mut().enumerate() {
-            column.reserve_exact(rest.iter().map(|p| p[c].len()).sum());
-            for part in &rest {
-                column.extend_from_slice(&part[c]);
-            }
+        let mut data = vec![Vec::new(); names.len()];
+        for part in parts {
+            append_columns(&mut data, part);
         }
         if let Some((_, tc)) = self.t_field {
             self.check_time(&data[tc]).map_err(|(row, what)| {
@@ -363,6 +346,17 @@ impl Reader {
             }
         }
         Ok(())
+    }
+}
+
+/// Append the columns `part` to `data`, column by column (the first part is moved, not copied).
+fn append_columns(data: &mut [Vec<f64>], part: Vec<Vec<f64>>) {
+    for (column, p) in data.iter_mut().zip(part) {
+        if column.is_empty() {
+            *column = p;
+        } else {
+            column.extend_from_slice(&p);
+        }
     }
 }
 

@@ -153,11 +153,10 @@ fn run(cli: Cli) -> Result<(), CliError> {
             for msg in &rec.damage {
                 eprintln!("nanopos-sim: skipped: {msg}");
             }
-            let mut written = files.iter();
-            for seg in &rec.segments {
+            for (seg, file) in rec.segments.iter().zip(&files) {
                 let n = seg.samples.len();
                 let at = (seg.first_index - origin) as f64 / rate;
-                match if n >= 2 { written.next() } else { None } {
+                match file {
                     Some(path) => eprintln!(
                         "nanopos-sim: {n} samples ({} s at {rate} Hz) from board sample {} (t = {at} s) written \
                          to {}",

@@ -104,6 +104,7 @@ impl EkfDesign {
         let w = libm::sqrt(p.a0);
         let scale = [1.0, 1.0 / w, 1.0 / p.a0, 1.0 / p.a1, 1.0 / p.b0];
         let h = self.sample_period_s / self.substeps as f64;
+        let (step, period) = (T::of(h), T::of(h * self.substeps.max(1) as f64));
         let hd = &self.health;
         let t = self.sample_period_s;
         EkfConfig {
@@ -133,10 +134,10 @@ impl EkfDesign {
             c0: T::of(p.a0 / w),
             c1: T::of(p.a1),
             c2: T::of(p.b0 / w),
-            h: T::of(h),
-            h6: T::of(h) / T::of(6.0),
-            period: T::of(h * self.substeps.max(1) as f64),
-            period6: T::of(h * self.substeps.max(1) as f64) / T::of(6.0),
+            h: step,
+            h6: step / T::of(6.0),
+            period,
+            period6: period / T::of(6.0),
             substeps: self.substeps.max(1),
             initial: *p,
         }

@@ -65,6 +65,9 @@ pub enum Damage {
     Skip,
 }
 
+/// The fewest samples a segment needs to be written (`identify` needs at least a sample period).
+pub const MIN_SAMPLES: usize = 2;
+
 const SEGMENTS_HINT: &str = "(`decode --segments` keeps the undamaged parts, one file per gap-free run)";
 
 fn header_value(name: &str, line_no: usize, line: &str, key: &str) -> Result<f64, CliError> {
@@ -121,49 +124,57 @@ pub fn parse(name: &str, text: &str, which: usize, damage: Damage) -> Result<Rec
         if !line.starts_with('R') {
             continue;
         }
-        let problem = match decode_frame(line.as_bytes(), &mut frame) {
-            Err(e) => Err(format!("{name}:{line_no}: {e}")),
-            Ok((index, n)) => match r.segments.last() {
-                Some(last) => {
-                    let expected = last.first_index + last.samples.len() as u64;
-                    if index == expected {
-                        r.segments.last_mut().expect("a last segment").samples.extend_from_slice(&frame[..n]);
-                        Ok(())
-                    } else if index > expected {
-                        let gap = format!(
-                            "{name}:{line_no}: frame starts at sample {index}, expected {expected}: {} samples \
-                             missing (lines lost in the capture)",
-                            index - expected
-                        );
-                        if damage == Damage::Skip {
-                            r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
-                        }
-                        Err(gap)
-                    } else {
-                        Err(format!(
-                            "{name}:{line_no}: frame starts at sample {index}, before the expected {expected} \
-                             (a line repeated in the capture)"
-                        ))
-                    }
-                }
-                None => {
-                    r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
-                    Ok(())
-                }
-            },
+        let (index, n) = match decode_frame(line.as_bytes(), &mut frame) {
+            Ok(decoded) => decoded,
+            Err(e) => {
+                r.refuse_or_skip(damage, format!("{name}:{line_no}: {e}"))?;
+                continue;
+            }
         };
-        if let Err(msg) = problem {
-            match damage {
-                Damage::Refuse => return fail(format!("{msg} {SEGMENTS_HINT}")),
-                Damage::Skip => r.damage.push(msg),
+        // The sample the current segment continues with, if there is one.
+        let expected = r.segments.last().map(|s| s.first_index + s.samples.len() as u64);
+        match expected {
+            Some(e) if index == e => r.segments.last_mut().expect("a last segment").samples.extend(&frame[..n]),
+            Some(e) if index < e => r.refuse_or_skip(
+                damage,
+                format!(
+                    "{name}:{line_no}: frame starts at sample {index}, before the expected {e} (a line repeated in \
+                     the capture)"
+                ),
+            )?,
+            _ => {
+                if let Some(e) = expected {
+                    r.refuse_or_skip(
+                        damage,
+                        format!(
+                            "{name}:{line_no}: frame starts at sample {index}, expected {e}: {} samples missing \
+                             (lines lost in the capture)",
+                            index - e
+                        ),
+                    )?;
+                }
+                r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
             }
         }
     }
     match rec {
-        Some(r) if r.segments.iter().any(|s| s.samples.len() >= 2) => Ok(r),
-        Some(_) => fail(format!("{name}: recording {which} holds no run of 2 or more samples")),
+        Some(r) if r.segments.iter().any(|s| s.samples.len() >= MIN_SAMPLES) => Ok(r),
+        Some(_) => fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
         None if found == 0 => fail(format!("{name}: no recording in the capture (no '{HEADER_TAG}' line)")),
         None => fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
+    }
+}
+
+impl Recording {
+    /// A damaged or lost part, `msg`: an error, or with [`Damage::Skip`] a note in [`Recording::damage`].
+    fn refuse_or_skip(&mut self, damage: Damage, msg: String) -> Result<(), CliError> {
+        match damage {
+            Damage::Refuse => fail(format!("{msg} {SEGMENTS_HINT}")),
+            Damage::Skip => {
+                self.damage.push(msg);
+                Ok(())
+            }
+        }
     }
 }
 
@@ -179,13 +190,13 @@ pub fn segment_path(out: &Path, k: usize) -> std::path::PathBuf {
 
 /// Decode recording `which` of `input` into `out` (with [`Damage::Skip`], into one file per segment of 2 or more
 /// samples, numbered from 1 in time order by [`segment_path`]; a lone sample between two gaps is not written);
-/// returns the recording and the files written, for the caller's report.
+/// returns the recording and, for each of its segments, the file it went to (`None`: too short to write).
 pub fn run(
     input: &Path,
     out: &Path,
     which: usize,
     damage: Damage,
-) -> Result<(Recording, Vec<std::path::PathBuf>), CliError> {
+) -> Result<(Recording, Vec<Option<std::path::PathBuf>>), CliError> {
     let name = input.display().to_string();
     let bytes = std::fs::read(input).map_err(|e| CliError(format!("{name}: cannot read: {}", io_reason(&e))))?;
     // Captures can hold noise from before the link settled: decode what is text, the frames carry their checksums.
@@ -195,10 +206,15 @@ pub fn run(
     let origin = rec.first_index();
     // Every file is complete before any is moved into place.
     let mut files = Vec::new();
-    for (k, seg) in rec.segments.iter().filter(|s| s.samples.len() >= 2).enumerate() {
+    let mut written = Vec::new();
+    for seg in &rec.segments {
+        if seg.samples.len() < MIN_SAMPLES {
+            written.push(None);
+            continue;
+        }
         let path = match damage {
             Damage::Refuse => out.to_path_buf(),
-            Damage::Skip => segment_path(out, k + 1),
+            Damage::Skip => segment_path(out, files.len() + 1),
         };
         let mut file = OutputFile::create(&path)?;
         let result = (|| -> std::io::Result<()> {
@@ -211,12 +227,11 @@ pub fn run(
             Ok(())
         })();
         result.map_err(|e| file.write_error(e))?;
-        files.push((path, file));
+        written.push(Some(path));
+        files.push(file);
     }
-    let mut written = Vec::new();
-    for (path, file) in files {
+    for file in files {
         file.commit()?;
-        written.push(path);
     }
     Ok((rec, written))
 }

@@ -98,6 +98,7 @@ pub fn parse_estimators(list: &str) -> Result<Vec<&'static str>, CliError> {
 }
 
 /// A recorded run, as columns.
+#[derive(Clone, Copy)]
 pub struct Recording<'a> {
     /// Where it came from (for messages).
     pub source: &'a str,
@@ -128,17 +129,26 @@ pub fn identify_in<T: Real>(
     tuning: &Tuning,
     windows: &[Window],
 ) -> Result<Identified, CliError> {
-    let Recording { source, t, u, y, truth } = *rec;
-    let n = t.len();
-    const ROWS: usize = 1 << 16;
-    let blocks = (0..n).step_by(ROWS).map(|start| {
-        let end = (start + ROWS).min(n);
-        let mut block = vec![u[start..end].to_vec(), y[start..end].to_vec(), t[start..end].to_vec()];
-        block.extend(truth.into_iter().flatten().map(|c| c[start..end].to_vec()));
-        Ok((block, end as u64))
-    });
-    let record = Stream { source, last_t: t.last().copied(), has_truth: truth.is_some(), progress_total: n as u64 };
-    identify_blocks::<T>(&record, names, tuning, windows, blocks)
+    let record = Stream {
+        source: rec.source,
+        last_t: rec.t.last().copied(),
+        has_truth: rec.truth.is_some(),
+        progress_total: rec.t.len() as u64,
+    };
+    identify_blocks::<T>(&record, names, tuning, windows, rec.blocks(1 << 16))
+}
+
+impl<'a> Recording<'a> {
+    /// The record as [`identify_blocks`] takes it: blocks of `rows` rows (copied), each with the row it reaches.
+    fn blocks(self, rows: usize) -> impl Iterator<Item = Result<(Vec<Vec<f64>>, u64), CliError>> + 'a {
+        let n = self.t.len();
+        (0..n).step_by(rows).map(move |start| {
+            let end = (start + rows).min(n);
+            let mut block = vec![self.u[start..end].to_vec(), self.y[start..end].to_vec(), self.t[start..end].to_vec()];
+            block.extend(self.truth.into_iter().flatten().map(|c| c[start..end].to_vec()));
+            Ok((block, end as u64))
+        })
+    }
 }
 
 /// A recorded run as it arrives in blocks (see [`identify_blocks`]).
@@ -259,10 +269,7 @@ fn identify_blocks<T: Real>(
                     }
                 }
                 if filtered.len() == BLOCK {
-                    let full = Arc::new(std::mem::replace(&mut filtered, Vec::with_capacity(BLOCK)));
-                    for feed in &feeds {
-                        feed.send(Arc::clone(&full)).expect("an estimator worker runs until its feed closes");
-                    }
+                    feed_all(&feeds, std::mem::replace(&mut filtered, Vec::with_capacity(BLOCK)));
                 }
             }
             t_last = t.last().copied().unwrap_or(t_last);
@@ -283,10 +290,7 @@ fn identify_blocks<T: Real>(
             }
         }
         if !filtered.is_empty() {
-            let last = Arc::new(filtered);
-            for feed in &feeds {
-                feed.send(Arc::clone(&last)).expect("an estimator worker runs until its feed closes");
-            }
+            feed_all(&feeds, filtered);
         }
         drop(feeds);
         let rows = jobs.into_iter().map(|j| j.join().expect("an estimator worker does not panic")).collect();
@@ -327,31 +331,37 @@ fn identify_blocks<T: Real>(
             ));
         }
         let validation = |p: &StageParams<f64>| validation_rmse_nm(p, &keep.t, &keep.u, &keep.y, dt, w);
-        let mean_of = |col: usize| -> StageParams<f64> {
-            let m = |f: fn(&StageParams<f64>) -> f64| {
-                rows.iter().map(|&i| f(&estimates[i][col])).sum::<f64>() / rows.len() as f64
-            };
-            StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) }
-        };
         let figures = (0..names.len())
             .map(|col| {
-                let mean = mean_of(col);
+                let mean = mean_params(rows.iter().map(|&i| estimates[i][col]));
                 let innovation_rms_nm =
                     1e3 * rows.iter().map(|&i| innovations[i][col] as f64).sum::<f64>() / rows.len() as f64;
                 WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm }
             })
             .collect();
         let window_truth = record.has_truth.then(|| {
-            let m = |f: fn(&StageParams<f64>) -> f64| {
-                rows.iter().map(|&i| f(&truth_rows[i])).sum::<f64>() / rows.len() as f64
-            };
-            let mean = StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) };
+            let mean = mean_params(rows.iter().map(|&i| truth_rows[i]));
             WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm: f64::NAN }
         });
         summary.push((*w, figures, window_truth));
     }
     let truth = record.has_truth.then_some(truth_rows);
     Ok(Identified { names, times, estimates, innovations, truth, windows: summary })
+}
+
+/// Hand one block of filtered samples to every estimator worker.
+fn feed_all<T>(feeds: &[std::sync::mpsc::SyncSender<Arc<Vec<FilteredSample<T>>>>], block: Vec<FilteredSample<T>>) {
+    let block = Arc::new(block);
+    for feed in feeds {
+        feed.send(Arc::clone(&block)).expect("an estimator worker runs until its feed closes");
+    }
+}
+
+/// The mean of `params`, component by component, in order.
+fn mean_params(params: impl ExactSizeIterator<Item = StageParams<f64>> + Clone) -> StageParams<f64> {
+    let n = params.len() as f64;
+    let m = |f: fn(&StageParams<f64>) -> f64| params.clone().map(|p| f(&p)).sum::<f64>() / n;
+    StageParams { a0: m(|p| p.a0), a1: m(|p| p.a1), b0: m(|p| p.b0) }
 }
 
 /// Filtered samples per block handed to the estimator workers (256 KiB in f64).
@@ -622,16 +632,21 @@ mod tests {
         assert_eq!(got.estimates, rows);
     }
 
+    /// 20 s of PRBS on the full board, the payload on throughout.
+    fn prbs_without_change_20_s() -> crate::cmd::paper::Simulated {
+        let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
+        board.plant.change_at_sample = u64::MAX;
+        let mut sim = Simulation::new(board, &settings, ()).unwrap();
+        crate::cmd::paper::record(&mut sim, 200_000)
+    }
+
     /// The truth's own validation RMSE is reported with it: the least model (1) can reach on the data. On the full
     /// board with PRBS it is well above the effective noise floor (3.33 nm, README): the second mode and the analog
     /// chain are outside the model (measured on the 200 s paper run: 4.75 nm, the EKFs 4.75-5.03 nm). A converged
     /// estimate sits near it, not near the floor.
     #[test]
     fn the_truth_has_a_validation_rmse_and_a_converged_estimate_is_near_it() {
-        let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
-        board.plant.change_at_sample = u64::MAX;
-        let mut sim = Simulation::new(board, &settings, ()).unwrap();
-        let s = crate::cmd::paper::record(&mut sim, 200_000);
+        let s = prbs_without_change_20_s();
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
         let got =
             identify(&rec, &["hekf"], &Tuning::preset("prbs").unwrap(), &[Window { t0: 15.0, t1: 20.0 }]).unwrap();
@@ -672,12 +687,7 @@ mod tests {
         let truth = truth.as_ref().map(|c| &c.data[..]);
         let whole = identify(&Recording { source: "test", t, u, y, truth }, &NAMES, &tuning, &[]).unwrap();
         let unknown_end = {
-            let blocks = (0..t.len()).step_by(50_000).map(|a| {
-                let b = (a + 50_000).min(t.len());
-                let mut block = vec![u[a..b].to_vec(), y[a..b].to_vec(), t[a..b].to_vec()];
-                block.extend(truth.into_iter().flatten().map(|c| c[a..b].to_vec()));
-                Ok((block, b as u64))
-            });
+            let blocks = Recording { source: "test", t, u, y, truth }.blocks(50_000);
             let record = Stream { source: "test", last_t: None, has_truth: true, progress_total: t.len() as u64 };
             identify_blocks::<f64>(&record, &NAMES, &tuning, &[], blocks).unwrap()
         };
@@ -694,13 +704,10 @@ mod tests {
     /// both estimates change, and the EKF's stays on the truth.
     #[test]
     fn the_tunings_prefilter_reaches_the_pipeline_and_the_rls() {
-        let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
-        board.plant.change_at_sample = u64::MAX;
-        let mut sim = Simulation::new(board, &settings, ()).unwrap();
-        let s = crate::cmd::paper::record(&mut sim, 200_000);
+        let s = prbs_without_change_20_s();
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
         let truth = StageParams { a0: s.truth[0][0], a1: s.truth[1][0], b0: s.truth[2][0] };
-        let err = |p: &StageParams<f64>| [p.a0 / truth.a0 - 1.0, p.a1 / truth.a1 - 1.0, p.b0 / truth.b0 - 1.0];
+        let err = |p: &StageParams<f64>| crate::experiment::rel_errors(p, &truth);
         let window = [Window { t0: 15.0, t1: 20.0 }];
         let paper = Tuning::preset("prbs").unwrap();
         let mut moved = paper;
