@@ -261,9 +261,11 @@ fn drift_detection_relocks_the_triangle() {
 
 /// The dense peer (nalgebra, full `F P + P F'`, full Joseph form) computes the same filter as the structured one:
 /// on 20 s of PRBS on the full board (no payload change, so the structured filter's health logic stays idle) the
-/// two f64 estimates agree to rounding. The bound: both sum the same terms in a different order, about 1e-16 per
-/// operation, amplified by the filter's sensitivity (1.8e-15 seen); 1e-12 is far above that and far below any real difference
-/// (a wrong term in `F` or the Joseph form moves the estimate by 1e-3 or more).
+/// two f64 estimates agree to 1e-6. They are not the same arithmetic: the dense filter integrates the Riccati
+/// equation by RK4 (the SPEC's rule), the structured one propagates the covariance through the Jacobian of the
+/// state's RK4 map with a leading-order `Qd` (`EkfCore::predict`; per step they agree to 1.8e-2 of the process
+/// noise's part and 2e-4 of the rest, tested in `estimators::ekf`). Measured: a0 4.2e-8, a1 1.7e-7, b0 3.7e-7. A wrong term in `F`
+/// or the Joseph form moves the estimate by 1e-3 or more.
 #[test]
 fn the_dense_hekf_computes_the_same_filter_as_the_structured_one() {
     use hal_sim::sim::{Scenario, Simulation};
@@ -284,6 +286,6 @@ fn the_dense_hekf_computes_the_same_filter_as_the_structured_one() {
     for (name, x, y) in [("a0", a.a0, b.a0), ("a1", a.a1, b.a1), ("b0", a.b0, b.b0)] {
         let rel = (x / y - 1.0).abs();
         println!("{name}: structured {x:.9e}, dense {y:.9e}, relative {rel:.1e}");
-        assert!(rel < 1e-12, "{name}: structured {x} against dense {y}");
+        assert!(rel < 1e-6, "{name}: structured {x} against dense {y}");
     }
 }
