@@ -110,6 +110,8 @@ impl EkfDesign {
         let (step, period) = (T::of(h), T::of(h * self.substeps.max(1) as f64));
         let hd = &self.health;
         let t = self.sample_period_s;
+        // `T Q`, normalised.
+        let q_period = |i: usize| t * self.q_diag[i] * scale[i] * scale[i];
         EkfConfig {
             gate2: T::of(hd.gate_sigma * hd.gate_sigma),
             nis_alpha: T::of(t / hd.nis_tau_s),
@@ -141,15 +143,9 @@ impl EkfDesign {
             h_quarter: T::of(h / 4.0),
             h_third: T::of(h / 3.0),
             h_sq_half: T::of(h * h / 2.0),
-            q_period: core::array::from_fn(|i| T::of(t * self.q_diag[i] * scale[i] * scale[i])),
-            q_xt: core::array::from_fn(|i| {
-                core::array::from_fn(|m| T::of(t * self.q_diag[m + 2] * scale[m + 2] * scale[m + 2] / [3.0, 2.0][i]))
-            }),
-            q_xx: core::array::from_fn(|k| {
-                core::array::from_fn(|m| {
-                    T::of(t * self.q_diag[m + 2] * scale[m + 2] * scale[m + 2] / [5.0, 4.0, 3.0][k])
-                })
-            }),
+            q_period: core::array::from_fn(|i| T::of(q_period(i))),
+            q_xt: core::array::from_fn(|i| core::array::from_fn(|m| T::of(q_period(m + 2) / [3.0, 2.0][i]))),
+            q_xx: core::array::from_fn(|k| core::array::from_fn(|m| T::of(q_period(m + 2) / [5.0, 4.0, 3.0][k]))),
             period,
             period6: period / T::of(6.0),
             substeps: self.substeps.max(1),
@@ -487,7 +483,7 @@ impl<T: Real> EkfCore<T> {
     /// the estimates of the two differ by 4e-7 at most (`hal-sim/tests/ekf.rs`, against the dense peer, which keeps
     /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 70 per substep, 150 for
     /// `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4 computed by parts (QEMU:
-    /// `hekf_f32` 2 638 -> 1 027 instructions).
+    /// `hekf_f32` 2 638 -> 1 011 instructions).
     #[inline]
     fn predict(&mut self, u: T) {
         let c = &self.cfg;
@@ -517,22 +513,23 @@ impl<T: Real> EkfCore<T> {
         let mut x = [self.z[0], self.z[1]];
         // dx/dg0, dx/dg1, dx/dz4, zero at the period's start.
         let (mut t0, mut t1, mut tb) = ([zero; 2], [zero; 2], [zero; 2]);
-        let mut psi = r;
-        for n in 0..c.substeps {
+        for _ in 0..c.substeps {
             let (rt0, rt1, rtb, r0x, r1x) = (mv(&r, &t0), mv(&r, &t1), mv(&r, &tb), mv(&r0, &x), mv(&r1, &x));
             let rx = mv(&r, &x);
             t0 = core::array::from_fn(|i| rt0[i] + r0x[i] + b * sb0[i]);
             t1 = core::array::from_fn(|i| rt1[i] + r1x[i] + b * sb1[i]);
             tb = core::array::from_fn(|i| rtb[i] + db * sb[i]);
             x = core::array::from_fn(|i| rx[i] + b * sb[i]);
-            if n > 0 {
-                psi = [
-                    r[0] * psi[0] + r[1] * psi[2],
-                    r[0] * psi[1] + r[1] * psi[3],
-                    r[2] * psi[0] + r[3] * psi[2],
-                    r[2] * psi[1] + r[3] * psi[3],
-                ];
-            }
+        }
+        // Psi = R^substeps.
+        let mut psi = r;
+        for _ in 1..c.substeps {
+            psi = [
+                r[0] * psi[0] + r[1] * psi[2],
+                r[0] * psi[1] + r[1] * psi[3],
+                r[2] * psi[0] + r[3] * psi[2],
+                r[2] * psi[1] + r[3] * psi[3],
+            ];
         }
         self.z[0] = x[0];
         self.z[1] = x[1];
@@ -866,20 +863,15 @@ mod tests {
     }
 
     /// One hybrid prediction by the RK4 of the whole state and Riccati equation (`z' = f`, `P' = F P + P F' + Q`,
-    /// 20 values, from the full derivative the continuous filter uses), `substeps` steps: the SPEC's rule, which
-    /// [`EkfCore::predict`] replaces.
+    /// 20 values): the continuous filter's RK4 without a measurement, its step set to the substep, `substeps`
+    /// times. The SPEC's rule, which [`EkfCore::predict`] replaces.
     fn predict_by_riccati_rk4(before: &EkfCore<f64>, u: f64) -> ([f64; 5], [f64; 15]) {
-        let (mut z, mut p) = (before.z, before.p);
-        let h = before.cfg.h;
+        let mut core = *before;
+        (core.cfg.period, core.cfg.period6) = (before.cfg.h, before.cfg.h / 6.0);
         for _ in 0..before.cfg.substeps {
-            let (k1z, k1p) = before.derivative(&z, &p, u, None);
-            let (k2z, k2p) = before.derivative(&axpy(&z, &k1z, h / 2.0), &axpy(&p, &k1p, h / 2.0), u, None);
-            let (k3z, k3p) = before.derivative(&axpy(&z, &k2z, h / 2.0), &axpy(&p, &k2p, h / 2.0), u, None);
-            let (k4z, k4p) = before.derivative(&axpy(&z, &k3z, h), &axpy(&p, &k3p, h), u, None);
-            rk4_combine(&mut z, [&k1z, &k2z, &k3z, &k4z], h / 6.0);
-            rk4_combine(&mut p, [&k1p, &k2p, &k3p, &k4p], h / 6.0);
+            core.rk4(u, None);
         }
-        (z, p)
+        (core.z, core.p)
     }
 
     /// The largest difference of two covariances entry by entry, relative to the correlation scale
