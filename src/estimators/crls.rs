@@ -70,6 +70,8 @@ pub struct CrlsConfig<T> {
     /// `theta0` (`[b0, a1, a0]`), the normalisation.
     scale: [T; 3],
     r0_sq: T,
+    /// `||P||_F^2` of the packed normalised `P` is `sum norm_weight[k] P[k]^2`.
+    norm_weight: [T; 6],
     h: T,
     /// `h / 6`.
     h6: T,
@@ -90,6 +92,17 @@ impl CrlsDesign {
             p0: core::array::from_fn(|k| T::of(self.p0_diag[k] / (scale[k] * scale[k]))),
             scale: scale.map(T::of),
             r0_sq: T::of(self.r0 * self.r0),
+            norm_weight: {
+                let mut w = [T::zero(); 6];
+                for i in 0..3 {
+                    for j in i..3 {
+                        let f = if i == j { 1.0 } else { 2.0 };
+                        let ss = scale[i] * scale[j];
+                        w[ix(i, j)] = T::of(f * ss * ss);
+                    }
+                }
+                w
+            },
             h: T::of(self.sample_period_s),
             h6: T::of(self.sample_period_s) / T::of(6.0),
             accel: {
@@ -109,15 +122,19 @@ const fn ix(i: usize, j: usize) -> usize {
     r * 3 - r * (r + 1) / 2 + c
 }
 
+/// Where `theta`, the packed `P` and the filter states of `u'` and `y'` start in the joint state.
+const THETA: usize = 0;
+const P: usize = 3;
+const XU: usize = 9;
+const XY: usize = 12;
+
 /// The estimator.
 #[derive(Clone, Copy, Debug)]
 pub struct Crls<T> {
     cfg: CrlsConfig<T>,
-    theta: [T; 3],
-    p: [T; 6],
-    /// Continuous `W_p` states for `u'` and `y'`.
-    xi_u: [T; 3],
-    xi_y: [T; 3],
+    /// The joint state the RK4 step integrates, in one array so that the step reads and writes it in place:
+    /// `theta` (3), packed `P` (6), the continuous `W_p` states of `u'` (3) and of `y'` (3); see [`THETA`].
+    x: [T; 15],
     /// `u'` of the previous sample (held over the step) and `y'` of the two previous samples.
     u_prev: T,
     y_prev: [T; 2],
@@ -130,10 +147,7 @@ impl<T: Real> Crls<T> {
     pub fn new(cfg: CrlsConfig<T>) -> Self {
         let mut s = Crls {
             cfg,
-            theta: [T::one(); 3],
-            p: [T::zero(); 6],
-            xi_u: [T::zero(); 3],
-            xi_y: [T::zero(); 3],
+            x: [T::zero(); 15],
             u_prev: T::zero(),
             y_prev: [T::zero(); 2],
             adapting: true,
@@ -144,26 +158,21 @@ impl<T: Real> Crls<T> {
     }
 
     fn reset_state(&mut self) {
-        self.theta = [T::one(); 3];
-        self.p = [T::zero(); 6];
+        self.x = [T::zero(); 15];
         for k in 0..3 {
-            self.p[ix(k, k)] = self.cfg.p0[k];
+            self.x[THETA + k] = T::one();
+            self.x[P + ix(k, k)] = self.cfg.p0[k];
         }
-        self.xi_u = [T::zero(); 3];
-        self.xi_y = [T::zero(); 3];
         self.u_prev = T::zero();
         self.y_prev = [T::zero(); 2];
     }
 
-    /// `||P||_F^2` in the paper's units.
+    /// `||P||_F^2` in the paper's units, from the packed entries: `sum w_ij P_ij^2` with `w_ij = (s_i s_j)^2`,
+    /// doubled off the diagonal.
     fn norm_sq(&self) -> T {
-        let s = &self.cfg.scale;
         let mut acc = T::zero();
-        for i in 0..3 {
-            for j in 0..3 {
-                let v = self.p[ix(i, j)] * s[i] * s[j];
-                acc += v * v;
-            }
+        for (v, w) in self.x[P..P + 6].iter().zip(self.cfg.norm_weight.iter()) {
+            acc += *w * (*v * *v);
         }
         acc
     }
@@ -172,8 +181,8 @@ impl<T: Real> Crls<T> {
     #[inline(always)]
     fn derivative(&self, x: &[T; 15], u: T, y: T, adapt_p: bool) -> [T; 15] {
         let c = &self.cfg;
-        let (theta, p) = (&x[0..3], &x[3..9]);
-        let (xu, xy) = ([x[9], x[10], x[11]], [x[12], x[13], x[14]]);
+        let (theta, p) = (&x[THETA..THETA + 3], &x[P..P + 6]);
+        let (xu, xy) = ([x[XU], x[XU + 1], x[XU + 2]], [x[XY], x[XY + 1], x[XY + 2]]);
         let xu3 = c.accel[0] * xu[0] + c.accel[1] * xu[1] + c.accel[2] * xu[2] + c.gain * u;
         let xy3 = c.accel[0] * xy[0] + c.accel[1] * xy[1] + c.accel[2] * xy[2] + c.gain * y;
         // phi = [W u, -s W y, -W y] (normalised by theta0), z = s^2 W y.
@@ -181,26 +190,24 @@ impl<T: Real> Crls<T> {
         let z = xy3;
         let pphi: [T; 3] = core::array::from_fn(|i| p[ix(i, 0)] * phi[0] + p[ix(i, 1)] * phi[1] + p[ix(i, 2)] * phi[2]);
         let m2 = T::one() + phi[0] * pphi[0] + phi[1] * pphi[1] + phi[2] * pphi[2];
-        // One division per stage: eps and the covariance term share 1 / m^2.
+        // One division per stage: with w = P phi / m^2, theta' = w (z - theta' phi) and the covariance term is
+        // w (P phi)'.
         let inv = T::one() / m2;
-        let eps = (z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2])) * inv;
+        let w = pphi.map(|v| v * inv);
+        let e = z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2]);
         let mut d = [T::zero(); 15];
         for i in 0..3 {
-            d[i] = pphi[i] * eps;
+            d[i] = w[i] * e;
         }
         if adapt_p {
             for i in 0..3 {
                 for j in i..3 {
-                    d[3 + ix(i, j)] = c.gamma * p[ix(i, j)] - pphi[i] * pphi[j] * inv;
+                    d[P + ix(i, j)] = c.gamma * p[ix(i, j)] - w[i] * pphi[j];
                 }
             }
         }
-        d[9] = xu[1];
-        d[10] = xu[2];
-        d[11] = xu3;
-        d[12] = xy[1];
-        d[13] = xy[2];
-        d[14] = xy3;
+        d[XU..XU + 3].copy_from_slice(&[xu[1], xu[2], xu3]);
+        d[XY..XY + 3].copy_from_slice(&[xy[1], xy[2], xy3]);
         d
     }
 }
@@ -221,22 +228,16 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let bow = -(y_new - T::of(2.0) * y1 + y2) * half;
         let y_at = |f: T| y1 + (y_new - y1) * f + bow * f * (T::one() - f);
         let adapt_p = self.norm_sq() <= self.cfg.r0_sq;
-        let mut x = [T::zero(); 15];
-        x[..3].copy_from_slice(&self.theta);
-        x[3..9].copy_from_slice(&self.p);
-        x[9..12].copy_from_slice(&self.xi_u);
-        x[12..15].copy_from_slice(&self.xi_y);
+        let x = self.x;
         let (h, hh) = (self.cfg.h, self.cfg.h * half);
         let k1 = self.derivative(&x, u, y_at(T::zero()), adapt_p);
         let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_at(half), adapt_p);
         let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_at(half), adapt_p);
         let k4 = self.derivative(&axpy(&x, &k3, h), u, y_at(T::one()), adapt_p);
-        rk4_combine(&mut x, [&k1, &k2, &k3, &k4], self.cfg.h6);
-        self.theta.copy_from_slice(&x[..3]);
-        self.p.copy_from_slice(&x[3..9]);
-        self.xi_u.copy_from_slice(&x[9..12]);
-        self.xi_y.copy_from_slice(&x[12..15]);
-        let healthy = x.iter().all(|v| v.is_finite()) && (0..3).all(|i| self.p[ix(i, i)] >= T::zero());
+        rk4_combine(&mut self.x, [&k1, &k2, &k3, &k4], self.cfg.h6);
+        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
+        let finite = self.x.iter().fold(T::zero(), |acc, &v| acc + v).is_finite();
+        let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();
             self.health.numeric_resets += 1;
@@ -245,14 +246,15 @@ impl<T: Real> Estimator<T> for Crls<T> {
 
     fn params(&self) -> StageParams<T> {
         let s = &self.cfg.scale;
-        StageParams { b0: self.theta[0] * s[0], a1: self.theta[1] * s[1], a0: self.theta[2] * s[2] }
+        let theta = &self.x[THETA..THETA + 3];
+        StageParams { b0: theta[0] * s[0], a1: theta[1] * s[1], a0: theta[2] * s[2] }
     }
 
     fn param_covariance(&self) -> [[T; 3]; 3] {
         // Stored order [b0, a1, a0]; reported order (a0, a1, b0).
         let s = &self.cfg.scale;
         let map = [2, 1, 0];
-        core::array::from_fn(|r| core::array::from_fn(|c| self.p[ix(map[r], map[c])] * s[map[r]] * s[map[c]]))
+        core::array::from_fn(|r| core::array::from_fn(|c| self.x[P + ix(map[r], map[c])] * s[map[r]] * s[map[c]]))
     }
 
     fn reset(&mut self) {

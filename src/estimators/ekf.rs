@@ -575,50 +575,43 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
-    /// `(z', P')` at `(z, P)` with input `u`, and for the continuous filter the measurement `y` at that instant.
+    /// `(z', P')` at `(z, P)` with input `u` (as `c2 u`, the same in every stage), and for the continuous filter the
+    /// measurement `y` at that instant. Written entry by entry: `F` has two non-zero rows, so `F P + P F'` is zero in
+    /// the parameter block and `Q` is on the diagonal only (an added `+0.0` is an instruction: the compiler may not
+    /// drop it, `-0.0 + 0.0` being `+0.0`).
     #[inline(always)]
-    fn derivative(&self, z: &[T; 5], p: &[T; 15], u: T, y: Option<T>) -> ([T; 5], [T; 15]) {
+    fn derivative(&self, z: &[T; 5], p: &[T; 15], c2u: T, y: Option<T>) -> ([T; 5], [T; 15]) {
         let c = &self.cfg;
-        let mut dz =
-            [c.w * z[1], -c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u, T::zero(), T::zero(), T::zero()];
-        // The two non-zero rows of F.
-        let f1 = [-c.c0 * z[2], -c.c1 * z[3], -c.c0 * z[0], -c.c1 * z[1], c.c2 * u];
+        // Row 1 of F; row 0 is W e2.
+        let f1 = [-c.c0 * z[2], -c.c1 * z[3], -c.c0 * z[0], -c.c1 * z[1], c2u];
+        let mut dz = [c.w * z[1], f1[0] * z[0] + f1[1] * z[1] + c2u * z[4], T::zero(), T::zero(), T::zero()];
         // M = F P: row 0 = W P[1, :], row 1 = f1 . P[:, j].
-        let mut m0 = [T::zero(); 5];
-        let mut m1 = [T::zero(); 5];
-        for j in 0..5 {
-            m0[j] = c.w * p[idx(1, j)];
-            let mut acc = T::zero();
-            for (k, fk) in f1.iter().enumerate() {
-                acc += *fk * p[idx(k, j)];
-            }
-            m1[j] = acc;
-        }
+        let m0: [T; 5] = core::array::from_fn(|j| c.w * p[idx(1, j)]);
+        let m1: [T; 5] = core::array::from_fn(|j| {
+            f1[0] * p[idx(0, j)]
+                + f1[1] * p[idx(1, j)]
+                + f1[2] * p[idx(2, j)]
+                + f1[3] * p[idx(3, j)]
+                + f1[4] * p[idx(4, j)]
+        });
         let mut dp = [T::zero(); 15];
-        for i in 0..5 {
-            for j in i..5 {
-                let mij = match i {
-                    0 => m0[j],
-                    1 => m1[j],
-                    _ => T::zero(),
-                };
-                let mji = match j {
-                    0 => m0[i],
-                    1 => m1[i],
-                    _ => T::zero(),
-                };
-                let q = if i == j { c.q[i] } else { T::zero() };
-                dp[idx(i, j)] = mij + mji + q;
-            }
+        dp[idx(0, 0)] = (m0[0] + m0[0]) + c.q[0];
+        dp[idx(0, 1)] = m0[1] + m1[0];
+        dp[idx(1, 1)] = (m1[1] + m1[1]) + c.q[1];
+        for j in 2..5 {
+            dp[idx(0, j)] = m0[j];
+            dp[idx(1, j)] = m1[j];
+            dp[idx(j, j)] = c.q[j];
         }
         if let Some(y) = y {
             // Continuous measurement: K = P H' / R, z' += K (y - x1), P' -= P H' H P / R.
-            let inv_r = c.inv_r;
-            let innovation = (y - z[0]) * inv_r;
+            let p0: [T; 5] = core::array::from_fn(|i| p[idx(0, i)]);
+            let k: [T; 5] = p0.map(|v| v * c.inv_r);
+            let innovation = y - z[0];
             for i in 0..5 {
-                dz[i] += p[idx(0, i)] * innovation;
+                dz[i] += k[i] * innovation;
                 for j in i..5 {
-                    dp[idx(i, j)] -= p[idx(0, i)] * p[idx(0, j)] * inv_r;
+                    dp[idx(i, j)] -= k[i] * p0[j];
                 }
             }
         }
@@ -632,6 +625,7 @@ impl<T: Real> EkfCore<T> {
         let hh = h * half;
         let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
         let (z, p) = (self.z, self.p);
+        let u = self.cfg.c2 * u;
         let (k1z, k1p) = self.derivative(&z, &p, u, y_at(T::zero()));
         let (z2, p2) = (axpy(&z, &k1z, hh), axpy(&p, &k1p, hh));
         let (k2z, k2p) = self.derivative(&z2, &p2, u, y_at(half));
