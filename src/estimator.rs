@@ -37,6 +37,17 @@ pub enum Adaptation {
     Starved,
 }
 
+impl Adaptation {
+    /// What the user's `set_adapting(on)` asks for: adapting or frozen.
+    pub fn asked(on: bool) -> Self {
+        if on {
+            Adaptation::Adapting
+        } else {
+            Adaptation::Frozen
+        }
+    }
+}
+
 /// An estimator's health report.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]

@@ -263,7 +263,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
 
     fn set_adapting(&mut self, on: bool) {
         self.adapting = on;
-        self.health.adaptation = if on { Adaptation::Adapting } else { Adaptation::Frozen };
+        self.health.adaptation = Adaptation::asked(on);
     }
 
     fn health(&self) -> Health {

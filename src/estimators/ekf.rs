@@ -816,7 +816,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
 
     fn set_adapting(&mut self, on: bool) {
         self.adapting = on;
-        self.health.adaptation = if on { Adaptation::Adapting } else { Adaptation::Frozen };
+        self.health.adaptation = Adaptation::asked(on);
     }
 
     fn health(&self) -> Health {
