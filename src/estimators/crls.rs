@@ -24,8 +24,9 @@
 //! ## Numerics
 //! `theta` is normalised by its initial value (`theta_n = theta / theta0`, `P_n = D^-1 P D^-1`, `D = diag(theta0)`),
 //! so the f32 state is of order one; `m^2` and `eps` are invariant. `P` is stored symmetric (6 entries) and
-//! symmetrised by construction. Cost per update: 4 RK4 stages of about 60 flops (9 of them the two filters), plus
-//! the norm check.
+//! symmetrised by construction. Cost per update: 4 derivatives of about 70 flops (14 of them the two filters) and
+//! one division, 90 flops of stage arguments and 90 of the RK4 sum, 12 for the norm check: about 460 flops
+//! (QEMU: 828 instructions).
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::{axpy, rk4_combine};
