@@ -235,7 +235,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_at(half), adapt_p);
         let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_at(half), adapt_p);
         let k4 = self.derivative(&axpy(&x, &k3, h), u, y_at(T::one()), adapt_p);
-        rk4_combine(&mut self.x, [&k1, &k2, &k3, &k4], self.cfg.h6);
+        rk4_combine(&mut self.x, &x, [&k1, &k2, &k3, &k4], self.cfg.h6);
         // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
         let finite = self.x.iter().fold(T::zero(), |acc, &v| acc + v).is_finite();
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());

@@ -330,14 +330,13 @@ impl EkfKind for Continuous {
         let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
         let bow = -x1_dd * h * h * T::of(0.5);
         let before = (core.z, core.p);
-        core.rk4(u, Some((y_prev, y, bow)));
+        core.rk4(&before, u, Some((y_prev, y, bow)));
         // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
         // step is taken again without the measurement.
         let nu = y - core.z[0];
         let s = core.p[idx(0, 0)] + core.cfg.r_d;
         if nu * nu > gate_nis * s {
-            (core.z, core.p) = before;
-            core.rk4(u, None);
+            core.rk4(&before, u, None);
             return (nu, None);
         }
         (nu, Some(nu * nu / s))
@@ -618,23 +617,24 @@ impl<T: Real> EkfCore<T> {
         (dz, dp)
     }
 
-    /// One RK4 step over the sample period with `u` held; with `ys = (y_start, y_end, bow)` the continuous measurement,
-    /// `y_start + (y_end - y_start) f + bow f (1 - f)` at the fraction `f` of the step.
-    fn rk4(&mut self, u: T, ys: Option<(T, T, T)>) {
+    /// One RK4 step over the sample period from `(z, p)` (the caller's copy of the state, which the step then
+    /// replaces: one copy a step, which the continuous filter's gate needs anyway) with `u` held; with
+    /// `ys = (y_start, y_end, bow)` the continuous measurement, `y_start + (y_end - y_start) f + bow f (1 - f)` at the
+    /// fraction `f` of the step.
+    fn rk4(&mut self, (z, p): &([T; 5], [T; 15]), u: T, ys: Option<(T, T, T)>) {
         let (h, h6, half) = (self.cfg.period, self.cfg.period6, T::of(0.5));
         let hh = h * half;
         let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
-        let (z, p) = (self.z, self.p);
         let u = self.cfg.c2 * u;
-        let (k1z, k1p) = self.derivative(&z, &p, u, y_at(T::zero()));
-        let (z2, p2) = (axpy(&z, &k1z, hh), axpy(&p, &k1p, hh));
+        let (k1z, k1p) = self.derivative(z, p, u, y_at(T::zero()));
+        let (z2, p2) = (axpy(z, &k1z, hh), axpy(p, &k1p, hh));
         let (k2z, k2p) = self.derivative(&z2, &p2, u, y_at(half));
-        let (z3, p3) = (axpy(&z, &k2z, hh), axpy(&p, &k2p, hh));
+        let (z3, p3) = (axpy(z, &k2z, hh), axpy(p, &k2p, hh));
         let (k3z, k3p) = self.derivative(&z3, &p3, u, y_at(half));
-        let (z4, p4) = (axpy(&z, &k3z, h), axpy(&p, &k3p, h));
+        let (z4, p4) = (axpy(z, &k3z, h), axpy(p, &k3p, h));
         let (k4z, k4p) = self.derivative(&z4, &p4, u, y_at(T::one()));
-        rk4_combine(&mut self.z, [&k1z, &k2z, &k3z, &k4z], h6);
-        rk4_combine(&mut self.p, [&k1p, &k2p, &k3p, &k4p], h6);
+        rk4_combine(&mut self.z, z, [&k1z, &k2z, &k3z, &k4z], h6);
+        rk4_combine(&mut self.p, p, [&k1p, &k2p, &k3p, &k4p], h6);
     }
 
     /// Joseph-form update with the innovation `innovation` of `x1`, its variance `s = P00 + R_d` and `1 / s`.
@@ -856,6 +856,24 @@ mod tests {
         f
     }
 
+    /// A continuous step whose residual the gate rejects is the step without the measurement from the state before
+    /// it (not from the rejected step's result); one the gate passes uses the measurement.
+    #[test]
+    fn a_rejected_continuous_step_is_taken_again_from_where_it_started_without_the_measurement() {
+        let before = converged_hybrid(0.01).core;
+        let (u, y_prev, y) = (0.7, before.z[0], before.z[0] + 0.5);
+        let mut free = before;
+        free.rk4(&(before.z, before.p), u, None);
+        let mut rejected = before;
+        let (nu, nis) = Continuous::step(&mut rejected, u, y_prev, y, 0.0);
+        assert!(nis.is_none() && nu != 0.0, "a zero gate rejects every residual");
+        assert_eq!((rejected.z, rejected.p), (free.z, free.p));
+        let mut accepted = before;
+        let (_, nis) = Continuous::step(&mut accepted, u, y_prev, y, f64::INFINITY);
+        assert!(nis.is_some());
+        assert!(accepted.z[0] > free.z[0] + 1e-6, "the measurement above pulls x1 up");
+    }
+
     /// One hybrid prediction by the RK4 of the whole state and Riccati equation (`z' = f`, `P' = F P + P F' + Q`,
     /// 20 values): the continuous filter's RK4 without a measurement, its step set to the substep, `substeps`
     /// times. The SPEC's rule, which [`EkfCore::predict`] replaces.
@@ -863,7 +881,7 @@ mod tests {
         let mut core = *before;
         (core.cfg.period, core.cfg.period6) = (before.cfg.h, before.cfg.h / 6.0);
         for _ in 0..before.cfg.substeps {
-            core.rk4(u, None);
+            core.rk4(&(core.z, core.p), u, None);
         }
         (core.z, core.p)
     }

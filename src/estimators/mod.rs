@@ -90,12 +90,13 @@ pub(crate) fn axpy<T: Real, const N: usize>(a: &[T; N], b: &[T; N], h: T) -> [T;
     core::array::from_fn(|i| a[i] + h * b[i])
 }
 
-/// `x += h6 (k1 + 2 k2 + 2 k3 + k4)`, the RK4 step, with `h6 = h / 6` computed once in the configuration (the
-/// same rounding as per step, without a division per sample: VDIV takes 14 cycles on the M4F).
+/// `out = x + h6 (k1 + 2 k2 + 2 k3 + k4)`, the RK4 step, with `h6 = h / 6` computed once in the configuration (the
+/// same rounding as per step, without a division per sample: VDIV takes 14 cycles on the M4F). `out` may be where
+/// `x` was copied from: written in place, not returned (a returned array is built on the stack and copied).
 #[inline(always)]
-pub(crate) fn rk4_combine<T: Real, const N: usize>(x: &mut [T; N], k: [&[T; N]; 4], h6: T) {
+pub(crate) fn rk4_combine<T: Real, const N: usize>(out: &mut [T; N], x: &[T; N], k: [&[T; N]; 4], h6: T) {
     let two = T::of(2.0);
     for i in 0..N {
-        x[i] += h6 * (k[0][i] + two * (k[1][i] + k[2][i]) + k[3][i]);
+        out[i] = x[i] + h6 * (k[0][i] + two * (k[1][i] + k[2][i]) + k[3][i]);
     }
 }
