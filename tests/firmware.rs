@@ -2,7 +2,8 @@
 //!
 //! The build runs in its own target directory (`target/firmware`), so it never waits on the lock of the `cargo test`
 //! that runs it. Sizes are read from the ELF's section headers (Berkeley `size` convention: text = allocated
-//! read-only sections, data = initialised RAM, bss = zeroed RAM) and written to `target/firmware-size.json`.
+//! read-only sections, data = initialised RAM, bss = zeroed RAM) and written to `target/firmware-size.json`, with
+//! `ccm_code`, the code that runs from CCM SRAM (in `text`: it is stored in flash).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -56,10 +57,12 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     assert!(warnings.is_empty(), "firmware build warns:\n{stderr}");
 
     let elf_path: &Path = &target_dir.join("thumbv7em-none-eabihf/release/nanopos-fw");
-    let sizes = section_sizes(&std::fs::read(elf_path).expect("firmware ELF"));
+    let elf = std::fs::read(elf_path).expect("firmware ELF");
+    let sizes = section_sizes(&elf);
     let (flash, ram) = (sizes.text + sizes.data, sizes.data + sizes.bss);
+    let ccm_code = check_ram_code(&elf);
     let report = format!(
-        "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}}}\n",
+        "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}, \"ccm_code\": {ccm_code}}}\n",
         sizes.text, sizes.data, sizes.bss
     );
     std::fs::write(root.join("target/firmware-size.json"), &report).unwrap();
@@ -69,4 +72,57 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     );
     // The STM32G474RE's limits (memory.x): 512 KiB flash, 96 KiB SRAM.
     assert!(flash <= 512 * 1024 && ram <= 96 * 1024, "{sizes:?}");
+}
+
+/// The sample interrupt runs from CCM SRAM (`src/bin/nanopos-fw/ram_code.rs`): `.ramtext` lies in the CCM, is
+/// loaded from flash where nothing else is loaded, and holds the interrupt and the EKFs' RK4 step. Returns its size
+/// (part of `text`, the flash figure; not of the static RAM, which counts SRAM1 and SRAM2).
+fn check_ram_code(elf: &[u8]) -> u64 {
+    const CCM: core::ops::Range<u64> = 0x1000_0000..0x1000_8000;
+    const FLASH: core::ops::Range<u64> = 0x0800_0000..0x0808_0000;
+    let u16_at = |o: usize| u16::from_le_bytes([elf[o], elf[o + 1]]) as usize;
+    let u32_at = |o: usize| u32::from_le_bytes(elf[o..o + 4].try_into().unwrap()) as u64;
+    let c_str = |o: usize| {
+        let end = elf[o..].iter().position(|&b| b == 0).unwrap();
+        std::str::from_utf8(&elf[o..o + end]).unwrap()
+    };
+    let (shoff, shentsize, shnum, shstrndx) = (u32_at(0x20) as usize, u16_at(0x2E), u16_at(0x30), u16_at(0x32));
+    let section = |i: usize| shoff + i * shentsize;
+    let names = u32_at(section(shstrndx) + 16) as usize;
+    let find = |name: &str| (0..shnum).map(section).find(|&h| c_str(names + u32_at(h) as usize) == name);
+    let text = find(".ramtext").expect("a .ramtext section");
+    let (addr, size) = (u32_at(text + 12), u32_at(text + 20));
+    assert!(CCM.contains(&addr) && addr + size <= CCM.end && size > 0, ".ramtext at {addr:#x}, {size} B");
+
+    // Load addresses: the segment holding .ramtext is loaded in flash, overlapping no other segment's load range.
+    let (phoff, phentsize, phnum) = (u32_at(0x1C) as usize, u16_at(0x2A), u16_at(0x2C));
+    const PT_LOAD: u64 = 1;
+    let loads: Vec<(u64, u64, u64)> = (0..phnum)
+        .map(|i| phoff + i * phentsize)
+        .filter(|&p| u32_at(p) == PT_LOAD && u32_at(p + 16) > 0)
+        .map(|p| (u32_at(p + 8), u32_at(p + 12), u32_at(p + 16)))
+        .collect();
+    let &(_, lma, filesz) = loads.iter().find(|l| l.0 == addr).expect("a segment for .ramtext");
+    assert!(FLASH.contains(&lma) && lma + filesz <= FLASH.end && filesz == size, "loaded from {lma:#x}");
+    for &(vaddr, paddr, len) in &loads {
+        let disjoint = paddr + len <= lma || lma + filesz <= paddr;
+        assert!(vaddr == addr || disjoint, "the segment at {vaddr:#x} is loaded over .ramtext's image");
+    }
+
+    // The symbols placed there.
+    let symtab = find(".symtab").expect("symbols");
+    let strtab = section(u32_at(symtab + 24) as usize);
+    let (sym_off, sym_size) = (u32_at(symtab + 16) as usize, u32_at(symtab + 20) as usize);
+    let strings = u32_at(strtab + 16) as usize;
+    let in_ccm = |needle: &str| {
+        (sym_off..sym_off + sym_size).step_by(16).any(|s| {
+            let value = u32_at(s + 4) & !1;
+            c_str(strings + u32_at(s) as usize).contains(needle) && (addr..addr + size).contains(&value)
+        })
+    };
+    for needle in ["ADC1_2", "EkfCore$LT$T$GT$3rk4", "EkfCore$LT$T$GT$16bound_covariance"] {
+        assert!(in_ccm(needle), "{needle} is not in .ramtext");
+    }
+    println!("firmware: .ramtext {size} B of the 32 KiB CCM SRAM at {addr:#x}, loaded from {lma:#x}");
+    size
 }

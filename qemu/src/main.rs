@@ -12,6 +12,10 @@
 #![no_std]
 #![no_main]
 
+/// The firmware's loader of the code that runs from RAM, the same file.
+#[path = "../../src/bin/nanopos-fw/ram_code.rs"]
+mod ram_code;
+
 use core::fmt::Write as _;
 
 use cortex_m::peripheral::syst::SystClkSource;
@@ -206,6 +210,8 @@ fn compare_results(got: &Results, expected: &Results) -> bool {
 
 #[entry]
 fn main() -> ! {
+    // SAFETY: first thing, once: the sample path's RAM code (as on the board) before anything calls it.
+    unsafe { ram_code::load() };
     let mut core = cortex_m::Peripherals::take().unwrap_or_else(|| fail("core peripherals taken"));
     let Some(clock) = Clock::calibrate(&mut core.SYST) else { fail("instruction counting is not exact") };
     let vectors = Vectors::parse(VECTORS).unwrap_or_else(|_| fail("the embedded vectors file is damaged"));

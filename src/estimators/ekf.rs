@@ -621,6 +621,7 @@ impl<T: Real> EkfCore<T> {
     /// replaces: one copy a step, which the continuous filter's gate needs anyway) with `u` held; with
     /// `ys = (y_start, y_end, bow)` the continuous measurement, `y_start + (y_end - y_start) f + bow f (1 - f)` at the
     /// fraction `f` of the step.
+    #[cfg_attr(target_os = "none", link_section = ".ramtext.ekf_rk4")] // from RAM: src/bin/nanopos-fw/ram_code.rs
     fn rk4(&mut self, (z, p): &([T; 5], [T; 15]), u: T, ys: Option<(T, T, T)>) {
         let (h, h6, half) = (self.cfg.period, self.cfg.period6, T::of(0.5));
         let hh = h * half;
@@ -690,6 +691,7 @@ impl<T: Real> EkfCore<T> {
 
     /// Parameter variances within their floor and ceiling; a state variance below zero repaired, and counted in
     /// `repairs`.
+    #[cfg_attr(target_os = "none", link_section = ".ramtext.ekf_bound_covariance")]
     fn bound_covariance(&mut self, repairs: &mut u32) {
         // The continuous filter integrates the Riccati equation in one RK4 step per sample, and a state variance
         // swinging near zero can overshoot below it (on the board's triangle, 30 ms after the start, the x2 variance

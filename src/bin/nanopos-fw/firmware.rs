@@ -70,6 +70,8 @@ fn with_task<R>(f: impl FnOnce(&mut SampleTask) -> R) -> Option<R> {
 
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
+    // SAFETY: first thing, once; nothing in `.ramtext` has run (its interrupt is enabled further down).
+    unsafe { crate::ram_code::load() };
     let p = embassy_stm32::init(board::clocks());
     // The embassy time driver (TIM15) and the console's UART must not delay the sample interrupt.
     embassy_stm32::interrupt::TIM1_BRK_TIM15.set_priority(Priority::P1);
@@ -118,7 +120,9 @@ async fn main(spawner: Spawner) {
     spawner.spawn(console(parts.console, controller).expect("console task spawns once"));
 }
 
+/// Runs from CCM SRAM ([`crate::ram_code`]), loaded at start-up before this interrupt is enabled.
 #[interrupt]
+#[link_section = ".ramtext.adc1_2"]
 fn ADC1_2() {
     let start = DWT::cycle_count();
     cortex_m::interrupt::free(|cs| {

@@ -16,6 +16,8 @@
 mod board;
 #[cfg(target_os = "none")]
 mod firmware;
+#[cfg(target_os = "none")]
+mod ram_code;
 
 #[cfg(not(target_os = "none"))]
 fn main() {
