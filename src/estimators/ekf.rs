@@ -482,7 +482,7 @@ impl<T: Real> EkfCore<T> {
     /// the estimates of the two differ by 4e-7 at most (`hal-sim/tests/ekf.rs`, against the dense peer, which keeps
     /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 70 per substep, 150 for
     /// `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4 computed by parts (QEMU:
-    /// `hekf_f32` 2 638 -> 1 011 instructions).
+    /// `hekf_f32` 2 638 -> 1 011 instructions, 1 014 with the veneer to the covariance bounds in RAM).
     #[inline]
     fn predict(&mut self, u: T) {
         let c = &self.cfg;
