@@ -26,7 +26,7 @@
 //! so the f32 state is of order one; `m^2` and `eps` are invariant. `P` is stored symmetric (6 entries) and
 //! symmetrised by construction. Cost per update: 4 derivatives of about 70 flops (14 of them the two filters) and
 //! one division, 90 flops of stage arguments and 90 of the RK4 sum, 12 for the norm check: about 460 flops
-//! (QEMU: 828 instructions).
+//! (QEMU: 825 instructions).
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::{axpy, rk4_combine};
@@ -133,8 +133,8 @@ const XY: usize = 12;
 #[derive(Clone, Copy, Debug)]
 pub struct Crls<T> {
     cfg: CrlsConfig<T>,
-    /// The joint state the RK4 step integrates, in one array so that the step reads and writes it in place:
-    /// `theta` (3), packed `P` (6), the continuous `W_p` states of `u'` (3) and of `y'` (3); see [`THETA`].
+    /// The joint state the RK4 step integrates, as the one vector it steps: `theta` (3), packed `P` (6), the
+    /// continuous `W_p` states of `u'` (3) and of `y'` (3); see [`THETA`].
     x: [T; 15],
     /// `u'` of the previous sample (held over the step) and `y'` of the two previous samples.
     u_prev: T,
