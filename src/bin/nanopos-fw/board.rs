@@ -176,6 +176,9 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
             ..Default::default()
         },
     );
+    // Kept configured for good: the driver has no `Drop` today, but one that powered the ADC down would stop the
+    // sample path.
+    #[allow(clippy::forget_non_drop)]
     core::mem::forget(adc);
     let adc = pac::ADC1;
     adc.smpr().modify(|w| w.set_smp(PROBE_CHANNEL as usize, SampleTime::CYCLES6_5));

@@ -232,6 +232,8 @@ fn idle_status() -> Status<f32> {
 /// Hand `change` to the interrupt and wait until a sample applied it.
 async fn post(mut change: Change<f32>) {
     loop {
+        // The refused change comes back whole (a kilobyte, on this task's stack), to be posted again.
+        #[allow(clippy::result_large_err)]
         match with_task(|t| t.instrument.post(change)) {
             Some(Ok(())) => break,
             Some(Err(busy)) => change = busy.0,
