@@ -1,6 +1,6 @@
 //! The scalar the core is generic over: `f32` on the Cortex-M4F (single-precision FPU), `f64` on the host as the
 //! reference. Designs (filter coefficients, discretisations) are always computed in `f64` and then rounded once to
-//! the working scalar with [`Real::of`], so the f32 and f64 paths differ only by that rounding and by arithmetic.
+//! the working scalar with [`Scalar::of`], so the f32 and f64 paths differ only by that rounding and by arithmetic.
 
 use core::fmt::Debug;
 use core::ops::{AddAssign, Div, MulAssign, Neg, Sub, SubAssign};

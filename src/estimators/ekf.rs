@@ -13,7 +13,7 @@
 //!    (paper: 4, i.e. 40 kHz). The covariance goes through the Jacobian `Phi` of that RK4 map,
 //!    `P = Phi P Phi' + Qd`, where the paper and the SPEC integrate `P' = F P + P F' + Q` by the same RK4: both rules
 //!    are fourth-order, they agree per step to 2e-4 of the covariance's scale at the start and 1.3e-6 once converged
-//!    (plus 2 % of the process noise's small share), and this one costs a third. See [`EkfCore::predict`].
+//!    (plus 2 % of the process noise's small share), and this one costs a third. See `EkfCore::predict`.
 //! 2. Update with the sample `y_k`: `K = P H' / (H P H' + R_d)`, `chi += K (y_k - x1)`,
 //!    `P = (I - K H) P (I - K H)' + K R_d K'` (Joseph form), `R_d = R / T`.
 //!
