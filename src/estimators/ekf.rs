@@ -148,6 +148,10 @@ impl EkfDesign {
             q_xx: core::array::from_fn(|k| core::array::from_fn(|m| T::of(q_period(m + 2) / [5.0, 4.0, 3.0][k]))),
             period,
             period6: period / T::of(6.0),
+            bow_gain: {
+                let t = h * self.substeps.max(1) as f64;
+                T::of(-w * t * t / 2.0)
+            },
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -280,6 +284,8 @@ pub struct EkfConfig<T> {
     period: T,
     /// `period / 6`.
     period6: T,
+    /// `-W period^2 / 2`: the continuous filter's curvature term per unit of `x2'` (normalised).
+    bow_gain: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -322,13 +328,10 @@ impl EkfKind for Continuous {
     const NAME: &'static str = "ekf";
     #[inline]
     fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, Option<T>) {
-        let h = core.cfg.period;
         // The line through the samples misses the output's curvature, x1'' tau (tau - T) / 2; the model supplies
-        // x1'' (at the step's start), and the term vanishes at the samples.
-        let c = &core.cfg;
-        let z = &core.z;
-        let x1_dd = c.w * (-c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c.c2 * z[4] * u);
-        let bow = -x1_dd * h * h * T::of(0.5);
+        // x1'' = W x2' (at the step's start), and the term vanishes at the samples.
+        let c2u = core.cfg.c2 * u;
+        let bow = core.cfg.bow_gain * core.x2_rate(&core.z, c2u);
         let before = (core.z, core.p);
         core.rk4(&before, u, Some((y_prev, y, bow)));
         // Gate on the residual at the step's end against the discrete-equivalent innovation variance; an outlier
@@ -574,6 +577,13 @@ impl<T: Real> EkfCore<T> {
         }
     }
 
+    /// The model's `x2'` (normalised) at `z` with the input as `c2u = c2 u`: `-c0 z2 z0 - c1 z3 z1 + c2u z4`.
+    #[inline(always)]
+    fn x2_rate(&self, z: &[T; 5], c2u: T) -> T {
+        let c = &self.cfg;
+        -c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c2u * z[4]
+    }
+
     /// `(z', P')` at `(z, P)` with input `u` (as `c2 u`, the same in every stage), and for the continuous filter the
     /// measurement `y` at that instant. Written entry by entry: `F` has two non-zero rows, so `F P + P F'` is zero in
     /// the parameter block and `Q` is on the diagonal only (an added `+0.0` is an instruction: the compiler may not
@@ -583,6 +593,7 @@ impl<T: Real> EkfCore<T> {
         let c = &self.cfg;
         // Row 1 of F; row 0 is W e2.
         let f1 = [-c.c0 * z[2], -c.c1 * z[3], -c.c0 * z[0], -c.c1 * z[1], c2u];
+        // x2' is `Self::x2_rate`, here from the Jacobian row's products.
         let mut dz = [c.w * z[1], f1[0] * z[0] + f1[1] * z[1] + c2u * z[4], T::zero(), T::zero(), T::zero()];
         // M = F P: row 0 = W P[1, :], row 1 = f1 . P[:, j].
         let m0: [T; 5] = core::array::from_fn(|j| c.w * p[idx(1, j)]);
@@ -626,14 +637,14 @@ impl<T: Real> EkfCore<T> {
         let (h, h6, half) = (self.cfg.period, self.cfg.period6, T::of(0.5));
         let hh = h * half;
         let y_at = |frac: T| ys.map(|(a, b, bow)| a + (b - a) * frac + bow * frac * (T::one() - frac));
-        let u = self.cfg.c2 * u;
-        let (k1z, k1p) = self.derivative(z, p, u, y_at(T::zero()));
+        let c2u = self.cfg.c2 * u;
+        let (k1z, k1p) = self.derivative(z, p, c2u, y_at(T::zero()));
         let (z2, p2) = (axpy(z, &k1z, hh), axpy(p, &k1p, hh));
-        let (k2z, k2p) = self.derivative(&z2, &p2, u, y_at(half));
+        let (k2z, k2p) = self.derivative(&z2, &p2, c2u, y_at(half));
         let (z3, p3) = (axpy(z, &k2z, hh), axpy(p, &k2p, hh));
-        let (k3z, k3p) = self.derivative(&z3, &p3, u, y_at(half));
+        let (k3z, k3p) = self.derivative(&z3, &p3, c2u, y_at(half));
         let (z4, p4) = (axpy(z, &k3z, h), axpy(p, &k3p, h));
-        let (k4z, k4p) = self.derivative(&z4, &p4, u, y_at(T::one()));
+        let (k4z, k4p) = self.derivative(&z4, &p4, c2u, y_at(T::one()));
         rk4_combine(&mut self.z, z, [&k1z, &k2z, &k3z, &k4z], h6);
         rk4_combine(&mut self.p, p, [&k1p, &k2p, &k3p, &k4p], h6);
     }
