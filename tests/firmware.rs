@@ -15,18 +15,45 @@ struct Sizes {
     bss: u64,
 }
 
-fn section_sizes(elf: &[u8]) -> Sizes {
-    let u16_at = |o: usize| u16::from_le_bytes([elf[o], elf[o + 1]]) as usize;
-    let u32_at = |o: usize| u32::from_le_bytes(elf[o..o + 4].try_into().unwrap()) as u64;
-    assert_eq!(&elf[..5], b"\x7fELF\x01", "a 32-bit ELF");
-    let (shoff, shentsize, shnum) = (u32_at(0x20) as usize, u16_at(0x2E), u16_at(0x30));
+/// A little-endian 32-bit ELF, read in place: fields by offset, section headers by index.
+struct Elf<'a>(&'a [u8]);
+
+impl<'a> Elf<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        assert_eq!(&bytes[..6], b"\x7fELF\x01\x01", "a 32-bit little-endian ELF");
+        Elf(bytes)
+    }
+    fn u16_at(&self, o: usize) -> usize {
+        u16::from_le_bytes([self.0[o], self.0[o + 1]]) as usize
+    }
+    fn u32_at(&self, o: usize) -> u64 {
+        u32::from_le_bytes(self.0[o..o + 4].try_into().unwrap()) as u64
+    }
+    /// The NUL-terminated string at `o`.
+    fn str_at(&self, o: usize) -> &'a str {
+        let end = self.0[o..].iter().position(|&b| b == 0).unwrap();
+        std::str::from_utf8(&self.0[o..o + end]).unwrap()
+    }
+    /// Offsets of the section headers.
+    fn sections(&self) -> impl Iterator<Item = usize> + '_ {
+        let (shoff, shentsize, shnum) = (self.u32_at(0x20) as usize, self.u16_at(0x2E), self.u16_at(0x30));
+        (0..shnum).map(move |i| shoff + i * shentsize)
+    }
+    /// The header of the section named `name`.
+    fn section(&self, name: &str) -> Option<usize> {
+        let names_header = self.sections().nth(self.u16_at(0x32))?;
+        let names = self.u32_at(names_header + 16) as usize;
+        self.sections().find(|&h| self.str_at(names + self.u32_at(h) as usize) == name)
+    }
+}
+
+fn section_sizes(elf: &Elf) -> Sizes {
     const SHT_NOBITS: u64 = 8;
     const SHF_WRITE: u64 = 1;
     const SHF_ALLOC: u64 = 2;
     let mut sizes = Sizes::default();
-    for i in 0..shnum {
-        let h = shoff + i * shentsize;
-        let (kind, flags, size) = (u32_at(h + 4), u32_at(h + 8), u32_at(h + 20));
+    for h in elf.sections() {
+        let (kind, flags, size) = (elf.u32_at(h + 4), elf.u32_at(h + 8), elf.u32_at(h + 20));
         if flags & SHF_ALLOC == 0 {
             continue;
         }
@@ -57,7 +84,8 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     assert!(warnings.is_empty(), "firmware build warns:\n{stderr}");
 
     let elf_path: &Path = &target_dir.join("thumbv7em-none-eabihf/release/nanopos-fw");
-    let elf = std::fs::read(elf_path).expect("firmware ELF");
+    let bytes = std::fs::read(elf_path).expect("firmware ELF");
+    let elf = Elf::new(&bytes);
     let sizes = section_sizes(&elf);
     let (flash, ram) = (sizes.text + sizes.data, sizes.data + sizes.bss);
     let ccm_code = check_ram_code(&elf);
@@ -77,25 +105,16 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
 /// The sample interrupt runs from CCM SRAM (`src/bin/nanopos-fw/ram_code.rs`): `.ramtext` lies in the CCM, is
 /// loaded from flash where nothing else is loaded, and holds the interrupt and the EKFs' RK4 step. Returns its size
 /// (part of `text`, the flash figure; not of the static RAM, which counts SRAM1 and SRAM2).
-fn check_ram_code(elf: &[u8]) -> u64 {
+fn check_ram_code(elf: &Elf) -> u64 {
     const CCM: core::ops::Range<u64> = 0x1000_0000..0x1000_8000;
     const FLASH: core::ops::Range<u64> = 0x0800_0000..0x0808_0000;
-    let u16_at = |o: usize| u16::from_le_bytes([elf[o], elf[o + 1]]) as usize;
-    let u32_at = |o: usize| u32::from_le_bytes(elf[o..o + 4].try_into().unwrap()) as u64;
-    let c_str = |o: usize| {
-        let end = elf[o..].iter().position(|&b| b == 0).unwrap();
-        std::str::from_utf8(&elf[o..o + end]).unwrap()
-    };
-    let (shoff, shentsize, shnum, shstrndx) = (u32_at(0x20) as usize, u16_at(0x2E), u16_at(0x30), u16_at(0x32));
-    let section = |i: usize| shoff + i * shentsize;
-    let names = u32_at(section(shstrndx) + 16) as usize;
-    let find = |name: &str| (0..shnum).map(section).find(|&h| c_str(names + u32_at(h) as usize) == name);
-    let text = find(".ramtext").expect("a .ramtext section");
+    let u32_at = |o: usize| elf.u32_at(o);
+    let text = elf.section(".ramtext").expect("a .ramtext section");
     let (addr, size) = (u32_at(text + 12), u32_at(text + 20));
     assert!(CCM.contains(&addr) && addr + size <= CCM.end && size > 0, ".ramtext at {addr:#x}, {size} B");
 
     // Load addresses: the segment holding .ramtext is loaded in flash, overlapping no other segment's load range.
-    let (phoff, phentsize, phnum) = (u32_at(0x1C) as usize, u16_at(0x2A), u16_at(0x2C));
+    let (phoff, phentsize, phnum) = (u32_at(0x1C) as usize, elf.u16_at(0x2A), elf.u16_at(0x2C));
     const PT_LOAD: u64 = 1;
     let loads: Vec<(u64, u64, u64)> = (0..phnum)
         .map(|i| phoff + i * phentsize)
@@ -110,14 +129,14 @@ fn check_ram_code(elf: &[u8]) -> u64 {
     }
 
     // The symbols placed there.
-    let symtab = find(".symtab").expect("symbols");
-    let strtab = section(u32_at(symtab + 24) as usize);
+    let symtab = elf.section(".symtab").expect("symbols");
+    let strtab = elf.sections().nth(u32_at(symtab + 24) as usize).expect("the symbols' strings");
     let (sym_off, sym_size) = (u32_at(symtab + 16) as usize, u32_at(symtab + 20) as usize);
     let strings = u32_at(strtab + 16) as usize;
     let in_ccm = |needle: &str| {
         (sym_off..sym_off + sym_size).step_by(16).any(|s| {
             let value = u32_at(s + 4) & !1;
-            c_str(strings + u32_at(s) as usize).contains(needle) && (addr..addr + size).contains(&value)
+            elf.str_at(strings + u32_at(s) as usize).contains(needle) && (addr..addr + size).contains(&value)
         })
     };
     for needle in ["ADC1_2", "EkfCore$LT$T$GT$3rk4", "EkfCore$LT$T$GT$16bound_covariance"] {
