@@ -162,3 +162,92 @@ pub fn report(label: &str, h: &[Sample]) -> Report {
     eprintln!("{label} relock to 1%: {relock_s:?} s");
     Report { windows, relock_s }
 }
+
+/// The float64 reference's own data (`shared/golden/paper-reference.json`, "conventions"; regenerated bit for bit,
+/// checked against its fingerprint in `tests/plant.rs`): the ideal ZOH plant with Table I's parameters, the payload
+/// for one segment and none for the next, `y_k = x1_k + 1.25 nm n_k` with the reference's noise stream, no
+/// converters and no analog filters. The paper's experiment with nothing outside model (1): the data on which the
+/// estimators' own bias and the validation's noise floor can be seen.
+pub struct ReferenceData {
+    /// Command, V, held over sample `k`.
+    pub u: Vec<f64>,
+    /// Reading, um.
+    pub y: Vec<f64>,
+    /// The noise in `y`, um.
+    pub noise_um: Vec<f64>,
+    /// Samples per segment (the payload comes off at the start of the second).
+    pub segment: u64,
+}
+
+impl ReferenceData {
+    /// Sample period, s.
+    pub const T_S: f64 = 1e-4;
+    /// Probe noise, um RMS.
+    pub const NOISE_UM: f64 = 1.25e-3;
+
+    /// Two segments of `segment_s` each with `excitation` and the noise stream `seed` (the reference's: 1 for
+    /// PRBS, 2 for the triangle).
+    pub fn generate(excitation: nanopos_id::excitation::ExcitationDesign, seed: u64, segment_s: f64) -> Self {
+        use crate::noise::NormalStream;
+        use crate::plant::{Plant, PlantSettings};
+        let segment = (segment_s / Self::T_S).round() as u64;
+        let gen = excitation.design::<f64>(1.0 / Self::T_S);
+        let mut ex = nanopos_id::excitation::ExcitationState::default();
+        let mut plant = Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, segment));
+        let mut noise = NormalStream::new(seed);
+        let n = 2 * segment as usize;
+        let mut d =
+            Self { u: Vec::with_capacity(n), y: Vec::with_capacity(n), noise_um: Vec::with_capacity(n), segment };
+        for _ in 0..n {
+            let v = Self::NOISE_UM * noise.next_normal();
+            let u = gen.next(&mut ex);
+            d.y.push(plant.output_um() + v);
+            d.noise_um.push(v);
+            d.u.push(u);
+            plant.advance(u);
+        }
+        d
+    }
+
+    /// Sample times, s.
+    pub fn t(&self) -> Vec<f64> {
+        (0..self.u.len()).map(|k| k as f64 * Self::T_S).collect()
+    }
+
+    /// The truth in force at `t_s` (an estimate stamped at the segment's end still belongs to it).
+    pub fn truth(&self, t_s: f64) -> StageParams<f64> {
+        if t_s <= self.segment as f64 * Self::T_S {
+            StageParams::PAYLOAD
+        } else {
+            StageParams::NO_PAYLOAD
+        }
+    }
+
+    /// Run `est` on the data in `T` the way the pipeline feeds it without the replicas (no analog filters here):
+    /// raw `(u, y)` and both through the pre-filter `W_p`. Returns the estimates every 10 ms.
+    pub fn run<T: nanopos_id::Real, E: Estimator<T>>(&self, est: &mut E) -> Vec<Sample> {
+        use nanopos_id::estimator::FilteredSample;
+        use nanopos_id::filters::{PrefilterDesign, PrefilterState};
+        let pre = PrefilterDesign::default().design::<T>(Self::T_S);
+        let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
+        let every = (0.01 / Self::T_S).round() as usize;
+        let mut out = Vec::with_capacity(self.u.len() / every);
+        for (k, (&u, &y)) in self.u.iter().zip(&self.y).enumerate() {
+            let (u, y) = (T::of(u), T::of(y));
+            let (u_f, y_f) = (pre.update(&mut su, u), pre.update(&mut sy, y));
+            est.update(&FilteredSample { u, y, u_f, y_f });
+            if (k + 1) % every == 0 {
+                let t_s = (k + 1) as f64 * Self::T_S;
+                out.push(Sample { t_s, est: est.params().cast(), truth: self.truth(t_s) });
+            }
+        }
+        out
+    }
+
+    /// RMS of the noise over `[t0, t1)`, nm: the validation RMSE of a perfect model, the noise floor.
+    pub fn noise_rms_nm(&self, t0: f64, t1: f64) -> f64 {
+        let (k0, k1) = ((t0 / Self::T_S).round() as usize, (t1 / Self::T_S).round() as usize);
+        let w = &self.noise_um[k0..k1.min(self.noise_um.len())];
+        1e3 * (w.iter().map(|v| v * v).sum::<f64>() / w.len() as f64).sqrt()
+    }
+}
