@@ -239,8 +239,8 @@ where
 /// The smoothed triangle's payload change is too gentle for the gate (25x in `nu^2 / S`, within the per-sample
 /// spread): without drift detection nothing is detected and the filters relock slowly or not at all; with it, the
 /// change is seen about 0.24 s after it happens and the hybrid filter relocks within the 10 s goal. Measured
-/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous 74.41 s without (the reference's
-/// 74.4 s), 12.4 s with. Over seeds 3-6 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54 s; continuous 0.68, 1.19,
+/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous 74.25 s without (the reference's
+/// 74.4 s), 12.3 s with. Over seeds 3-6 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54 s; continuous 0.68, 1.19,
 /// 18.0, 0.57 s: the relock is a search through a landscape with little gradient, and its time varies.
 #[test]
 fn drift_detection_relocks_the_triangle() {
