@@ -1,11 +1,9 @@
 //! The hybrid EKF against the float64 reference, on the reference's own data (ideal ZOH plant, no analog filters).
 
-use hal_sim::noise::NormalStream;
-use hal_sim::plant::{Plant, PlantSettings};
-use nanopos_id::estimator::{Estimator, FilteredSample};
+use hal_sim::experiment::ReferenceData;
+use nanopos_id::estimator::Estimator;
 use nanopos_id::estimators::ekf::{Cekf, EkfDesign as HekfDesign, Hekf};
-use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
-use nanopos_id::filters::{PrefilterDesign, PrefilterState};
+use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::{Real, StageParams};
 
 /// Run an estimator on the reference's data (`segment_s` per payload state) and return estimates every 10 ms.
@@ -25,25 +23,8 @@ fn on_reference_data_health<T: Real, E: Estimator<T>>(
     seed: u64,
     segment_s: f64,
 ) -> (Vec<(f64, StageParams<f64>)>, nanopos_id::estimator::Health) {
-    let seg = (segment_s * 1e4) as u64;
-    let gen = excitation.design::<f64>(1e4);
-    let mut ex = ExcitationState::default();
-    let mut plant = Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, seg));
-    let mut noise = NormalStream::new(seed);
-    let pre = PrefilterDesign::default().design::<T>(1e-4);
-    let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
-    let mut out = Vec::new();
-    for k in 0..2 * seg {
-        let y = plant.output_um() + 1.25e-3 * noise.next_normal();
-        let u = gen.next(&mut ex);
-        let (uf, yf) = (pre.update(&mut su, T::of(u)), pre.update(&mut sy, T::of(y)));
-        est.update(&FilteredSample { u: T::of(u), y: T::of(y), u_f: uf, y_f: yf });
-        plant.advance(u);
-        if (k + 1) % 100 == 0 {
-            out.push(((k + 1) as f64 * 1e-4, est.params().cast()));
-        }
-    }
-    (out, est.health())
+    let h = ReferenceData::generate(excitation, seed, segment_s).run(&mut est);
+    (h.iter().map(|s| (s.t_s, s.est)).collect(), est.health())
 }
 
 fn window_rel_errors(h: &[(f64, StageParams<f64>)], t0: f64, t1: f64, truth: &StageParams<f64>) -> [f64; 3] {
