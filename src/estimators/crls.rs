@@ -142,7 +142,7 @@ pub struct Crls<T> {
     /// The joint state the RK4 step integrates, as the one vector it steps: `theta` (3), packed `P` (6), the
     /// continuous `W_p` states of `u'` (3) and of `y'` (3); see [`THETA`].
     x: [T; 15],
-    /// `u'` of the previous sample (held over the step) and `y'` of the two previous samples.
+    /// `u'` of the previous sample (held over the step) and `y'` of the three previous samples.
     u_prev: T,
     y_prev: [T; 3],
     adapting: bool,
