@@ -35,7 +35,7 @@
 //! (QEMU: 825 instructions).
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -255,13 +255,10 @@ impl<T: Real> Estimator<T> for Crls<T> {
     fn params(&self) -> StageParams<T> {
         let s = &self.cfg.scale;
         let theta = &self.x[THETA..THETA + 3];
-        // One RK4 step per sample of its pre-filter turns the regression's `s` at `w` into `s (1 + (w T)^4 / 120)`
-        // (the step's dispersion, as in the continuous EKF), so the fit lands on `a0 (1 + (w T)^4 / 60)`: +1.4e-4
-        // at 483 Hz. Undone here, on `a0` and `b0` (the DC gain `b0 / a0` was right), not per sample.
-        let a0 = theta[2] * s[2];
-        let turn = a0 * self.cfg.h * self.cfg.h;
-        let back = T::one() - turn * turn / T::of(60.0);
-        StageParams { b0: theta[0] * s[0] * back, a1: theta[1] * s[1], a0: a0 * back }
+        // One RK4 step per sample of its pre-filter turns the regression's `s` at `w` into `s (1 + (w T)^4 / 120)`,
+        // the same dispersion as the continuous EKF's model: undone the same way.
+        let fitted = StageParams { b0: theta[0] * s[0], a1: theta[1] * s[1], a0: theta[2] * s[2] };
+        undo_rk4_dispersion(fitted, self.cfg.h)
     }
 
     fn param_covariance(&self) -> [[T; 3]; 3] {

@@ -53,7 +53,7 @@
 pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion};
 use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
@@ -159,11 +159,6 @@ impl EkfDesign {
             },
             half_period: period * T::of(0.5),
             c0w: T::of(p.a0),
-            dispersion: {
-                let t = h * self.substeps.max(1) as f64;
-                let turn = p.a0 * t * t; // (w T)^2 at the initial a0
-                T::of(turn * turn / 60.0)
-            },
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -302,8 +297,6 @@ pub struct EkfConfig<T> {
     half_period: T,
     /// `a0_init` (normalised `c0 W`): `x2''` from `x2` and `x2'` with the parameters and `u` held.
     c0w: T,
-    /// `(a0_init period^2)^2 / 60`: one RK4 step's dispersion on `a0`, per `z_a0^2` (see `Continuous::reported`).
-    dispersion: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -316,11 +309,10 @@ pub trait EkfKind: Copy + core::fmt::Debug + Default {
     /// normalised innovation `nu^2 / S` exceeds `gate_nis` is not used. Returns the innovation and, when the sample
     /// was used, its normalised square.
     fn step<T: Real>(core: &mut EkfCore<T>, u: T, y_prev: T, y: T, gate_nis: T) -> (T, Option<T>);
-    /// Model (1)'s parameters from the filter's (normalised) state.
+    /// Model (1)'s parameters from the filter's: its model's as they are.
     #[inline]
     fn reported<T: Real>(core: &EkfCore<T>) -> StageParams<T> {
-        let (i, z) = (&core.cfg.initial, &core.z);
-        StageParams { a0: z[2] * T::of(i.a0), a1: z[3] * T::of(i.a1), b0: z[4] * T::of(i.b0) }
+        core.model_params()
     }
 }
 
@@ -374,16 +366,12 @@ impl EkfKind for Continuous {
         (nu, Some(nu * nu / s))
     }
 
-    /// One RK4 step of `T` turns an oscillation at `w` by `w T (1 - (w T)^4 / 120)`: the filter's model runs slow,
-    /// and it settles where that matches the data, on `a0 (1 + (w T)^4 / 60)` (+1.4e-4 at 483 Hz, measured +1.0e-4
-    /// before the curvature term moved to the step's middle). Reported: `a0` and `b0` scaled back by
-    /// `1 - (a0 T^2)^2 / 60` (RK4 keeps a fixed point where it is, so the DC gain `b0 / a0` was right). The hybrid
-    /// filter's substeps of `T / 4` make its share 256 times smaller (5e-7), below its other errors: not applied.
+    /// The model's, with one RK4 step's dispersion undone ([`undo_rk4_dispersion`]: +1.4e-4 on `a0` at 483 Hz,
+    /// measured +1.0e-4 before the curvature term moved to the step's middle). The hybrid filter's substeps of
+    /// `T / 4` make its share 256 times smaller (5e-7), below its other errors: not applied.
     #[inline]
     fn reported<T: Real>(core: &EkfCore<T>) -> StageParams<T> {
-        let (i, z) = (&core.cfg.initial, &core.z);
-        let back = T::one() - core.cfg.dispersion * z[2] * z[2];
-        StageParams { a0: z[2] * T::of(i.a0) * back, a1: z[3] * T::of(i.a1), b0: z[4] * T::of(i.b0) * back }
+        undo_rk4_dispersion(core.model_params(), core.cfg.period)
     }
 }
 
@@ -616,6 +604,12 @@ impl<T: Real> EkfCore<T> {
         for m in 0..3 {
             p[idx(m + 2, m + 2)] += c.q_period[m + 2];
         }
+    }
+
+    /// The model's parameters, from the normalised state.
+    fn model_params(&self) -> StageParams<T> {
+        let (i, z) = (&self.cfg.initial, &self.z);
+        StageParams { a0: z[2] * T::of(i.a0), a1: z[3] * T::of(i.a1), b0: z[4] * T::of(i.b0) }
     }
 
     /// The model's `x2'` (normalised) at `z` with the input as `c2u = c2 u`: `-c0 z2 z0 - c1 z3 z1 + c2u z4`.
