@@ -35,21 +35,16 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         std::fs::create_dir_all(d)
             .map_err(|e| CliError(format!("{}: cannot create: {}", d.display(), super::io_reason(&e))))?;
     }
-    // Both inputs' simulations at once (one thread each); the identifications then use every core themselves.
-    let inputs = [(Scenario::Prbs, "prbs"), (Scenario::Triangle, "triangle")];
-    let simulated: Vec<Result<Simulated, CliError>> = std::thread::scope(|s| {
-        let jobs: Vec<_> =
-            inputs.iter().map(|&(scenario, _)| s.spawn(move || simulate(scenario, duration_s))).collect();
-        jobs.into_iter().map(|j| j.join().expect("a simulation does not panic")).collect()
+    // Each input on a thread of its own (simulate, then both precisions' identifications at once); the
+    // identifications also spread their estimators over the cores. The outputs are written afterwards, in order.
+    let inputs = ["prbs", "triangle"];
+    let identified: Vec<Result<(Identified, Identified), CliError>> = std::thread::scope(|s| {
+        let jobs: Vec<_> = inputs.iter().map(|&input| s.spawn(move || identify_input(input, duration_s))).collect();
+        jobs.into_iter().map(|j| j.join().expect("an identification does not panic")).collect()
     });
     let mut runs = Vec::new();
-    for ((_, input), sim) in inputs.into_iter().zip(simulated) {
-        let Simulated { t, u, y, truth } = sim?;
-        let source = format!("paper/{input}");
-        let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
-        let tuning = Tuning::preset(input).expect("preset exists");
-        let r64 = identify_in::<f64>(&rec, &NAMES, &tuning, &[])?;
-        let r32 = identify_in::<f32>(&rec, &NAMES, &tuning, &[])?;
+    for (input, result) in inputs.into_iter().zip(identified) {
+        let (r64, r32) = result?;
         if let Some(d) = out_dir {
             let mut f = OutputFile::create(&d.join(format!("{input}-summary.json")))?;
             f.writer().write_all(summary_json(&r64).as_bytes()).map_err(|e| f.write_error(e))?;
@@ -59,6 +54,20 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         runs.push(PaperRun { input, f64: r64, f32: r32, t_change: duration_s / 2.0 });
     }
     Ok(runs)
+}
+
+/// `input` (`prbs` or `triangle`, each with the tuning of its name) simulated and identified in f64 and f32.
+fn identify_input(input: &'static str, duration_s: f64) -> Result<(Identified, Identified), CliError> {
+    let scenario = if input == "prbs" { Scenario::Prbs } else { Scenario::Triangle };
+    let Simulated { t, u, y, truth } = simulate(scenario, duration_s)?;
+    let source = format!("paper/{input}");
+    let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
+    let tuning = Tuning::preset(input).expect("preset exists");
+    std::thread::scope(|s| {
+        let r32 = s.spawn(|| identify_in::<f32>(&rec, &NAMES, &tuning, &[]));
+        let r64 = identify_in::<f64>(&rec, &NAMES, &tuning, &[]);
+        Ok((r64?, r32.join().expect("an identification does not panic")?))
+    })
 }
 
 /// One simulated run: time, command, reading, and the truth's `a0`, `a1`, `b0` (the columns `identify` reads).
