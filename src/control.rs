@@ -415,8 +415,8 @@ mod tests {
         assert_eq!(p("tune ekf q"), Ok(Command::Tune { key: TuningKey::EkfQ, values: None }));
         // Out of range parses: `Tuning::set` refuses it with the range (the console's test).
         assert_eq!(
-            p("tune ekf reopen 1000"),
-            Ok(Command::Tune { key: TuningKey::EkfReopen, values: Some([1000.0, 0.0, 0.0, 0.0, 0.0]) })
+            p("tune ekf reopen 5000"),
+            Ok(Command::Tune { key: TuningKey::EkfReopen, values: Some([5000.0, 0.0, 0.0, 0.0, 0.0]) })
         );
     }
 

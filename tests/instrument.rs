@@ -268,7 +268,7 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "tune ekf q 1 2 3",
         "tune rls gamma x",
         // Parse, but out of range.
-        "tune ekf reopen 1000",
+        "tune ekf reopen 5000",
         "tune ekf q 1 1 -1 1 1",
         "tune initial 5e5 70 0",
     ];
@@ -283,8 +283,8 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "error: output limits need min_v < max_v, safe_v between them, and a positive slew limit"
     );
     assert_eq!(
-        lab.send("tune ekf reopen 1000\n").trim_end(),
-        "error: word 4: 1000: between 1 and 100 (the variance ceiling)"
+        lab.send("tune ekf reopen 5000\n").trim_end(),
+        "error: word 4: 5000: between 1 and 500 (the variance ceiling)"
     );
     assert_eq!(lab.send("tune ekf q 1 1 -1 1 1\n").trim_end(), "error: word 6: -1: must be a positive number");
     assert_eq!(lab.send("tune initial 5e5 70 0\n").trim_end(), "error: word 5: 0: must be a positive number");

@@ -19,7 +19,7 @@
 //! gate_sigma = 5.0               # innovation gate (relative to the running level)
 //! change_samples = 20            # gated samples in a row that mean a plant change (0: off, gating off too)
 //! drift_ratio = 4.0              # short- over long-run nu^2/S that means a gentle change (0: off; else >= 1)
-//! reopen = 100.0                 # parameter variances after a drift, times P0 (1 to 100)
+//! reopen = 500.0                 # parameter variances after a drift, times P0 (1 to 500)
 //! pe_floor_v2 = 1e-6             # input power below which the parameters freeze
 //! [arx]
 //! lambda = 0.9998                # forgetting per sample
@@ -173,7 +173,7 @@ mod tests {
             ("[arx]\nlambda = 1.5\n", "[arx] lambda = 1.5: must be in (0, 1]"),
             ("[ekf\n", "t.toml:1:"),
             ("[ekf]\ndrift_ratio = 0.5\n", "[ekf] drift_ratio = 0.5: 0 (off) or at least 1"),
-            ("[ekf]\nreopen = 1000\n", "[ekf] reopen = 1000: between 1 and 100 (the variance ceiling)"),
+            ("[ekf]\nreopen = 5000\n", "[ekf] reopen = 5000: between 1 and 500 (the variance ceiling)"),
             ("initial = [5e5, 70, -6e6]\n", "t.toml: initial = -6000000: must be a positive number"),
             ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
         ];

@@ -199,13 +199,14 @@ fn crls_on_the_full_board_in_f64_and_f32() {
     assert!(d.iter().all(|x| x.abs() < 1e-4), "{d:?}");
 }
 
-/// Relock after the payload change at 100 s on the reference's triangle data: `a0` and `b0` within 1 % of the truth.
-fn triangle_relock<K: nanopos_id::estimators::ekf::EkfKind>(design: &HekfDesign) -> (Option<f64>, u32)
+/// Relock after the payload change at 100 s on the reference's triangle data with noise seed `seed`: `a0` and
+/// `b0` within 1 % of the truth for good; and the number of changes detected.
+fn triangle_relock<K: nanopos_id::estimators::ekf::EkfKind>(design: &HekfDesign, seed: u64) -> (Option<f64>, u32)
 where
     nanopos_id::estimators::ekf::Ekf<f64, K>: Estimator<f64>,
 {
     let est = nanopos_id::estimators::ekf::Ekf::<f64, K>::new(design.design());
-    let (h, health) = on_reference_data_health::<f64, _>(est, ExcitationDesign::PAPER_TRIANGLE, 2, 100.0);
+    let (h, health) = on_reference_data_health::<f64, _>(est, ExcitationDesign::PAPER_TRIANGLE, seed, 100.0);
     let samples: Vec<hal_sim::experiment::Sample> = h
         .iter()
         .map(|&(t_s, est)| hal_sim::experiment::Sample {
@@ -217,30 +218,65 @@ where
     (hal_sim::experiment::relock_time(&samples, 100.0, 0.01), health.changes_detected)
 }
 
+/// The median of relock times, `never` counting as infinite.
+fn median_relock(times: &[(Option<f64>, u32)]) -> f64 {
+    let mut t: Vec<f64> = times.iter().map(|(t, _)| t.unwrap_or(f64::INFINITY)).collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
 /// The smoothed triangle's payload change is too gentle for the gate (25x in `nu^2 / S`, within the per-sample
 /// spread): without drift detection nothing is detected and the filters relock slowly or not at all; with it, the
-/// change is seen about 0.24 s after it happens and the hybrid filter relocks within the 10 s goal. Measured
-/// (seed 2, the reference's): hybrid 74.25 s without, 7.6 s with; continuous 74.25 s without (the reference's
-/// 74.4 s), 12.3 s with. Over seeds 3-8 with drift detection: hybrid 0.9, 19.4, 16.7, 0.54, 26.1, 14.9 s;
-/// continuous 0.68, 1.19, 18.0, 0.57, 0.46, 17.1 s (medians over seeds 2-8: hybrid 14.9 s, continuous 1.2 s): the
-/// relock is a search through a landscape with little gradient, and its time varies. After the change the
-/// triangle drives `a1` to about +200 % and `b0` comes back with it; reopening `a1` only to `P0` was tried and was
-/// slower on six of the seven seeds (hybrid 15.1, 2.2, 71, 70, 1.8, 69, 39 s).
+/// change is seen about 0.24 s after it happens and the parameter covariance reopened to 500 `P0`. The relock time
+/// varies from one noise seed to the next (right after the reopening the linearisation guesses, and where it
+/// guesses wrong `a1` swings far and `b0` takes tens of seconds to follow it back), so the goal (10 s) is held on
+/// the median over eleven seeds, 2 (the reference's) to 12. Measured, with / without detection: hybrid median
+/// 1.0 / 69.4 s, continuous 1.3 / 69.4 s (with the earlier reopening to 100 `P0`: hybrid 14.7 s); on seed 2 hybrid
+/// 1.0 s, continuous 9.1 s (74.25 s without, the reference's own 74.4 s). Over seeds 2-50 with detection, hybrid /
+/// continuous: medians 0.8 / 1.2 s, 6 / 5 of 49 seeds over 10 s, the slowest 27 / 25 s (at 100 `P0`: 7.7 / 4.9 s,
+/// 20 / 19 of 49 over 10 s).
 #[test]
 fn drift_detection_relocks_the_triangle() {
     use nanopos_id::estimators::ekf::{Continuous, Hybrid};
     let with = HekfDesign::paper(HekfDesign::Q1);
     let without =
         HekfDesign { health: nanopos_id::estimators::ekf::EkfHealthDesign { drift_ratio: 0.0, ..with.health }, ..with };
-    let hybrid = [triangle_relock::<Hybrid>(&with), triangle_relock::<Hybrid>(&without)];
-    let continuous = [triangle_relock::<Continuous>(&with), triangle_relock::<Continuous>(&without)];
-    eprintln!("triangle relock (s, changes detected), with and without drift detection: hybrid {hybrid:?}, continuous {continuous:?}");
-    assert_eq!([hybrid[0].1, hybrid[1].1, continuous[0].1, continuous[1].1], [1, 0, 1, 0]);
-    assert!(hybrid[0].0.is_some_and(|t| t <= 10.0), "the goal: {hybrid:?}");
-    assert!(hybrid[1].0.is_some_and(|t| t > 30.0), "{hybrid:?}");
-    // The continuous filter misses the 10 s goal on this seed, but still relocks six times faster.
-    assert!(continuous[0].0.is_some_and(|t| t <= 15.0), "{continuous:?}");
-    assert!(continuous[1].0.is_some_and(|t| t > 30.0), "{continuous:?}");
+    let seeds = 2..=12;
+    let runs: Vec<[(Option<f64>, u32); 4]> = std::thread::scope(|s| {
+        let jobs: Vec<_> = seeds
+            .clone()
+            .map(|seed| {
+                s.spawn(move || {
+                    [
+                        triangle_relock::<Hybrid>(&with, seed),
+                        triangle_relock::<Hybrid>(&without, seed),
+                        triangle_relock::<Continuous>(&with, seed),
+                        triangle_relock::<Continuous>(&without, seed),
+                    ]
+                })
+            })
+            .collect();
+        jobs.into_iter().map(|j| j.join().unwrap()).collect()
+    });
+    let column = |i: usize| runs.iter().map(|r| r[i]).collect::<Vec<_>>();
+    let [hybrid, hybrid_off, continuous, continuous_off] = [0, 1, 2, 3].map(column);
+    for (name, r) in [
+        ("hybrid", &hybrid),
+        ("hybrid, no detection", &hybrid_off),
+        ("continuous", &continuous),
+        ("continuous, no detection", &continuous_off),
+    ] {
+        let times: Vec<String> = r.iter().map(|(t, _)| t.map_or("never".into(), |t| format!("{t:.1}"))).collect();
+        eprintln!("triangle relock, seeds {seeds:?}, {name}: median {:.1} s [{}]", median_relock(r), times.join(" "));
+    }
+    // One change detected in every run with detection, none without.
+    assert!(hybrid.iter().chain(&continuous).all(|r| r.1 == 1), "{hybrid:?} {continuous:?}");
+    assert!(hybrid_off.iter().chain(&continuous_off).all(|r| r.1 == 0), "{hybrid_off:?} {continuous_off:?}");
+    // The goal, and the several-fold cut (SPEC 10).
+    assert!(median_relock(&hybrid) <= 10.0 && median_relock(&continuous) <= 10.0, "{hybrid:?} {continuous:?}");
+    assert!(median_relock(&hybrid_off) > 30.0 && median_relock(&continuous_off) > 30.0);
+    // The reference's own seed.
+    assert!(hybrid[0].0.is_some_and(|t| t <= 10.0) && continuous[0].0.is_some_and(|t| t <= 10.0));
 }
 
 /// The dense peer (nalgebra, full `F P + P F'`, full Joseph form) computes the same filter as the structured one:

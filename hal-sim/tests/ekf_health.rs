@@ -115,7 +115,8 @@ fn without_excitation_the_parameters_freeze_and_the_covariance_stays_bounded() {
     assert_eq!(est.params(), p_freeze, "frozen parameters do not move in 60 s");
     let c = est.covariance();
     for i in 2..5 {
-        assert!(c[i][i] <= 100.0 * 10.0 * EkfDesign::Q2[i] * (1.0 + 1e-9), "variance {i} above the ceiling");
+        let ceiling = EkfDesign::default().health.ceiling;
+        assert!(c[i][i] <= ceiling * 10.0 * EkfDesign::Q2[i] * (1.0 + 1e-9), "variance {i} above the ceiling");
     }
 }
 

@@ -15,7 +15,7 @@
 //! | `ekf gate_sigma` | innovation gate, relative to the running level | positive |
 //! | `ekf change_samples` | gated samples in a row that mean a change (0: off, gating off too) | whole, 0 or more |
 //! | `ekf drift_ratio` | short- over long-run `nu^2/S` that means a gentle change | 0 (off) or at least 1 |
-//! | `ekf reopen` | parameter variances after a drift, times `P0` | 1 to the variance ceiling (100) |
+//! | `ekf reopen` | parameter variances after a drift, times `P0` | 1 to the variance ceiling (500) |
 //! | `ekf pe_floor_v2` | input power below which the parameters freeze, V^2 | 0 or more |
 //! | `arx lambda` | forgetting per sample | in (0, 1] |
 //! | `arx max_trace` | windup bound on `trace F` | positive |
@@ -352,7 +352,7 @@ mod tests {
             (TuningKey::EkfSubsteps, &[2.5], 0, Expected::Substeps),
             (TuningKey::EkfChangeSamples, &[-1.0], 0, Expected::Whole),
             (TuningKey::EkfDriftRatio, &[0.5], 0, Expected::DriftRatio),
-            (TuningKey::EkfReopen, &[1000.0], 0, Expected::Reopen { ceiling: 100.0 }),
+            (TuningKey::EkfReopen, &[5000.0], 0, Expected::Reopen { ceiling: 500.0 }),
             (TuningKey::EkfPeFloor, &[f64::INFINITY], 0, Expected::NonNegative),
             (TuningKey::ArxLambda, &[1.5], 0, Expected::Forgetting),
         ];
