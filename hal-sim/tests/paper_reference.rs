@@ -33,6 +33,7 @@ fn figures(data: &ReferenceData, t: &[f64], h: &[Sample]) -> [Figures; 2] {
 }
 
 /// The goals one estimator is held to.
+#[derive(Clone, Copy)]
 struct Goals {
     /// a0 and b0, relative.
     a0_b0: f64,
