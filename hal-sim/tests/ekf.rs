@@ -234,7 +234,8 @@ fn median_relock(times: &[(Option<f64>, u32)]) -> f64 {
 /// 1.0 / 69.4 s, continuous 1.3 / 69.4 s (with the earlier reopening to 100 `P0`: hybrid 14.7 s); on seed 2 hybrid
 /// 1.0 s, continuous 9.1 s (74.25 s without, the reference's own 74.4 s). Over seeds 2-50 with detection, hybrid /
 /// continuous: medians 0.8 / 1.2 s, 6 / 5 of 49 seeds over 10 s, the slowest 27 / 25 s (at 100 `P0`: 7.7 / 4.9 s,
-/// 20 / 19 of 49 over 10 s).
+/// 20 / 19 of 49 over 10 s). Tried and worse, over seeds 2-50: `a1` reopened narrower than `a0` and `b0` (100 `P0`:
+/// 12 / 15 of 49 over 10 s; 10 `P0`: 21 / 28), as at the earlier width (to `P0`: slower on six of seeds 2-8).
 #[test]
 fn drift_detection_relocks_the_triangle() {
     use nanopos_id::estimators::ekf::{Continuous, Hybrid};
