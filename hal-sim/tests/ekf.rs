@@ -8,23 +8,13 @@ use nanopos_id::{Real, StageParams};
 
 /// Run an estimator on the reference's data (`segment_s` per payload state) and return estimates every 10 ms.
 fn on_reference_data<T: Real, E: Estimator<T>>(
-    est: E,
-    excitation: ExcitationDesign,
-    seed: u64,
-    segment_s: f64,
-) -> Vec<(f64, StageParams<f64>)> {
-    on_reference_data_health(est, excitation, seed, segment_s).0
-}
-
-/// [`on_reference_data`], also returning the estimator's health at the end.
-fn on_reference_data_health<T: Real, E: Estimator<T>>(
     mut est: E,
     excitation: ExcitationDesign,
     seed: u64,
     segment_s: f64,
-) -> (Vec<(f64, StageParams<f64>)>, nanopos_id::estimator::Health) {
+) -> Vec<(f64, StageParams<f64>)> {
     let h = ReferenceData::generate(excitation, seed, segment_s).run(&mut est);
-    (h.iter().map(|s| (s.t_s, s.est)).collect(), est.health())
+    h.iter().map(|s| (s.t_s, s.est)).collect()
 }
 
 fn window_rel_errors(h: &[(f64, StageParams<f64>)], t0: f64, t1: f64, truth: &StageParams<f64>) -> [f64; 3] {
@@ -205,16 +195,9 @@ fn triangle_relock<K: nanopos_id::estimators::ekf::EkfKind>(design: &HekfDesign,
 where
     nanopos_id::estimators::ekf::Ekf<f64, K>: Estimator<f64>,
 {
-    let est = nanopos_id::estimators::ekf::Ekf::<f64, K>::new(design.design());
-    let (h, health) = on_reference_data_health::<f64, _>(est, ExcitationDesign::PAPER_TRIANGLE, seed, 100.0);
-    let samples: Vec<hal_sim::experiment::Sample> = h
-        .iter()
-        .map(|&(t_s, est)| hal_sim::experiment::Sample {
-            t_s,
-            est,
-            truth: if t_s <= 100.0 { StageParams::PAYLOAD } else { StageParams::NO_PAYLOAD },
-        })
-        .collect();
+    let mut est = nanopos_id::estimators::ekf::Ekf::<f64, K>::new(design.design());
+    let samples = ReferenceData::generate(ExcitationDesign::PAPER_TRIANGLE, seed, 100.0).run(&mut est);
+    let health = est.health();
     (hal_sim::experiment::relock_time(&samples, 100.0, 0.01), health.changes_detected)
 }
 

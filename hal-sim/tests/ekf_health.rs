@@ -114,8 +114,8 @@ fn without_excitation_the_parameters_freeze_and_the_covariance_stays_bounded() {
     assert!(delay_s < 0.2 && drift < 1e-3);
     assert_eq!(est.params(), p_freeze, "frozen parameters do not move in 60 s");
     let c = est.covariance();
+    let ceiling = EkfDesign::default().health.ceiling;
     for i in 2..5 {
-        let ceiling = EkfDesign::default().health.ceiling;
         assert!(c[i][i] <= ceiling * 10.0 * EkfDesign::Q2[i] * (1.0 + 1e-9), "variance {i} above the ceiling");
     }
 }

@@ -37,13 +37,16 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
     }
     // Each input on a thread of its own (simulate, then both precisions' identifications at once); the
     // identifications also spread their estimators over the cores. The outputs are written afterwards, in order.
-    let inputs = ["prbs", "triangle"];
+    let inputs = [(Scenario::Prbs, "prbs"), (Scenario::Triangle, "triangle")];
     let identified: Vec<Result<(Identified, Identified), CliError>> = std::thread::scope(|s| {
-        let jobs: Vec<_> = inputs.iter().map(|&input| s.spawn(move || identify_input(input, duration_s))).collect();
+        let jobs: Vec<_> = inputs
+            .iter()
+            .map(|&(scenario, input)| s.spawn(move || identify_input(scenario, input, duration_s)))
+            .collect();
         jobs.into_iter().map(|j| j.join().expect("an identification does not panic")).collect()
     });
     let mut runs = Vec::new();
-    for (input, result) in inputs.into_iter().zip(identified) {
+    for ((_, input), result) in inputs.into_iter().zip(identified) {
         let (r64, r32) = result?;
         if let Some(d) = out_dir {
             let mut f = OutputFile::create(&d.join(format!("{input}-summary.json")))?;
@@ -56,9 +59,8 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
     Ok(runs)
 }
 
-/// `input` (`prbs` or `triangle`, each with the tuning of its name) simulated and identified in f64 and f32.
-fn identify_input(input: &'static str, duration_s: f64) -> Result<(Identified, Identified), CliError> {
-    let scenario = if input == "prbs" { Scenario::Prbs } else { Scenario::Triangle };
+/// `scenario` simulated and identified in f64 and f32 with the tuning preset `input`.
+fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(Identified, Identified), CliError> {
     let Simulated { t, u, y, truth } = simulate(scenario, duration_s)?;
     let source = format!("paper/{input}");
     let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
