@@ -112,11 +112,25 @@ pub fn rel_errors(est: &StageParams<f64>, truth: &StageParams<f64>) -> [f64; 3] 
 /// Seconds after `t_change` until `a0` and `b0` are within `tol` (relative) of the truth for the rest of the
 /// history, or `None` if they never settle.
 pub fn relock_time(h: &[Sample], t_change: f64, tol: f64) -> Option<f64> {
+    settled_after(h, t_change, |s| {
+        let e = rel_errors(&s.est, &s.truth);
+        e[0].abs() <= tol && e[2].abs() <= tol
+    })
+}
+
+/// Seconds after `t_change` until `a0` and `b0` are within `tol` (relative) of their own means over `[t0, t1)` for
+/// the rest of the history: the relock where the truth is unknown, or where the model cannot reach it (the full
+/// board's triangle, whose `b0` the second mode biases by +2.9 %). `None` if they never settle.
+pub fn settle_time(h: &[Sample], t_change: f64, (t0, t1): (f64, f64), tol: f64) -> Option<f64> {
+    let (m, _) = window_mean(h, t0, t1);
+    settled_after(h, t_change, |s| (s.est.a0 / m.a0 - 1.0).abs() <= tol && (s.est.b0 / m.b0 - 1.0).abs() <= tol)
+}
+
+/// Seconds after `t_change` from which `ok` holds for every later sample.
+fn settled_after(h: &[Sample], t_change: f64, ok: impl Fn(&Sample) -> bool) -> Option<f64> {
     let mut settled_at = None;
     for s in h.iter().filter(|s| s.t_s > t_change) {
-        let e = rel_errors(&s.est, &s.truth);
-        let ok = e[0].abs() <= tol && e[2].abs() <= tol;
-        match (ok, settled_at) {
+        match (ok(s), settled_at) {
             (true, None) => settled_at = Some(s.t_s),
             (false, Some(_)) => settled_at = None,
             _ => {}

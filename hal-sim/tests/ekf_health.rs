@@ -216,3 +216,54 @@ fn the_wrong_tuning_for_the_input_is_reported_not_turned_into_nan() {
     }
     assert!(rms[1] > 2.0 * rms[0], "Q2's misfit shows in its innovations: {rms:?}");
 }
+
+/// On the full board the payload comes off with a kick (the disturbance bump: 300 um/s, a ring of about 0.1 um at
+/// the new resonance). The gate sees it and reports a change; reopening only the parameters then let the filter
+/// explain the ring by moving them (b0 to -105 % on the triangle, 0.1 s after the change) and the triangle's weak
+/// excitation took 8-18 s to bring them back. The state is reopened too (to `R / T`), so the ring is a state.
+/// Relock here is against the estimates' own mean over 175-200 s (the second mode biases the triangle's b0 by
+/// +2.9 %, so the truth is out of reach, and the estimates wander 1.4 % about their mean): within 3 %.
+/// Measured, seeds 1-4, hybrid / continuous (f32 the same): 0.58 0.80 0.75 0.49 / 0.59 0.80 0.75 0.49 s (the
+/// parameters alone: 9.6 13.9 17.7 8.0 / 8.0 13.9 17.7 7.5 s; seeds 5-8 alike). On the paper's PRBS run the hybrid
+/// filter's relock to the truth went from 0.37 to 0.21 s, the continuous one's stayed 0.21 s.
+#[test]
+fn the_bump_of_the_payload_change_is_explained_as_a_state() {
+    use hal_sim::experiment::{run, settle_time};
+    use hal_sim::sim::Scenario;
+    let d = EkfDesign::paper(EkfDesign::Q1);
+    let seeds = [1u64, 2, 3, 4];
+    let settles: Vec<[Option<f64>; 4]> = std::thread::scope(|s| {
+        let jobs: Vec<_> = seeds
+            .iter()
+            .map(|&seed| {
+                s.spawn(move || {
+                    let hybrid = run(
+                        Scenario::Triangle,
+                        200.0,
+                        seed,
+                        || Hekf::<f64>::new(d.design()),
+                        || Hekf::<f32>::new(d.design()),
+                        |_, _| {},
+                    );
+                    let continuous = run(
+                        Scenario::Triangle,
+                        200.0,
+                        seed,
+                        || Cekf::<f64>::new(d.design()),
+                        || Cekf::<f32>::new(d.design()),
+                        |_, _| {},
+                    );
+                    let settle = |h: &[Sample]| settle_time(h, 100.0, (175.0, 200.0), 0.03);
+                    [settle(&hybrid.f64), settle(&hybrid.f32), settle(&continuous.f64), settle(&continuous.f32)]
+                })
+            })
+            .collect();
+        jobs.into_iter().map(|j| j.join().unwrap()).collect()
+    });
+    for (seed, t) in seeds.iter().zip(&settles) {
+        eprintln!(
+            "board triangle, seed {seed}: settled within 3 % after [hybrid f64, f32, continuous f64, f32] {t:?} s"
+        );
+    }
+    assert!(settles.iter().flatten().all(|t| t.is_some_and(|t| t <= 2.0)), "{settles:?}");
+}
