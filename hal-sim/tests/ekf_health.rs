@@ -217,6 +217,21 @@ fn the_wrong_tuning_for_the_input_is_reported_not_turned_into_nan() {
     assert!(rms[1] > 2.0 * rms[0], "Q2's misfit shows in its innovations: {rms:?}");
 }
 
+/// Seconds after the payload change on the full board's triangle (noise `seed`) until `a0` and `b0` stay within 3 %
+/// of their mean over 175-200 s, f64 and f32.
+fn board_triangle_settle<K: EkfKind>(d: &EkfDesign, seed: u64) -> [Option<f64>; 2]
+where
+    Ekf<f64, K>: Estimator<f64>,
+    Ekf<f32, K>: Estimator<f32>,
+{
+    use hal_sim::experiment::{run, settle_time};
+    use hal_sim::sim::Scenario;
+    let new64 = || Ekf::<f64, K>::new(d.design());
+    let new32 = || Ekf::<f32, K>::new(d.design());
+    let h = run(Scenario::Triangle, 200.0, seed, new64, new32, |_, _| {});
+    [&h.f64, &h.f32].map(|h| settle_time(h, 100.0, (175.0, 200.0), 0.03))
+}
+
 /// On the full board the payload comes off with a kick (the disturbance bump: 300 um/s, a ring of about 0.1 um at
 /// the new resonance). The gate sees it and reports a change; reopening only the parameters then let the filter
 /// explain the ring by moving them (b0 to -105 % on the triangle, 0.1 s after the change) and the triangle's weak
@@ -228,8 +243,7 @@ fn the_wrong_tuning_for_the_input_is_reported_not_turned_into_nan() {
 /// filter's relock to the truth went from 0.37 to 0.21 s, the continuous one's stayed 0.21 s.
 #[test]
 fn the_bump_of_the_payload_change_is_explained_as_a_state() {
-    use hal_sim::experiment::{run, settle_time};
-    use hal_sim::sim::Scenario;
+    use nanopos_id::estimators::ekf::{Continuous, Hybrid};
     let d = EkfDesign::paper(EkfDesign::Q1);
     let seeds = [1u64, 2, 3, 4];
     let settles: Vec<[Option<f64>; 4]> = std::thread::scope(|s| {
@@ -237,24 +251,9 @@ fn the_bump_of_the_payload_change_is_explained_as_a_state() {
             .iter()
             .map(|&seed| {
                 s.spawn(move || {
-                    let hybrid = run(
-                        Scenario::Triangle,
-                        200.0,
-                        seed,
-                        || Hekf::<f64>::new(d.design()),
-                        || Hekf::<f32>::new(d.design()),
-                        |_, _| {},
-                    );
-                    let continuous = run(
-                        Scenario::Triangle,
-                        200.0,
-                        seed,
-                        || Cekf::<f64>::new(d.design()),
-                        || Cekf::<f32>::new(d.design()),
-                        |_, _| {},
-                    );
-                    let settle = |h: &[Sample]| settle_time(h, 100.0, (175.0, 200.0), 0.03);
-                    [settle(&hybrid.f64), settle(&hybrid.f32), settle(&continuous.f64), settle(&continuous.f32)]
+                    let ([h64, h32], [c64, c32]) =
+                        (board_triangle_settle::<Hybrid>(&d, seed), board_triangle_settle::<Continuous>(&d, seed));
+                    [h64, h32, c64, c32]
                 })
             })
             .collect();
