@@ -265,3 +265,43 @@ impl ReferenceData {
         1e3 * (w.iter().map(|v| v * v).sum::<f64>() / w.len() as f64).sqrt()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Estimates every 10 ms: off by `far` until `t_settle`, then alternating `+-near` about `level` times the truth.
+    fn history(level: f64, far: f64, near: f64, t_settle: f64) -> Vec<Sample> {
+        let truth = StageParams::NO_PAYLOAD;
+        (1..=2000)
+            .map(|k| {
+                let t_s = k as f64 * 0.01;
+                let e = if t_s < t_settle {
+                    far
+                } else if k % 2 == 0 {
+                    near
+                } else {
+                    -near
+                };
+                let f = level * (1.0 + e);
+                Sample { t_s, est: StageParams { a0: truth.a0 * f, a1: truth.a1, b0: truth.b0 * f }, truth }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn relock_and_settle_times() {
+        // On the truth from 12 s, within 0.5 %: relocked and settled 2 s after a change at 10 s.
+        let h = history(1.0, 0.2, 0.005, 12.0);
+        let close = |t: Option<f64>, want: f64| t.is_some_and(|t| (t - want).abs() < 1e-9);
+        assert!(close(relock_time(&h, 10.0, 0.01), 2.0), "{:?}", relock_time(&h, 10.0, 0.01));
+        assert!(close(settle_time(&h, 10.0, (15.0, 20.0), 0.03), 2.0));
+        // 3 % off the truth for good: never relocked to 1 %, but settled on its own mean.
+        let h = history(1.03, 0.2, 0.005, 12.0);
+        assert_eq!(relock_time(&h, 10.0, 0.01), None);
+        assert!(close(settle_time(&h, 10.0, (15.0, 20.0), 0.03), 2.0));
+        // Wandering 5 % about its mean: never settles within 3 %.
+        let h = history(1.0, 0.2, 0.05, 12.0);
+        assert_eq!(settle_time(&h, 10.0, (15.0, 20.0), 0.03), None);
+    }
+}

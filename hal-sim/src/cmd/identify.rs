@@ -572,14 +572,27 @@ impl Identified {
     /// Seconds after `t_change` until estimator `col` holds a0 and b0 within 1 % of the truth (needs the truth).
     pub fn relock_s(&self, col: usize, t_change: f64) -> Option<f64> {
         let truth = self.truth.as_ref()?;
-        let samples: Vec<crate::experiment::Sample> = self
-            .times
+        crate::experiment::relock_time(&self.samples(col, Some(truth)), t_change, 0.01)
+    }
+
+    /// Seconds after `t_change` until estimator `col` holds a0 and b0 within `tol` of their own means over
+    /// `window` (no truth needed).
+    pub fn settle_s(&self, col: usize, t_change: f64, window: &Window, tol: f64) -> Option<f64> {
+        crate::experiment::settle_time(&self.samples(col, None), t_change, (window.t0, window.t1), tol)
+    }
+
+    /// Estimator `col`'s history, with the truth if given (else the estimates stand in for it).
+    fn samples(&self, col: usize, truth: Option<&Vec<StageParams<f64>>>) -> Vec<crate::experiment::Sample> {
+        self.times
             .iter()
             .zip(&self.estimates)
-            .zip(truth)
-            .map(|((&t_s, e), tr)| crate::experiment::Sample { t_s, est: e[col], truth: *tr })
-            .collect();
-        crate::experiment::relock_time(&samples, t_change, 0.01)
+            .enumerate()
+            .map(|(k, (&t_s, e))| crate::experiment::Sample {
+                t_s,
+                est: e[col],
+                truth: truth.map_or(e[col], |tr| tr[k]),
+            })
+            .collect()
     }
 }
 
