@@ -885,8 +885,10 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             // bump): the state is reopened too, so that the filter explains it as a state, not by moving the
             // parameters.
             self.core.reopen_parameters();
-            self.ramp = if drift { self.core.cfg.ramp_samples } else { 0 };
-            if !drift {
+            if drift {
+                self.ramp = self.core.cfg.ramp_samples;
+            } else {
+                self.ramp = 0;
                 self.core.reopen_states();
             }
             self.health.changes_detected += 1;
