@@ -11,6 +11,7 @@
 //! gamma = 0.25                   # forgetting, 1/s
 //! p0 = [1e6, 1e1, 1e7]           # diag P(0) for [b0, a1, a0]
 //! r0 = 1e9                       # bound on ||P||_F
+//! pe_floor_v2 = 1e-6             # pre-filtered input power below which the estimate is held, V^2
 //! [ekf]                          # both EKFs
 //! q = [1e-12, 1e-6, 1.5e9, 0.25, 5e8]   # diag Q for [x1, x2, a0, a1, b0]
 //! p0 = [1e-11, 1e-5, 1.5e10, 2.5, 5e9]  # diag P(0) (default 10 Q)
@@ -24,6 +25,7 @@
 //! [arx]
 //! lambda = 0.9998                # forgetting per sample
 //! max_trace = 1e3                # windup bound on trace F
+//! pe_floor_v2 = 1e-6             # as for the RLS and the EKFs
 //! ```
 
 use crate::bank::Tuning;
@@ -49,6 +51,7 @@ struct Rls {
     gamma: Option<f64>,
     p0: Option<[f64; 3]>,
     r0: Option<f64>,
+    pe_floor_v2: Option<f64>,
 }
 
 #[derive(Deserialize, Default)]
@@ -70,6 +73,7 @@ struct Ekf {
 struct Arx {
     lambda: Option<f64>,
     max_trace: Option<f64>,
+    pe_floor_v2: Option<f64>,
 }
 
 /// Resolve `--tuning`: a preset name, or a TOML file.
@@ -107,12 +111,13 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
     let one = |x: Option<f64>| x.map(|x| vec![x]);
     let whole = |n: Option<u32>| n.map(|n| vec![n as f64]);
     let (r, e, a) = (file.rls.unwrap_or_default(), file.ekf.unwrap_or_default(), file.arx.unwrap_or_default());
-    let values: [(TuningKey, Option<Vec<f64>>); 16] = [
+    let values: [(TuningKey, Option<Vec<f64>>); 18] = [
         (TuningKey::Initial, file.initial.map(|v| v.to_vec())),
         (TuningKey::Prefilter, file.prefilter.map(|v| v.to_vec())),
         (TuningKey::RlsGamma, one(r.gamma)),
         (TuningKey::RlsP0, r.p0.map(|v| v.to_vec())),
         (TuningKey::RlsR0, one(r.r0)),
+        (TuningKey::RlsPeFloor, one(r.pe_floor_v2)),
         (TuningKey::EkfQ, e.q.map(|v| v.to_vec())),
         (TuningKey::EkfP0, e.p0.map(|v| v.to_vec())),
         (TuningKey::EkfR, one(e.r)),
@@ -124,6 +129,7 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
         (TuningKey::EkfPeFloor, one(e.pe_floor_v2)),
         (TuningKey::ArxLambda, one(a.lambda)),
         (TuningKey::ArxMaxTrace, one(a.max_trace)),
+        (TuningKey::ArxPeFloor, one(a.pe_floor_v2)),
     ];
     for (key, v) in values {
         if let Some(v) = v {
@@ -142,14 +148,16 @@ mod tests {
     fn a_file_overrides_single_values_of_its_preset() {
         let t = parse(
             "t.toml",
-            "preset = \"triangle\"\n[ekf]\nsubsteps = 8\ndrift_ratio = 0\nreopen = 10\n[rls]\ngamma = 0.5\n",
+            "preset = \"triangle\"\n[ekf]\nsubsteps = 8\ndrift_ratio = 0\nreopen = 10\n[rls]\ngamma = 0.5\n\
+             pe_floor_v2 = 0\n",
         )
         .unwrap();
         assert_eq!(t.ekf.q_diag, EkfDesign::Q1);
         assert_eq!(t.ekf.substeps, 8);
         assert_eq!((t.ekf.health.drift_ratio, t.ekf.health.reopen), (0.0, 10.0));
-        assert_eq!(t.rls.gamma, 0.5);
+        assert_eq!((t.rls.gamma, t.rls.pe_floor_v2), (0.5, 0.0));
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
+        assert_eq!(parse("t.toml", "[arx]\npe_floor_v2 = 2e-6\n").unwrap().arx.pe_floor_v2, 2e-6);
         let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
         assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
         // Another stage: every estimator starts from its parameters.
@@ -171,6 +179,7 @@ mod tests {
             ("[rls]\ngamma = -1\n", "[rls] gamma = -1: must be a positive number"),
             ("preset = \"fast\"\n", "preset 'fast' unknown"),
             ("[arx]\nlambda = 1.5\n", "[arx] lambda = 1.5: must be in (0, 1]"),
+            ("[arx]\npe_floor_v2 = -1\n", "[arx] pe_floor_v2 = -1: must be zero or positive"),
             ("[ekf\n", "t.toml:1:"),
             ("[ekf]\ndrift_ratio = 0.5\n", "[ekf] drift_ratio = 0.5: 0 (off) or at least 1"),
             ("[ekf]\nreopen = 5000\n", "[ekf] reopen = 5000: between 1 and 500 (the variance ceiling)"),

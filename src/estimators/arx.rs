@@ -24,7 +24,10 @@
 //!
 //! ## Tuning and health
 //! Forgetting `lambda = 0.9998` (a 0.5 s memory: the payload change is followed within about a second), windup
-//! bound on `trace F`, `F0` below. A non-finite error, estimate or factor resets the estimator to its initial
+//! bound on `trace F`, `F0` below. The EKFs' persistent-excitation monitor holds the estimate and `F` while the
+//! pre-filtered input's power is below 1e-6 V^2 (over 10 ms), reported as `Starved`: the bound keeps `F` finite
+//! without it, but the forgetting let the noise carry the estimate 120 % off within 10 s of the excitation stopping
+//! (`hal-sim/tests/ekf_health.rs`). A non-finite error, estimate or factor resets the estimator to its initial
 //! state and counts it. A parameter pair with no continuous equivalent (real or non-positive poles, `r >= 1`)
 //! leaves the reported parameters at their last valid value. Cost per update: the RLS (`n = 4`: 42 multiplies, 4
 //! divisions) and 4 multiply-adds for the target; the conversion (`ln`, `atan2`, `sqrt`) only when parameters are
@@ -32,6 +35,7 @@
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::rls::{DiscreteRls, RlsErrors, RlsGain};
+use crate::estimators::{PeConfig, PeMonitor};
 use crate::linalg::zoh;
 use crate::{Real, Scalar, StageParams};
 use core::cell::Cell;
@@ -81,6 +85,10 @@ pub struct ArxDesign {
     pub initial: StageParams<f64>,
     /// Sample period, s.
     pub sample_period_s: f64,
+    /// Pre-filtered input power below which the estimate and `F` are held, V^2 (0: never), as in the EKFs.
+    pub pe_floor_v2: f64,
+    /// Time constant of that power, s.
+    pub pe_tau_s: f64,
 }
 
 impl Default for ArxDesign {
@@ -93,6 +101,8 @@ impl Default for ArxDesign {
             f0_diag: [1e-1, 1e-1, 1e-3, 1e-3],
             initial: StageParams::INITIAL,
             sample_period_s: 1e-4,
+            pe_floor_v2: 1e-6,
+            pe_tau_s: 0.01,
         }
     }
 }
@@ -106,7 +116,9 @@ pub struct ArxConfig<T> {
     /// The nominal ARX coefficients, exact (the small quantities of the conversion are formed from these).
     nominal64: [f64; 4],
     sample_period_s: f64,
-    initial: StageParams<f64>,
+    /// The initial parameters in the working scalar (what the estimate reports before its first valid conversion).
+    initial: StageParams<T>,
+    pe: PeConfig<T>,
 }
 
 impl ArxDesign {
@@ -120,7 +132,8 @@ impl ArxDesign {
             nominal: n.map(T::of),
             nominal64: n,
             sample_period_s: self.sample_period_s,
-            initial: self.initial,
+            initial: StageParams { a0: T::of(self.initial.a0), a1: T::of(self.initial.a1), b0: T::of(self.initial.b0) },
+            pe: PeConfig::new(self.pe_floor_v2, self.pe_tau_s, self.sample_period_s),
         }
     }
 }
@@ -186,6 +199,7 @@ pub struct ArxEstimator<T: Copy> {
     cfg: ArxConfig<T>,
     core: ArxRls<T>,
     adapting: bool,
+    pe: PeMonitor<T>,
     health: Health,
     last_valid: Cell<StageParams<T>>,
 }
@@ -196,8 +210,9 @@ impl<T: Real> ArxEstimator<T> {
         ArxEstimator {
             core: ArxRls::new(&cfg),
             adapting: true,
+            pe: PeMonitor::default(),
             health: Health::new(),
-            last_valid: Cell::new(cfg.initial.cast()),
+            last_valid: Cell::new(cfg.initial),
             cfg,
         }
     }
@@ -230,9 +245,11 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, self.adapting);
+        let adapt = self.pe.adapt(&self.cfg.pe, s.u_f.value, self.adapting, &mut self.health);
+        let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, adapt);
         let rls = self.core.rls();
-        let ok = e.a_priori.is_finite()
+        // The input power too, so that a non-finite `u_f` cannot leave the monitor stuck.
+        let ok = (e.a_priori + self.pe.power).is_finite()
             && rls.theta().iter().all(|x| x.is_finite())
             && rls.min_d() > T::zero()
             && rls.trace().is_finite();
@@ -287,7 +304,8 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     fn reset(&mut self) {
         self.core = ArxRls::new(&self.cfg);
-        self.last_valid.set(self.cfg.initial.cast());
+        self.pe = PeMonitor::default();
+        self.last_valid.set(self.cfg.initial);
     }
 
     fn set_adapting(&mut self, on: bool) {

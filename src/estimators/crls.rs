@@ -34,6 +34,15 @@
 //! one division, 90 flops of stage arguments and 90 of the RK4 sum, 12 for the norm check: about 460 flops
 //! (QEMU: 825 instructions).
 //!
+//! ## Health
+//! A non-finite value anywhere in the state (or in the input power below) resets the estimator to its initial state
+//! and is counted. `P` stops adapting while `||P||_F > R0`, the paper's bound against windup. The EKFs'
+//! persistent-excitation monitor runs here too, on the pipeline's pre-filtered input: below its floor (1e-6 V^2 over
+//! 10 ms) `theta` and `P` are held and the health reports `Starved`. Without it the bound keeps `P` finite but not
+//! the estimate: 10 s after the excitation stopped, the noise had carried it 66 % off (on the reference-style PRBS
+//! stage, `hal-sim/tests/ekf_health.rs`). Held, by the monitor or by the user, the RK4 step still runs, so that this
+//! estimator's own pre-filter follows the signals, with `theta` and `P` standing still.
+//!
 //! ## Change
 //! Unlike the EKFs, this estimator reopens nothing when the plant changes, because reopening cannot speed it up. The
 //! normalised law moves the error along the regressor at the rate `phi' P phi / m^2 = phi' P phi / (1 + phi' P phi)`,
@@ -51,7 +60,7 @@
 //! law (a gain on the update, or a different normalisation), not a reset.
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeConfig, PeMonitor};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -70,6 +79,10 @@ pub struct CrlsDesign {
     pub initial: StageParams<f64>,
     /// Sample period, s.
     pub sample_period_s: f64,
+    /// Pre-filtered input power below which the estimate and `P` are held, V^2 (0: never), as in the EKFs.
+    pub pe_floor_v2: f64,
+    /// Time constant of that power, s.
+    pub pe_tau_s: f64,
 }
 
 impl Default for CrlsDesign {
@@ -81,6 +94,8 @@ impl Default for CrlsDesign {
             prefilter: PrefilterDesign::default(),
             initial: StageParams::INITIAL,
             sample_period_s: 1e-4,
+            pe_floor_v2: 1e-6,
+            pe_tau_s: 0.01,
         }
     }
 }
@@ -101,7 +116,7 @@ pub struct CrlsConfig<T> {
     /// `[-d0, -d1, -d2]` and `w_p^2` of the pre-filter's realisation.
     accel: [T; 3],
     gain: T,
-    initial: StageParams<f64>,
+    pe: PeConfig<T>,
 }
 
 impl CrlsDesign {
@@ -133,7 +148,7 @@ impl CrlsDesign {
                 [T::of(-d[0]), T::of(-d[1]), T::of(-d[2])]
             },
             gain: T::of(self.prefilter.continuous().1),
-            initial: *i,
+            pe: PeConfig::new(self.pe_floor_v2, self.pe_tau_s, self.sample_period_s),
         }
     }
 }
@@ -162,6 +177,7 @@ pub struct Crls<T> {
     u_prev: T,
     y_prev: [T; 3],
     adapting: bool,
+    pe: PeMonitor<T>,
     health: Health,
 }
 
@@ -174,6 +190,7 @@ impl<T: Real> Crls<T> {
             u_prev: T::zero(),
             y_prev: [T::zero(); 3],
             adapting: true,
+            pe: PeMonitor::default(),
             health: Health::new(),
         };
         s.reset_state();
@@ -188,6 +205,7 @@ impl<T: Real> Crls<T> {
         }
         self.u_prev = T::zero();
         self.y_prev = [T::zero(); 3];
+        self.pe = PeMonitor::default();
     }
 
     /// The covariance reopened to `times_p0` times `P(0)`, uncorrelated, the estimate kept: what the EKFs do when
@@ -211,8 +229,10 @@ impl<T: Real> Crls<T> {
     }
 
     /// Derivative of the joint state `[theta (3), P (6), xi_u (3), xi_y (3)]` with input `u` and measurement `y`.
+    /// `gain` 1 adapts `theta`, 0 holds it (a factor of the division there is anyway, not a branch); `adapt_p` the
+    /// same for `P`.
     #[inline(always)]
-    fn derivative(&self, x: &[T; 15], u: T, y: T, adapt_p: bool) -> [T; 15] {
+    fn derivative(&self, x: &[T; 15], u: T, y: T, gain: T, adapt_p: bool) -> [T; 15] {
         let c = &self.cfg;
         let (theta, p) = (&x[THETA..THETA + 3], &x[P..P + 6]);
         let (xu, xy) = ([x[XU], x[XU + 1], x[XU + 2]], [x[XY], x[XY + 1], x[XY + 2]]);
@@ -225,7 +245,7 @@ impl<T: Real> Crls<T> {
         let m2 = T::one() + phi[0] * pphi[0] + phi[1] * pphi[1] + phi[2] * pphi[2];
         // One division per stage: with w = P phi / m^2, theta' = w (z - theta' phi) and the covariance term is
         // w (P phi)'.
-        let inv = T::one() / m2;
+        let inv = gain / m2;
         let w = pphi.map(|v| v * inv);
         let e = z - (theta[0] * phi[0] + theta[1] * phi[1] + theta[2] * phi[2]);
         let mut d = [T::zero(); 15];
@@ -253,24 +273,26 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let [y1, y2, y3] = self.y_prev;
         self.u_prev = s.u;
         self.y_prev = [y_new, y1, y2];
-        if !self.adapting {
-            return;
-        }
+        // Held (by the user, or starved of excitation): the step still runs, so that this estimator's own pre-filter
+        // follows the signals, with `theta' = 0` and `P' = 0`.
+        let adapt = self.pe.adapt(&self.cfg.pe, s.u_f.value, self.adapting, &mut self.health);
+        let gain = if adapt { T::one() } else { T::zero() };
         // y' in the middle of [t_(k-1), t_k], where the RK4 stages 2 and 3 sample it: the cubic through y'(k-3) ...
         // y'(k), accurate to O(T^4) there (a parabola through three samples has its curvature at the step's start
         // and leaves O(T^3): a0 -4e-5 on the reference's data). The stages 1 and 4 take the samples themselves.
         let half = T::of(0.5);
         let y_mid = T::of(0.0625) * y3 - T::of(0.3125) * y2 + T::of(0.9375) * y1 + T::of(0.3125) * y_new;
-        let adapt_p = self.norm_sq() <= self.cfg.r0_sq;
+        let adapt_p = adapt && self.norm_sq() <= self.cfg.r0_sq;
         let x = self.x;
         let (h, hh) = (self.cfg.h, self.cfg.h * half);
-        let k1 = self.derivative(&x, u, y1, adapt_p);
-        let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_mid, adapt_p);
-        let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_mid, adapt_p);
-        let k4 = self.derivative(&axpy(&x, &k3, h), u, y_new, adapt_p);
+        let k1 = self.derivative(&x, u, y1, gain, adapt_p);
+        let k2 = self.derivative(&axpy(&x, &k1, hh), u, y_mid, gain, adapt_p);
+        let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_mid, gain, adapt_p);
+        let k4 = self.derivative(&axpy(&x, &k3, h), u, y_new, gain, adapt_p);
         rk4_combine(&mut self.x, &x, [&k1, &k2, &k3, &k4], self.cfg.h6);
-        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
-        let finite = self.x.iter().fold(T::zero(), |acc, &v| acc + v).is_finite();
+        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway); the
+        // input power is in it, so that a non-finite `u_f` cannot leave the monitor stuck.
+        let finite = self.x.iter().fold(self.pe.power, |acc, &v| acc + v).is_finite();
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();
@@ -313,6 +335,13 @@ mod tests {
     use super::*;
     use crate::filters::prefilter::Prefiltered;
 
+    /// A sample of the raw `u'` and `y'` this estimator reads, with the pipeline's pre-filtered input standing at
+    /// `u` for the excitation monitor (the pre-filtered values are otherwise unused here).
+    fn excited(u: f64, y: f64) -> FilteredSample<f64> {
+        let zero = Prefiltered { value: 0.0, d1: 0.0, d2: 0.0 };
+        FilteredSample { u, y, u_f: Prefiltered { value: u, ..zero }, y_f: zero }
+    }
+
     /// The bound's norm, from the six packed normalised entries and their weights, is the Frobenius norm of the
     /// whole 3 x 3 covariance in the paper's units (off-diagonal entries twice), on a covariance with every entry
     /// non-zero: 0.2 s of a square-wave input on a resonance at 400 Hz.
@@ -320,10 +349,9 @@ mod tests {
     #[test]
     fn reopening_keeps_the_estimate_and_sets_the_covariance() {
         let mut rls = Crls::<f64>::new(CrlsDesign::default().design());
-        let zero = Prefiltered { value: 0.0, d1: 0.0, d2: 0.0 };
         for k in 0..500 {
             let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-            rls.update(&FilteredSample { u, y: 1e-3 * u, u_f: zero, y_f: zero });
+            rls.update(&excited(u, 1e-3 * u));
         }
         let before = rls.params();
         assert_ne!(rls.param_covariance()[0][2], 0.0, "the run correlated the parameters");
@@ -346,8 +374,7 @@ mod tests {
         let (a0, a1, b0) = (6.3e6, 80.0, 5.0e5);
         for k in 0..2000 {
             let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-            let zero = Prefiltered { value: 0.0, d1: 0.0, d2: 0.0 };
-            rls.update(&FilteredSample { u, y: x, u_f: zero, y_f: zero });
+            rls.update(&excited(u, x));
             for _ in 0..10 {
                 let acc = -a0 * x - a1 * v + b0 * u;
                 (x, v) = (x + 1e-5 * v, v + 1e-5 * acc);

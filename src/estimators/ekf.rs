@@ -53,7 +53,7 @@
 pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeConfig, PeMonitor};
 use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
@@ -129,8 +129,7 @@ impl EkfDesign {
             drift_ratio: T::of(if hd.drift_ratio > 0.0 { hd.drift_ratio } else { f64::INFINITY }),
             drift_alpha: T::of(t / hd.drift_tau_s),
             drift_wait_samples: libm::round(hd.drift_wait_s / t) as u32,
-            pe_floor: T::of(hd.pe_floor_v2),
-            pe_alpha: T::of(t / hd.pe_tau_s),
+            pe: PeConfig::new(hd.pe_floor_v2, hd.pe_tau_s, t),
             // The innovation RMS in the health report averages over 1 s.
             innovation_alpha: T::of(t / 1.0),
             p_ceiling: core::array::from_fn(|i| T::of(hd.ceiling * self.p0_diag[i] * scale[i] * scale[i])),
@@ -281,8 +280,7 @@ pub struct EkfConfig<T> {
     drift_ratio: T,
     drift_alpha: T,
     drift_wait_samples: u32,
-    pe_floor: T,
-    pe_alpha: T,
+    pe: PeConfig<T>,
     innovation_alpha: T,
     p_ceiling: [T; 5],
     p_floor: [T; 5],
@@ -426,8 +424,8 @@ pub struct Ekf<T, K> {
     drift_wait: u32,
     /// Samples left in the growth of the parameter variances after a drift.
     ramp: u32,
-    /// Filtered input power.
-    input_power: T,
+    /// The persistent-excitation monitor.
+    pe: PeMonitor<T>,
     /// Running mean square of the innovations, um^2.
     innovation_ms: T,
     kind: K,
@@ -453,7 +451,7 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
             nis_long: T::one(),
             drift_wait: 0,
             ramp: 0,
-            input_power: T::zero(),
+            pe: PeMonitor::default(),
             innovation_ms: T::zero(),
             kind: K::default(),
         };
@@ -833,7 +831,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
     fn update(&mut self, s: &FilteredSample<T>) {
         let _ = self.kind;
         let cfg = &self.core.cfg;
-        let (pe_alpha, pe_floor, innovation_alpha) = (cfg.pe_alpha, cfg.pe_floor, cfg.innovation_alpha);
+        let innovation_alpha = cfg.innovation_alpha;
         let (nis_alpha, change_samples, holdoff_samples) = (cfg.nis_alpha, cfg.change_samples, cfg.holdoff_samples);
         let (drift_ratio, drift_alpha, drift_wait_samples) = (cfg.drift_ratio, cfg.drift_alpha, cfg.drift_wait_samples);
         let gate2 = cfg.gate2;
@@ -844,13 +842,8 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.health.numeric_resets += 1;
             return;
         }
-        self.input_power += pe_alpha * (u * u - self.input_power);
-        let starved = self.input_power < pe_floor;
-        if self.adapting {
-            self.health.adaptation = if starved { Adaptation::Starved } else { Adaptation::Adapting };
-        }
-        let freeze = !self.adapting || starved;
-        let frozen = freeze.then(|| self.core.freeze_parameters());
+        let adapt = self.pe.adapt(&self.core.cfg.pe, u, self.adapting, &mut self.health);
+        let frozen = (!adapt).then(|| self.core.freeze_parameters());
         let gating = change_samples > 0 && self.holdoff == 0;
         let gate = if gating { gate2 * fmax(self.nis_mean, T::epsilon()) } else { T::greatest() };
         let (nu, nis) = K::step(&mut self.core, self.u_prev, self.y_prev, s.y_f.value, gate);

@@ -8,6 +8,7 @@
 //! | `rls gamma` | forgetting, 1/s | positive |
 //! | `rls p0` | diag `P(0)` for `[b0, a1, a0]` | positive |
 //! | `rls r0` | bound on `||P||_F` | positive |
+//! | `rls pe_floor_v2` | pre-filtered input power below which the estimate is held, V^2 | 0 or more |
 //! | `ekf q` | diag `Q` for `[x1, x2, a0, a1, b0]`; also sets `p0` to `10 Q` (SPEC 6.4), which `ekf p0` then overrides | positive |
 //! | `ekf p0` | diag `P(0)` | positive |
 //! | `ekf r` | measurement noise, um^2 | positive |
@@ -19,6 +20,7 @@
 //! | `ekf pe_floor_v2` | input power below which the parameters freeze, V^2 | 0 or more |
 //! | `arx lambda` | forgetting per sample | in (0, 1] |
 //! | `arx max_trace` | windup bound on `trace F` | positive |
+//! | `arx pe_floor_v2` | pre-filtered input power below which the estimate is held, V^2 | 0 or more |
 
 use super::Tuning;
 use crate::filters::prefilter::PrefilterDesign;
@@ -38,6 +40,8 @@ pub enum TuningKey {
     RlsP0,
     /// Continuous-time RLS covariance bound.
     RlsR0,
+    /// Continuous-time RLS persistent-excitation floor.
+    RlsPeFloor,
     /// EKF `diag Q` (and `P(0) = 10 Q`).
     EkfQ,
     /// EKF `diag P(0)`.
@@ -60,16 +64,19 @@ pub enum TuningKey {
     ArxLambda,
     /// ARX windup bound.
     ArxMaxTrace,
+    /// ARX persistent-excitation floor.
+    ArxPeFloor,
 }
 
 impl TuningKey {
     /// Every key, in the order of the table above.
-    pub const ALL: [TuningKey; 16] = [
+    pub const ALL: [TuningKey; 18] = [
         TuningKey::Initial,
         TuningKey::Prefilter,
         TuningKey::RlsGamma,
         TuningKey::RlsP0,
         TuningKey::RlsR0,
+        TuningKey::RlsPeFloor,
         TuningKey::EkfQ,
         TuningKey::EkfP0,
         TuningKey::EkfR,
@@ -81,6 +88,7 @@ impl TuningKey {
         TuningKey::EkfPeFloor,
         TuningKey::ArxLambda,
         TuningKey::ArxMaxTrace,
+        TuningKey::ArxPeFloor,
     ];
 
     /// `(section, name)`: the section is `""` for `initial` and `prefilter`, else `rls`, `ekf` or `arx`.
@@ -91,6 +99,7 @@ impl TuningKey {
             TuningKey::RlsGamma => ("rls", "gamma"),
             TuningKey::RlsP0 => ("rls", "p0"),
             TuningKey::RlsR0 => ("rls", "r0"),
+            TuningKey::RlsPeFloor => ("rls", "pe_floor_v2"),
             TuningKey::EkfQ => ("ekf", "q"),
             TuningKey::EkfP0 => ("ekf", "p0"),
             TuningKey::EkfR => ("ekf", "r"),
@@ -102,6 +111,7 @@ impl TuningKey {
             TuningKey::EkfPeFloor => ("ekf", "pe_floor_v2"),
             TuningKey::ArxLambda => ("arx", "lambda"),
             TuningKey::ArxMaxTrace => ("arx", "max_trace"),
+            TuningKey::ArxPeFloor => ("arx", "pe_floor_v2"),
         }
     }
 
@@ -113,9 +123,9 @@ impl TuningKey {
     /// The keys of a section, for messages (`None` for a section that does not exist).
     pub const fn names_of(section: &str) -> Option<&'static str> {
         match section.as_bytes() {
-            b"rls" => Some("gamma, p0 or r0"),
+            b"rls" => Some("gamma, p0, r0 or pe_floor_v2"),
             b"ekf" => Some("q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2"),
-            b"arx" => Some("lambda or max_trace"),
+            b"arx" => Some("lambda, max_trace or pe_floor_v2"),
             _ => None,
         }
     }
@@ -230,7 +240,7 @@ impl Tuning {
             TuningKey::EkfChangeSamples => Expected::Whole,
             TuningKey::EkfDriftRatio => Expected::DriftRatio,
             TuningKey::EkfReopen => Expected::Reopen { ceiling: self.ekf.health.ceiling },
-            TuningKey::EkfPeFloor => Expected::NonNegative,
+            TuningKey::RlsPeFloor | TuningKey::EkfPeFloor | TuningKey::ArxPeFloor => Expected::NonNegative,
             TuningKey::ArxLambda => Expected::Forgetting,
             _ => Expected::Positive,
         }
@@ -258,6 +268,7 @@ impl Tuning {
             TuningKey::RlsGamma => v[0] = self.rls.gamma,
             TuningKey::RlsP0 => v[..3].copy_from_slice(&self.rls.p0_diag),
             TuningKey::RlsR0 => v[0] = self.rls.r0,
+            TuningKey::RlsPeFloor => v[0] = self.rls.pe_floor_v2,
             TuningKey::EkfQ => v = e.q_diag,
             TuningKey::EkfP0 => v = e.p0_diag,
             TuningKey::EkfR => v[0] = e.r,
@@ -269,6 +280,7 @@ impl Tuning {
             TuningKey::EkfPeFloor => v[0] = e.health.pe_floor_v2,
             TuningKey::ArxLambda => v[0] = self.arx.lambda,
             TuningKey::ArxMaxTrace => v[0] = self.arx.max_trace,
+            TuningKey::ArxPeFloor => v[0] = self.arx.pe_floor_v2,
         }
         v
     }
@@ -296,6 +308,7 @@ impl Tuning {
             TuningKey::RlsGamma => self.rls.gamma = x,
             TuningKey::RlsP0 => self.rls.p0_diag.copy_from_slice(v),
             TuningKey::RlsR0 => self.rls.r0 = x,
+            TuningKey::RlsPeFloor => self.rls.pe_floor_v2 = x,
             TuningKey::EkfQ => {
                 ekf.q_diag.copy_from_slice(v);
                 ekf.p0_diag = ekf.q_diag.map(|q| 10.0 * q);
@@ -310,6 +323,7 @@ impl Tuning {
             TuningKey::EkfPeFloor => ekf.health.pe_floor_v2 = x,
             TuningKey::ArxLambda => self.arx.lambda = x,
             TuningKey::ArxMaxTrace => self.arx.max_trace = x,
+            TuningKey::ArxPeFloor => self.arx.pe_floor_v2 = x,
         }
         Ok(())
     }
