@@ -26,7 +26,7 @@
 //! Forgetting `lambda = 0.9998` (a 0.5 s memory: the payload change is followed within about a second), windup
 //! bound on `trace F`, `F0` below. The EKFs' persistent-excitation monitor holds the estimate and `F` while the
 //! pre-filtered input's power is below 1e-6 V^2 (over 10 ms), reported as `Starved`: the bound keeps `F` finite
-//! without it, but the forgetting let the noise carry the estimate 120 % off within 10 s of the excitation stopping
+//! without it, but the forgetting let the noise carry the estimate 123 % off within 10 s of the excitation stopping
 //! (`hal-sim/tests/ekf_health.rs`). A non-finite error, estimate or factor resets the estimator to its initial
 //! state and counts it. A parameter pair with no continuous equivalent (real or non-positive poles, `r >= 1`)
 //! leaves the reported parameters at their last valid value. Cost per update: the RLS (`n = 4`: 42 multiplies, 4

@@ -32,11 +32,11 @@
 //! so the f32 state is of order one; `m^2` and `eps` are invariant. `P` is stored symmetric (6 entries) and
 //! symmetrised by construction. Cost per update: 4 derivatives of about 70 flops (14 of them the two filters) and
 //! one division, 90 flops of stage arguments and 90 of the RK4 sum, 12 for the norm check: about 460 flops
-//! (QEMU: 825 instructions).
+//! (QEMU: 822 instructions with the excitation monitor below).
 //!
 //! ## Health
-//! A non-finite value anywhere in the state (or in the input power below) resets the estimator to its initial state
-//! and is counted. `P` stops adapting while `||P||_F > R0`, the paper's bound against windup. The EKFs'
+//! A non-finite value anywhere in the state (or in the excitation monitor's input power) resets the estimator to its
+//! initial state and is counted. `P` stops adapting while `||P||_F > R0`, the paper's bound against windup. The EKFs'
 //! persistent-excitation monitor runs here too, on the pipeline's pre-filtered input: below its floor (1e-6 V^2 over
 //! 10 ms) `theta` and `P` are held and the health reports `Starved`. Without it the bound keeps `P` finite but not
 //! the estimate: 10 s after the excitation stopped, the noise had carried it 66 % off (on the reference-style PRBS
@@ -342,9 +342,6 @@ mod tests {
         FilteredSample { u, y, u_f: Prefiltered { value: u, ..zero }, y_f: zero }
     }
 
-    /// The bound's norm, from the six packed normalised entries and their weights, is the Frobenius norm of the
-    /// whole 3 x 3 covariance in the paper's units (off-diagonal entries twice), on a covariance with every entry
-    /// non-zero: 0.2 s of a square-wave input on a resonance at 400 Hz.
     /// Reopening sets `P` to a multiple of `P(0)`, uncorrelated, and keeps the estimate.
     #[test]
     fn reopening_keeps_the_estimate_and_sets_the_covariance() {
@@ -367,6 +364,9 @@ mod tests {
         }
     }
 
+    /// The bound's norm, from the six packed normalised entries and their weights, is the Frobenius norm of the
+    /// whole 3 x 3 covariance in the paper's units (off-diagonal entries twice), on a covariance with every entry
+    /// non-zero: 0.2 s of a square-wave input on a resonance at 400 Hz.
     #[test]
     fn the_covariance_norm_is_the_frobenius_norm_in_the_papers_units() {
         let mut rls = Crls::<f64>::new(CrlsDesign::default().design());
