@@ -319,3 +319,14 @@ fn the_bump_of_the_payload_change_is_explained_as_a_state() {
     }
     assert!(settles.iter().flatten().all(|t| t.is_some_and(|t| t <= 2.0)), "{settles:?}");
 }
+
+/// The innovation RMS in the health report restarts with the estimator: a reset (the user's, or one after a
+/// non-finite value) does not carry the old run's level, or a blow-up's, into the new one.
+#[test]
+fn the_innovation_rms_restarts_with_the_filter() {
+    let mut est = Hekf::new(EkfDesign::default().design());
+    drive(&mut est, 2.0, f64::INFINITY, |_| false, |_, _| {}, |_, _| {});
+    assert!(est.health().innovation_rms_um > 0.0);
+    est.reset();
+    assert_eq!(est.health().innovation_rms_um, 0.0);
+}

@@ -475,6 +475,8 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         self.nis_long = T::one();
         self.drift_wait = self.core.cfg.drift_wait_samples;
         self.ramp = 0;
+        // A blow-up's innovation would otherwise stay in the health report's RMS for good.
+        self.innovation_ms = T::zero();
     }
 
     /// The state in the paper's units `[x1, x2, a0, a1, b0]`.
