@@ -174,6 +174,11 @@ fn every_command_is_answered_and_does_what_it_says() {
     lab.send("freeze rls\n");
     assert_eq!(verdict(&lab.send("tuning triangle\n")), "ok tuning triangle (estimators restarted)");
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
+    // A restarted estimator's excitation monitor has no evidence yet that the input is rich: starved, not frozen,
+    // until it has (with PRBS, within a few ms).
+    assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Starved);
+    lab.run(100);
+    assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
     assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Adapting);
     assert!(lab.send("status\n").contains("tuning=triangle"));
 

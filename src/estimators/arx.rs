@@ -245,7 +245,7 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        let adapt = self.pe.adapt(&self.cfg.pe, s.u_f.value, self.adapting, &mut self.health);
+        let adapt = self.pe.adapt(&self.cfg.pe, &s.u_f, self.adapting, &mut self.health);
         let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, adapt);
         let rls = self.core.rls();
         // The input power too, so that a non-finite `u_f` cannot leave the monitor stuck.

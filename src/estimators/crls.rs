@@ -275,7 +275,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
         self.y_prev = [y_new, y1, y2];
         // Held (by the user, or starved of excitation): the step still runs, so that this estimator's own pre-filter
         // follows the signals, with `theta' = 0` and `P' = 0`.
-        let adapt = self.pe.adapt(&self.cfg.pe, s.u_f.value, self.adapting, &mut self.health);
+        let adapt = self.pe.adapt(&self.cfg.pe, &s.u_f, self.adapting, &mut self.health);
         let gain = if adapt { T::one() } else { T::zero() };
         // y' in the middle of [t_(k-1), t_k], where the RK4 stages 2 and 3 sample it: the cubic through y'(k-3) ...
         // y'(k), accurate to O(T^4) there (a parabola through three samples has its curvature at the step's start

@@ -844,7 +844,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.health.numeric_resets += 1;
             return;
         }
-        let adapt = self.pe.adapt(&self.core.cfg.pe, u, self.adapting, &mut self.health);
+        let adapt = self.pe.adapt(&self.core.cfg.pe, &s.u_f, self.adapting, &mut self.health);
         let frozen = (!adapt).then(|| self.core.freeze_parameters());
         let gating = change_samples > 0 && self.holdoff == 0;
         let gate = if gating { gate2 * fmax(self.nis_mean, T::epsilon()) } else { T::greatest() };
