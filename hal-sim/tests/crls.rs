@@ -62,8 +62,8 @@ fn relock(times_p0: Option<f64>) -> [Option<f64>; 2] {
 /// The normalised law's rate along the regressor is below 1 per second whatever `P` is, so reopening the covariance
 /// at a change (what the EKFs do) cannot speed the relock, and it throws away the directions `P` had learnt.
 /// Measured: 12.95 s not reopened, 15.48 s reopened to `P(0)`, the same at `0.01 P(0)` (module doc of
-/// `estimators::crls`). If this test fails, the law has changed so that a reset would help: then give this estimator the
-/// EKFs' change detection.
+/// `estimators::crls`). If this test fails, the law has changed so that a reset would help: then give this estimator
+/// the EKFs' change detection.
 #[test]
 fn reopening_the_covariance_does_not_speed_the_relock() {
     let [none, p0, small] = std::thread::scope(|s| {

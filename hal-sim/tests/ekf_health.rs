@@ -1,6 +1,7 @@
-//! Health of the estimators (the EKFs' in full, the numeric faults of the RLS and the ARX), each fault injected into the estimator's input: outliers, NaN, no excitation, a plant
-//! change. (Raw readings cannot be NaN: the board delivers integer codes and the CSV reader rejects non-finite
-//! values; a raw one-sample glitch is smeared by the band-pass pre-filter into a few nm.)
+//! Health of the estimators, each fault injected into the estimator's input: for the EKFs outliers, NaN, no
+//! excitation and a plant change; for all four numeric faults, no excitation and a single sine. (Raw readings
+//! cannot be NaN: the board delivers integer codes and the CSV reader rejects non-finite values; a raw one-sample
+//! glitch is smeared by the band-pass pre-filter into a few nm.)
 
 #![allow(clippy::needless_range_loop)] // covariance indices follow the state layout
 
