@@ -8,7 +8,7 @@
 //! with the derived quantities every report carries next to the raw parameters: natural frequency
 //! `f0 = sqrt(a0) / 2 pi`, damping ratio `zeta = a1 / (2 sqrt(a0))` and DC gain `b0 / a0`.
 
-use crate::Real;
+use crate::{Real, Scalar};
 
 /// Parameters of the second-order stage model (paper eq. (1)).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -39,7 +39,7 @@ impl<T: Real> StageParams<T> {
     }
 
     /// The same parameters in another scalar.
-    pub fn cast<U: Real>(&self) -> StageParams<U> {
+    pub fn cast<U: Scalar>(&self) -> StageParams<U> {
         StageParams { a0: U::of(self.a0.as_f64()), a1: U::of(self.a1.as_f64()), b0: U::of(self.b0.as_f64()) }
     }
 

@@ -132,7 +132,7 @@ impl ArxDesign {
             nominal: n.map(T::of),
             nominal64: n,
             sample_period_s: self.sample_period_s,
-            initial: StageParams { a0: T::of(self.initial.a0), a1: T::of(self.initial.a1), b0: T::of(self.initial.b0) },
+            initial: self.initial.cast(),
             pe: PeConfig::new(self.pe_floor_v2, self.pe_tau_s, self.sample_period_s),
         }
     }
