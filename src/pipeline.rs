@@ -24,7 +24,7 @@
 //! (they are not fed) until [`Pipeline::clear_faults`]. Each event is counted. Cost per sample, without estimators:
 //! two biquads, two pre-filters, the excitation, the limits: about 60 flops.
 
-use crate::estimator::{EstimatorBank, FilteredSample};
+use crate::estimator::{EstimatorBank, FilteredSample, PeMonitor};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
@@ -426,6 +426,7 @@ pub struct Pipeline<T, E> {
     lags: BiquadState<T>,
     prefilter_u: PrefilterState<T>,
     prefilter_y: PrefilterState<T>,
+    pe: PeMonitor<T>,
     last_probe_code: u32,
     same_code_run: u32,
     faults: Faults,
@@ -446,6 +447,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             lags: BiquadState::default(),
             prefilter_u: PrefilterState::default(),
             prefilter_y: PrefilterState::default(),
+            pe: PeMonitor::new(cfg.sample_period_s),
             last_probe_code: u32::MAX,
             same_code_run: 0,
             faults: Faults::default(),
@@ -511,17 +513,20 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         self.last_probe_code = code;
     }
 
-    /// The command in effect `u_v` through the replicas, and both signals through the pre-filter (this runs every
-    /// sample, faults or not, so the filters never hold stale state).
+    /// The command in effect `u_v` through the replicas, both signals through the pre-filter, and the filtered
+    /// input's excitation measured once for every estimator (this runs every sample, faults or not, so the filters
+    /// never hold stale state).
     #[inline]
     fn filter(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
         let rc = cfg.reconstruction.update(&mut self.reconstruction, u_v);
         let u_replica = cfg.lags.update(&mut self.lags, cfg.antialias.update(&mut self.antialias, rc));
+        let u_f = cfg.prefilter.update(&mut self.prefilter_u, u_replica);
         FilteredSample {
             u: u_replica,
             y: y_um,
-            u_f: cfg.prefilter.update(&mut self.prefilter_u, u_replica),
+            u_f,
             y_f: cfg.prefilter.update(&mut self.prefilter_y, y_um),
+            pe: self.pe.update(&u_f),
         }
     }
 

@@ -174,9 +174,9 @@ fn every_command_is_answered_and_does_what_it_says() {
     lab.send("freeze rls\n");
     assert_eq!(verdict(&lab.send("tuning triangle\n")), "ok tuning triangle (estimators restarted)");
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
-    // A restarted estimator's excitation monitor has no evidence yet that the input is rich: starved, not frozen,
-    // until it has (with PRBS, within a few ms).
-    assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Starved);
+    // The pipeline measures the input's excitation, not the estimator: a restarted estimator adapts from the first
+    // sample after the change (the one `send` ran), with no wait for evidence that the input is rich.
+    assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Adapting);
     lab.run(100);
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
     assert_eq!(lab.isr.estimates()[2].1.adaptation, Adaptation::Adapting);

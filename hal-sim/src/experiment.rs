@@ -240,16 +240,11 @@ impl ReferenceData {
     /// Run `est` on the data in `T` the way the pipeline feeds it without the replicas (no analog filters here):
     /// raw `(u, y)` and both through the pre-filter `W_p`. Returns the estimates every 10 ms.
     pub fn run<T: nanopos_id::Real, E: Estimator<T>>(&self, est: &mut E) -> Vec<Sample> {
-        use nanopos_id::estimator::FilteredSample;
-        use nanopos_id::filters::{PrefilterDesign, PrefilterState};
-        let pre = PrefilterDesign::default().design::<T>(Self::T_S);
-        let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
+        let mut feed = Feed::<T>::new(Self::T_S);
         let every = (0.01 / Self::T_S).round() as usize;
         let mut out = Vec::with_capacity(self.u.len() / every);
         for (k, (&u, &y)) in self.u.iter().zip(&self.y).enumerate() {
-            let (u, y) = (T::of(u), T::of(y));
-            let (u_f, y_f) = (pre.update(&mut su, u), pre.update(&mut sy, y));
-            est.update(&FilteredSample { u, y, u_f, y_f });
+            est.update(&feed.sample(T::of(u), T::of(y)));
             if (k + 1) % every == 0 {
                 let t_s = (k + 1) as f64 * Self::T_S;
                 out.push(Sample { t_s, est: est.params().cast(), truth: self.truth(t_s) });
@@ -263,6 +258,34 @@ impl ReferenceData {
         let (k0, k1) = ((t0 / Self::T_S).round() as usize, (t1 / Self::T_S).round() as usize);
         let w = &self.noise_um[k0..k1.min(self.noise_um.len())];
         1e3 * (w.iter().map(|v| v * v).sum::<f64>() / w.len() as f64).sqrt()
+    }
+}
+
+/// What the pipeline feeds the estimators, without its replicas (for data with no analog filters): raw `(u, y)`,
+/// both through the default pre-filter `W_p`, and the filtered input's excitation level.
+pub struct Feed<T> {
+    prefilter: nanopos_id::filters::Prefilter<T>,
+    u: nanopos_id::filters::PrefilterState<T>,
+    y: nanopos_id::filters::PrefilterState<T>,
+    pe: nanopos_id::estimator::PeMonitor<T>,
+}
+
+impl<T: nanopos_id::Real> Feed<T> {
+    /// At rest, for the sample period `t_s`.
+    pub fn new(t_s: f64) -> Self {
+        Feed {
+            prefilter: nanopos_id::filters::PrefilterDesign::default().design::<T>(t_s),
+            u: Default::default(),
+            y: Default::default(),
+            pe: nanopos_id::estimator::PeMonitor::new(t_s),
+        }
+    }
+
+    /// One sample.
+    pub fn sample(&mut self, u: T, y: T) -> nanopos_id::estimator::FilteredSample<T> {
+        let u_f = self.prefilter.update(&mut self.u, u);
+        let y_f = self.prefilter.update(&mut self.y, y);
+        nanopos_id::estimator::FilteredSample { u, y, u_f, y_f, pe: self.pe.update(&u_f) }
     }
 }
 

@@ -5,13 +5,12 @@
 
 #![allow(clippy::needless_range_loop)] // covariance indices follow the state layout
 
-use hal_sim::experiment::{relock_time, Sample};
+use hal_sim::experiment::{relock_time, Feed, Sample};
 use hal_sim::noise::NormalStream;
 use hal_sim::plant::{Plant, PlantSettings};
 use nanopos_id::estimator::{Adaptation, Estimator, FilteredSample};
 use nanopos_id::estimators::ekf::{Cekf, Ekf, EkfDesign, EkfKind, Hekf};
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
-use nanopos_id::filters::{PrefilterDesign, PrefilterState};
 use nanopos_id::StageParams;
 
 /// Reference-style data (ideal plant, PRBS, payload off at `change_at_s`) into `est`. `input_off(k)` stops the
@@ -29,12 +28,11 @@ fn drive<E: Estimator<f64>>(
     let mut plant =
         Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, (change_at_s * 1e4) as u64));
     let mut noise = NormalStream::new(1);
-    let pre = PrefilterDesign::default().design::<f64>(1e-4);
-    let (mut su, mut sy) = (PrefilterState::default(), PrefilterState::default());
+    let mut feed = Feed::new(1e-4);
     for k in 0..(seconds * 1e4) as u64 {
         let y = plant.output_um() + 1.25e-3 * noise.next_normal();
         let u = if input_off(k) { 0.0 } else { gen.next(&mut ex) };
-        let mut s = FilteredSample { u, y, u_f: pre.update(&mut su, u), y_f: pre.update(&mut sy, y) };
+        let mut s = feed.sample(u, y);
         tamper(k, &mut s);
         est.update(&s);
         observe(k, est);
@@ -357,7 +355,7 @@ fn drift_under_a_sine<E64: Estimator<f64>, E32: Estimator<f32>>(
 }
 
 /// A single sinusoid identifies a gain and a phase, not three parameters: the monitor sees it (the spread of the
-/// filtered input, `estimators::PeMonitor`) and holds every estimator from 0.5 s after the switch from PRBS on.
+/// filtered input, `estimator::PeMonitor`) and holds every estimator from 0.5 s after the switch from PRBS on.
 /// Measured, largest parameter change over 30.5-40 s, rls / arx / hekf / cekf, at 100, 450 and 1 000 Hz: 0 for all;
 /// with the power test alone 20 / 274 / 2.3 / 2.2 %, 0.5 / 278 / 0.1 / 0.1 % and 391 / 284 / 1.6 / 1.6 %. Before
 /// the monitor sees it (30-30.5 s) the estimates move 1.0 / 0.4 / 0.5 / 0.5 %, 0.004 / 0.1 / 0.4 / 0.4 % and

@@ -24,8 +24,9 @@
 //!
 //! ## Tuning and health
 //! Forgetting `lambda = 0.9998` (a 0.5 s memory: the payload change is followed within about a second), windup
-//! bound on `trace F`, `F0` below. The EKFs' persistent-excitation monitor holds the estimate and `F` while the
-//! pre-filtered input's power is below 1e-6 V^2 (over 10 ms), reported as `Starved`: the bound keeps `F` finite
+//! bound on `trace F`, `F0` below. The persistent-excitation monitor ([`crate::estimator::PeMonitor`], run once by
+//! the pipeline for every estimator) holds the estimate and `F` while the pre-filtered input's power is below 1e-6
+//! V^2 (over 10 ms), or the input is a single sinusoid, reported as `Starved`: the bound keeps `F` finite
 //! without it, but the forgetting let the noise carry the estimate 123 % off within 10 s of the excitation stopping
 //! (`hal-sim/tests/ekf_health.rs`). A non-finite error, estimate or factor resets the estimator to its initial
 //! state and counts it. A parameter pair with no continuous equivalent (real or non-positive poles, `r >= 1`)
@@ -35,7 +36,7 @@
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::rls::{DiscreteRls, RlsErrors, RlsGain};
-use crate::estimators::{PeConfig, PeMonitor};
+use crate::estimators::PeFloor;
 use crate::linalg::zoh;
 use crate::{Real, Scalar, StageParams};
 use core::cell::Cell;
@@ -85,10 +86,9 @@ pub struct ArxDesign {
     pub initial: StageParams<f64>,
     /// Sample period, s.
     pub sample_period_s: f64,
-    /// Pre-filtered input power below which the estimate and `F` are held, V^2 (0: never), as in the EKFs.
+    /// Pre-filtered input power below which the estimate and `F` are held, V^2 (0: the excitation monitor off), as
+    /// in the EKFs (see [`crate::estimator::PeMonitor`]).
     pub pe_floor_v2: f64,
-    /// Time constant of that power, s.
-    pub pe_tau_s: f64,
 }
 
 impl Default for ArxDesign {
@@ -102,7 +102,6 @@ impl Default for ArxDesign {
             initial: StageParams::INITIAL,
             sample_period_s: 1e-4,
             pe_floor_v2: 1e-6,
-            pe_tau_s: 0.01,
         }
     }
 }
@@ -118,7 +117,7 @@ pub struct ArxConfig<T> {
     sample_period_s: f64,
     /// The initial parameters in the working scalar (what the estimate reports before its first valid conversion).
     initial: StageParams<T>,
-    pe: PeConfig<T>,
+    pe: PeFloor<T>,
 }
 
 impl ArxDesign {
@@ -133,7 +132,7 @@ impl ArxDesign {
             nominal64: n,
             sample_period_s: self.sample_period_s,
             initial: self.initial.cast(),
-            pe: PeConfig::new(self.pe_floor_v2, self.pe_tau_s, self.sample_period_s),
+            pe: PeFloor::new(self.pe_floor_v2),
         }
     }
 }
@@ -199,7 +198,6 @@ pub struct ArxEstimator<T: Copy> {
     cfg: ArxConfig<T>,
     core: ArxRls<T>,
     adapting: bool,
-    pe: PeMonitor<T>,
     health: Health,
     last_valid: Cell<StageParams<T>>,
 }
@@ -210,7 +208,6 @@ impl<T: Real> ArxEstimator<T> {
         ArxEstimator {
             core: ArxRls::new(&cfg),
             adapting: true,
-            pe: PeMonitor::default(),
             health: Health::new(),
             last_valid: Cell::new(cfg.initial),
             cfg,
@@ -245,11 +242,10 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        let adapt = self.pe.adapt(&self.cfg.pe, &s.u_f, self.adapting, &mut self.health);
+        let adapt = self.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
         let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, adapt);
         let rls = self.core.rls();
-        // The input power too, so that a non-finite `u_f` cannot leave the monitor stuck.
-        let ok = (e.a_priori + self.pe.power).is_finite()
+        let ok = e.a_priori.is_finite()
             && rls.theta().iter().all(|x| x.is_finite())
             && rls.min_d() > T::zero()
             && rls.trace().is_finite();
@@ -304,7 +300,6 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     fn reset(&mut self) {
         self.core = ArxRls::new(&self.cfg);
-        self.pe = PeMonitor::default();
         self.last_valid.set(self.cfg.initial);
     }
 

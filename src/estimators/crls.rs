@@ -32,13 +32,14 @@
 //! so the f32 state is of order one; `m^2` and `eps` are invariant. `P` is stored symmetric (6 entries) and
 //! symmetrised by construction. Cost per update: 4 derivatives of about 70 flops (14 of them the two filters) and
 //! one division, 90 flops of stage arguments and 90 of the RK4 sum, 12 for the norm check: about 460 flops
-//! (QEMU: 822 instructions with the excitation monitor below).
+//! (QEMU: 820 instructions with the test of the excitation monitor's level below).
 //!
 //! ## Health
-//! A non-finite value anywhere in the state (or in the excitation monitor's input power) resets the estimator to its
-//! initial state and is counted. `P` stops adapting while `||P||_F > R0`, the paper's bound against windup. The EKFs'
-//! persistent-excitation monitor runs here too, on the pipeline's pre-filtered input: below its floor (1e-6 V^2 over
-//! 10 ms) `theta` and `P` are held and the health reports `Starved`. Without it the bound keeps `P` finite but not
+//! A non-finite value anywhere in the state resets the estimator to its initial state and is counted. `P` stops
+//! adapting while `||P||_F > R0`, the paper's bound against windup. The persistent-excitation monitor
+//! ([`crate::estimator::PeMonitor`], which the pipeline runs once for every estimator on its pre-filtered input)
+//! holds it too: below its floor (1e-6 V^2 over 10 ms), or on a single sinusoid, `theta` and `P` are held and the
+//! health reports `Starved`. Without it the bound keeps `P` finite but not
 //! the estimate: 10 s after the excitation stopped, the noise had carried it 66 % off (on the reference-style PRBS
 //! stage, `hal-sim/tests/ekf_health.rs`). Held, by the monitor or by the user, the RK4 step still runs, so that this
 //! estimator's own pre-filter follows the signals, with `theta` and `P` standing still.
@@ -60,7 +61,7 @@
 //! law (a gain on the update, or a different normalisation), not a reset.
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeConfig, PeMonitor};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -79,10 +80,9 @@ pub struct CrlsDesign {
     pub initial: StageParams<f64>,
     /// Sample period, s.
     pub sample_period_s: f64,
-    /// Pre-filtered input power below which the estimate and `P` are held, V^2 (0: never), as in the EKFs.
+    /// Pre-filtered input power below which the estimate and `P` are held, V^2 (0: the excitation monitor off), as
+    /// in the EKFs (see [`crate::estimator::PeMonitor`]).
     pub pe_floor_v2: f64,
-    /// Time constant of that power, s.
-    pub pe_tau_s: f64,
 }
 
 impl Default for CrlsDesign {
@@ -95,7 +95,6 @@ impl Default for CrlsDesign {
             initial: StageParams::INITIAL,
             sample_period_s: 1e-4,
             pe_floor_v2: 1e-6,
-            pe_tau_s: 0.01,
         }
     }
 }
@@ -116,7 +115,7 @@ pub struct CrlsConfig<T> {
     /// `[-d0, -d1, -d2]` and `w_p^2` of the pre-filter's realisation.
     accel: [T; 3],
     gain: T,
-    pe: PeConfig<T>,
+    pe: PeFloor<T>,
 }
 
 impl CrlsDesign {
@@ -148,7 +147,7 @@ impl CrlsDesign {
                 [T::of(-d[0]), T::of(-d[1]), T::of(-d[2])]
             },
             gain: T::of(self.prefilter.continuous().1),
-            pe: PeConfig::new(self.pe_floor_v2, self.pe_tau_s, self.sample_period_s),
+            pe: PeFloor::new(self.pe_floor_v2),
         }
     }
 }
@@ -177,7 +176,6 @@ pub struct Crls<T> {
     u_prev: T,
     y_prev: [T; 3],
     adapting: bool,
-    pe: PeMonitor<T>,
     health: Health,
 }
 
@@ -190,7 +188,6 @@ impl<T: Real> Crls<T> {
             u_prev: T::zero(),
             y_prev: [T::zero(); 3],
             adapting: true,
-            pe: PeMonitor::default(),
             health: Health::new(),
         };
         s.reset_state();
@@ -205,7 +202,6 @@ impl<T: Real> Crls<T> {
         }
         self.u_prev = T::zero();
         self.y_prev = [T::zero(); 3];
-        self.pe = PeMonitor::default();
     }
 
     /// The covariance reopened to `times_p0` times `P(0)`, uncorrelated, the estimate kept: what the EKFs do when
@@ -275,7 +271,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
         self.y_prev = [y_new, y1, y2];
         // Held (by the user, or starved of excitation): the step still runs, so that this estimator's own pre-filter
         // follows the signals, with `theta' = 0` and `P' = 0`.
-        let adapt = self.pe.adapt(&self.cfg.pe, &s.u_f, self.adapting, &mut self.health);
+        let adapt = self.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
         let gain = if adapt { T::one() } else { T::zero() };
         // y' in the middle of [t_(k-1), t_k], where the RK4 stages 2 and 3 sample it: the cubic through y'(k-3) ...
         // y'(k), accurate to O(T^4) there (a parabola through three samples has its curvature at the step's start
@@ -290,9 +286,8 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_mid, gain, adapt_p);
         let k4 = self.derivative(&axpy(&x, &k3, h), u, y_new, gain, adapt_p);
         rk4_combine(&mut self.x, &x, [&k1, &k2, &k3, &k4], self.cfg.h6);
-        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway); the
-        // input power is in it, so that a non-finite `u_f` cannot leave the monitor stuck.
-        let finite = self.x.iter().fold(self.pe.power, |acc, &v| acc + v).is_finite();
+        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
+        let finite = self.x.iter().fold(T::zero(), |acc, &v| acc + v).is_finite();
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();
@@ -333,13 +328,14 @@ impl<T: Real> Estimator<T> for Crls<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::PeLevel;
     use crate::filters::prefilter::Prefiltered;
 
-    /// A sample of the raw `u'` and `y'` this estimator reads, with the pipeline's pre-filtered input standing at
-    /// `u` for the excitation monitor (the pre-filtered values are otherwise unused here).
+    /// A sample of the raw `u'` and `y'` this estimator reads, with the excitation monitor's level of a rich input of
+    /// `u`'s power (the pre-filtered values are unused here).
     fn excited(u: f64, y: f64) -> FilteredSample<f64> {
         let zero = Prefiltered { value: 0.0, d1: 0.0, d2: 0.0 };
-        FilteredSample { u, y, u_f: Prefiltered { value: u, ..zero }, y_f: zero }
+        FilteredSample { u, y, u_f: zero, y_f: zero, pe: PeLevel { power: u * u, single: false } }
     }
 
     /// Reopening sets `P` to a multiple of `P(0)`, uncorrelated, and keeps the estimate.

@@ -53,7 +53,7 @@
 pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeConfig, PeMonitor};
+use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
 use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
@@ -129,7 +129,7 @@ impl EkfDesign {
             drift_ratio: T::of(if hd.drift_ratio > 0.0 { hd.drift_ratio } else { f64::INFINITY }),
             drift_alpha: T::of(t / hd.drift_tau_s),
             drift_wait_samples: libm::round(hd.drift_wait_s / t) as u32,
-            pe: PeConfig::new(hd.pe_floor_v2, hd.pe_tau_s, t),
+            pe: PeFloor::new(hd.pe_floor_v2),
             // The innovation RMS in the health report averages over 1 s.
             innovation_alpha: T::of(t / 1.0),
             p_ceiling: core::array::from_fn(|i| T::of(hd.ceiling * self.p0_diag[i] * scale[i] * scale[i])),
@@ -214,9 +214,10 @@ impl Default for EkfDesign {
 ///   delicate: growth over 1 to 50 ms, to 100 to 2 000 `P0`, left none over 2 s; 500 `P0` reaches the new
 ///   parameters fastest (at 100 `P0` the medians are 0.55 s). Cost: a counter test per sample, three adds per
 ///   sample during the growth.
-/// - **Persistent excitation**: the filtered input's power, averaged over `pe_tau_s`, below `pe_floor_v2` freezes the
-///   parameters (reported as `Starved`): with nothing to learn from they would only drift. 10 ms: an abrupt stop of
-///   the excitation freezes them within about 0.15 s (a 0.1 s average took 1.4 s, and they drifted 0.6 % meanwhile).
+/// - **Persistent excitation**: the filtered input's power, averaged over 10 ms by the pipeline's
+///   [`PeMonitor`](crate::estimator::PeMonitor), below `pe_floor_v2`, or a single sinusoid, freezes the parameters
+///   (reported as `Starved`): with nothing to learn from they would only drift. 10 ms: an abrupt stop of the
+///   excitation freezes them within about 0.15 s (a 0.1 s average took 1.4 s, and they drifted 0.6 % meanwhile).
 /// - **Covariance bounds**: parameter variances are held between `floor` and `ceiling` times their `P0` (a
 ///   diagonal congruence for the ceiling and a diagonal addition for the floor, both keeping `P` positive
 ///   semidefinite): no windup, and no collapse that would stop adaptation.
@@ -236,10 +237,8 @@ pub struct EkfHealthDesign {
     pub drift_tau_s: f64,
     /// No drift detection for this long after a start, a reset or a detected change, s.
     pub drift_wait_s: f64,
-    /// Filtered input power below which adaptation starves, V^2 (0: monitor off).
+    /// Filtered input power below which adaptation starves, V^2 (0: the excitation monitor off).
     pub pe_floor_v2: f64,
-    /// Time constant of the input power, s.
-    pub pe_tau_s: f64,
     /// Parameter variance ceiling, times `P0`.
     pub ceiling: f64,
     /// Parameter variance floor, times `P0`.
@@ -261,7 +260,6 @@ impl Default for EkfHealthDesign {
             drift_tau_s: 10.0,
             drift_wait_s: 5.0,
             pe_floor_v2: 1e-6,
-            pe_tau_s: 0.01,
             ceiling: 500.0,
             floor: 1e-9,
             reopen: 500.0,
@@ -280,7 +278,7 @@ pub struct EkfConfig<T> {
     drift_ratio: T,
     drift_alpha: T,
     drift_wait_samples: u32,
-    pe: PeConfig<T>,
+    pe: PeFloor<T>,
     innovation_alpha: T,
     p_ceiling: [T; 5],
     p_floor: [T; 5],
@@ -424,8 +422,6 @@ pub struct Ekf<T, K> {
     drift_wait: u32,
     /// Samples left in the growth of the parameter variances after a drift.
     ramp: u32,
-    /// The persistent-excitation monitor.
-    pe: PeMonitor<T>,
     /// Running mean square of the innovations, um^2.
     innovation_ms: T,
     kind: K,
@@ -451,7 +447,6 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
             nis_long: T::one(),
             drift_wait: 0,
             ramp: 0,
-            pe: PeMonitor::default(),
             innovation_ms: T::zero(),
             kind: K::default(),
         };
@@ -844,7 +839,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.health.numeric_resets += 1;
             return;
         }
-        let adapt = self.pe.adapt(&self.core.cfg.pe, &s.u_f, self.adapting, &mut self.health);
+        let adapt = self.core.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
         let frozen = (!adapt).then(|| self.core.freeze_parameters());
         let gating = change_samples > 0 && self.holdoff == 0;
         let gate = if gating { gate2 * fmax(self.nis_mean, T::epsilon()) } else { T::greatest() };
@@ -931,6 +926,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::PeLevel;
     use crate::filters::prefilter::Prefiltered;
 
     /// The hybrid filter after `seconds` of a pseudo-random +-1 V input on the exact model (1) at the payload's
@@ -941,7 +937,8 @@ mod tests {
         let (mut x, mut v, mut u, mut lfsr) = (0.0f64, 0.0f64, 0.0f64, 0xACE1u16);
         for _ in 0..(seconds * 1e4) as usize {
             let sample = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
-            f.update(&FilteredSample { u, y: x, u_f: sample(u), y_f: sample(x) });
+            let pe = PeLevel { power: 1.0, single: false }; // the level of a +-1 V PRBS
+            f.update(&FilteredSample { u, y: x, u_f: sample(u), y_f: sample(x), pe });
             // The next input, held over the next period; the plant by fine RK4 (exact to rounding at 1 us).
             lfsr = (lfsr >> 1) ^ (0u16.wrapping_sub(lfsr & 1) & 0xB400);
             u = if lfsr & 1 == 1 { 1.0 } else { -1.0 };

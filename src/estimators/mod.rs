@@ -16,8 +16,7 @@ pub mod tuning;
 
 pub use tuning::{Expected, Refused, TuningKey};
 
-use crate::estimator::{Adaptation, Health};
-use crate::filters::Prefiltered;
+use crate::estimator::{Adaptation, Health, PeLevel};
 use crate::{Real, Scalar, StageParams};
 
 /// The paper's three estimators: continuous-time RLS, continuous EKF, hybrid EKF.
@@ -114,87 +113,53 @@ pub(crate) fn rk4_combine<T: Real, const N: usize>(out: &mut [T; N], x: &[T; N],
     }
 }
 
-/// The persistent-excitation monitor's setting, designed: the filtered input's power averaged over `tau_s` (a first
-/// order average) and the floor below which it means the input is too weak to identify from; and the averages over
-/// [`PE_SPREAD_TAU_S`] that tell a single sinusoid (see [`PeMonitor`]).
+/// An estimator's side of the persistent-excitation monitor ([`PeMonitor`], which the pipeline runs once for all):
+/// its floor on the filtered input's power, V^2. A floor of 0 turns both of the monitor's tests off.
+///
+/// [`PeMonitor`]: crate::estimator::PeMonitor
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct PeConfig<T> {
-    alpha: T,
-    floor: T,
-    spread_alpha: T,
-    /// `1 - PE_SPREAD_MIN`, or the greatest value (never exceeded) when the monitor is off.
-    single_ratio: T,
-}
+pub(crate) struct PeFloor<T>(T);
 
-/// Below this spectral spread of the filtered input (0 for a single sinusoid; over [`PE_SPREAD_TAU_S`], 0.06 or
-/// more for the paper's PRBS and 0.9 or more for its smoothed triangle) the input cannot identify the three
-/// parameters.
-pub const PE_SPREAD_MIN: f64 = 0.01;
-/// Time constant of the averages the spread is computed from, s.
-pub const PE_SPREAD_TAU_S: f64 = 0.03;
-
-impl<T: Scalar> PeConfig<T> {
-    /// Floor `floor_v2` (V^2; 0: the monitor off), average over `tau_s`, sample period `t_s`.
-    pub(crate) fn new(floor_v2: f64, tau_s: f64, t_s: f64) -> Self {
-        PeConfig {
-            alpha: T::of(t_s / tau_s),
-            floor: T::of(floor_v2),
-            spread_alpha: T::of(t_s / PE_SPREAD_TAU_S),
-            single_ratio: if floor_v2 > 0.0 { T::of(1.0 - PE_SPREAD_MIN) } else { T::greatest() },
-        }
+impl<T: Scalar> PeFloor<T> {
+    /// Floor `floor_v2`, V^2 (0: the monitor off).
+    pub(crate) fn new(floor_v2: f64) -> Self {
+        PeFloor(T::of(floor_v2))
     }
-}
 
-/// The persistent-excitation monitor every online estimator runs on the pre-filtered input `u_f`. It starves the
-/// estimator (its parameters and their covariance held, [`Adaptation::Starved`] reported) when the input is
-/// - **too weak**: its power, averaged over 10 ms, below the floor (1e-6 V^2). With nothing to learn from, the
-///   parameters would only follow the noise: 10 s after the excitation stopped, the continuous-time RLS was 66 % off,
-///   the ARX 123 %;
-/// - **not rich enough**: a single sinusoid identifies two numbers (a gain and a phase), not three, and along the
-///   direction it leaves open the estimates drift: 10 s of a 1 V sine at 100, 450 or 1 000 Hz after PRBS moved the
-///   continuous-time RLS by up to 391 %, the ARX by 284 %, the EKFs by 2.3 %. For a single sinusoid `u'' = -w^2 u`
-///   at every instant, so the Cauchy-Schwarz inequality `<u u''>^2 <= <u^2> <u''^2>` holds with equality whatever
-///   the averaging window; its slack, the spread `1 - <u u''>^2 / (<u^2> <u''^2>)`, is 1e-6 to 2e-3 for such sines
-///   on the simulated board (the DAC's steps and the replicas keep it off zero) and at least 0.06 for the paper's
-///   PRBS over 30 ms (0.02 over 10 ms). Below [`PE_SPREAD_MIN`] it starves, within 0.5 s of a switch from PRBS
-///   to a sine. An input that is one frequency at a time over 30 ms (a slow sweep) would starve too (reasoned, not
-///   measured): a floor of 0 turns the monitor off for such data.
-///
-/// `hal-sim/tests/ekf_health.rs` measures both. Cost: 4 running means and a comparison, about 15 flops per sample.
-///
-/// [`Adaptation::Starved`]: crate::estimator::Adaptation::Starved
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct PeMonitor<T> {
-    /// The filtered input's power, V^2 (over `tau_s`).
-    pub(crate) power: T,
-    /// `<u^2>`, `<u''^2>` and `<u u''>` over [`PE_SPREAD_TAU_S`].
-    uu: T,
-    aa: T,
-    ua: T,
-}
-
-impl<T: Scalar> PeMonitor<T> {
-    /// One sample of `u_f`: whether to adapt, given the user's `adapting`. While the user lets it adapt, the health
-    /// report says whether the input starves it.
+    /// Whether to adapt on a sample of excitation `level`, given the user's `adapting`. While the user lets it
+    /// adapt, the health report says whether the input starves it.
     #[inline(always)]
-    pub(crate) fn adapt(
-        &mut self,
-        cfg: &PeConfig<T>,
-        u_f: &Prefiltered<T>,
-        adapting: bool,
-        health: &mut Health,
-    ) -> bool {
-        let (u, a) = (u_f.value, u_f.d2);
-        let u2 = u * u;
-        self.power += cfg.alpha * (u2 - self.power);
-        self.uu += cfg.spread_alpha * (u2 - self.uu);
-        self.aa += cfg.spread_alpha * (a * a - self.aa);
-        self.ua += cfg.spread_alpha * (u * a - self.ua);
-        let single = self.ua * self.ua > cfg.single_ratio * (self.uu * self.aa);
-        let starved = self.power < cfg.floor || single;
+    pub(crate) fn adapt(&self, level: &PeLevel<T>, adapting: bool, health: &mut Health) -> bool {
+        let starved = self.0 > T::zero() && (level.power < self.0 || level.single);
         if adapting {
             health.adaptation = if starved { Adaptation::Starved } else { Adaptation::Adapting };
         }
         adapting && !starved
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A floor above zero starves on too little power or a single sinusoid, and reports it only while the user lets
+    /// the estimator adapt; a floor of 0 turns both tests off.
+    #[test]
+    fn the_floor_decides_and_zero_turns_the_monitor_off() {
+        let rich = PeLevel { power: 1e-3, single: false };
+        let weak = PeLevel { power: 1e-7, single: false };
+        let single = PeLevel { power: 1.0, single: true };
+        let mut h = Health::new();
+        let on = PeFloor::<f32>::new(1e-6);
+        assert!(on.adapt(&rich, true, &mut h) && h.adaptation == Adaptation::Adapting);
+        assert!(!on.adapt(&weak, true, &mut h) && h.adaptation == Adaptation::Starved);
+        assert!(on.adapt(&rich, true, &mut h) && h.adaptation == Adaptation::Adapting);
+        assert!(!on.adapt(&single, true, &mut h) && h.adaptation == Adaptation::Starved);
+        let mut frozen = Health { adaptation: Adaptation::Frozen, ..Health::new() };
+        assert!(!on.adapt(&rich, false, &mut frozen) && frozen.adaptation == Adaptation::Frozen);
+        let off = PeFloor::<f32>::new(0.0);
+        for level in [rich, weak, single, PeLevel::default()] {
+            assert!(off.adapt(&level, true, &mut h) && h.adaptation == Adaptation::Adapting, "{level:?}");
+        }
     }
 }
