@@ -10,7 +10,7 @@
 //! The estimators themselves (discrete RLS, continuous-time RLS, continuous and hybrid EKF) implement [`Estimator`];
 //! the pipeline holds any number of them as an [`EstimatorBank`]: `()` for none, one estimator, or a tuple.
 
-use crate::filters::Prefiltered;
+use crate::filters::{Prefilter, PrefilterDesign, PrefilterState, Prefiltered};
 use crate::{Real, StageParams};
 
 /// What an estimator receives each sample.
@@ -28,89 +28,109 @@ pub struct FilteredSample<T> {
     pub pe: PeLevel<T>,
 }
 
-/// The persistent-excitation monitor's measurement of one sample of `u_f`: what each estimator compares with its
-/// own floor (`pe_floor_v2`) to decide whether the input can identify the three parameters. The default (no power)
-/// starves every estimator whose monitor is on.
+/// The persistent-excitation monitor's measurement of one sample: what each estimator compares with its own floor
+/// (`pe_floor_v2`) to decide whether the input can identify the three parameters. The default (no power) starves
+/// every estimator whose monitor is on.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PeLevel<T> {
-    /// The filtered input's power averaged over [`PE_POWER_TAU_S`], V^2.
+    /// The pre-filtered input's power averaged over [`PE_TAU_S`], V^2.
     pub power: T,
-    /// Whether `u_f` looks like a single sinusoid over [`PE_SPREAD_TAU_S`]: its spread below [`PE_SPREAD_MIN`].
+    /// Whether the input looks like a single sinusoid: its spread (through [`PE_SPREAD_SHAPE`], over [`PE_TAU_S`])
+    /// below [`PE_SPREAD_MIN`].
     pub single: bool,
 }
 
-/// Time constant of the power average of [`PeLevel`], s.
-pub const PE_POWER_TAU_S: f64 = 0.01;
-/// Below this spectral spread of the filtered input (0 for a single sinusoid; over [`PE_SPREAD_TAU_S`], 0.06 or
-/// more for the paper's PRBS and 0.9 or more for its smoothed triangle) the input cannot identify the three
-/// parameters.
+/// Time constant of the monitor's averages, s: an abrupt stop of the excitation starves within about 0.15 s (a 0.1 s
+/// average took 1.4 s, and the EKFs' parameters drifted 0.6 % meanwhile), a switch from PRBS to a sine within 0.3 s
+/// (0.55 s with 30 ms).
+pub const PE_TAU_S: f64 = 0.01;
+/// Below this spectral spread of the input (0 for a single sinusoid; through [`PE_SPREAD_SHAPE`] and over
+/// [`PE_TAU_S`], 0.4 or more for the paper's PRBS and 0.07 or more for its smoothed triangle, at 1 V and at 50 mV)
+/// the input cannot identify the three parameters.
 pub const PE_SPREAD_MIN: f64 = 0.01;
-/// Time constant of the averages the spread is computed from, s.
-pub const PE_SPREAD_TAU_S: f64 = 0.03;
+/// The filter the spread is measured through: a band-pass from 5 Hz to 20 Hz (a second-order low-pass, damping
+/// 0.7), the pre-filter's realisation with other corners, so that its second derivative is exact. Above 20 Hz it
+/// weighs the input's curvature by the input's own amplitude, where the pre-filter `W_p` (a resonance at 450 Hz)
+/// weighs it by the fourth power of the frequency. On the board the DAC's rounding (4.9 mV steps of the command) is
+/// a white input of its own: through `W_p` its curvature outweighed that of a 1 V sine below about 60 Hz, which then
+/// looked rich (spread 0.06 to 1 from 5 to 50 Hz, and the RLS and the ARX drifted 5 to 41 % and 80 to 270 % in
+/// 10 s); through this filter the same sines give 1e-3 or less. The 5 Hz corner keeps a constant offset out (its
+/// step decays within 0.2 s).
+pub const PE_SPREAD_SHAPE: PrefilterDesign = PrefilterDesign { f_lc_hz: 5.0, f_p_hz: 20.0, zeta_p: 0.7 };
 
-/// The persistent-excitation monitor on the pre-filtered input `u_f`, run once per sample by the pipeline (every
-/// estimator reads the same `u_f`). An estimator whose floor is above zero starves (its parameters and their
-/// covariance held, [`Adaptation::Starved`] reported) when the input is
-/// - **too weak**: its power, averaged over 10 ms, below the floor (1e-6 V^2 by default). With nothing to learn
-///   from, the parameters would only follow the noise: 10 s after the excitation stopped, the continuous-time RLS was
-///   66 % off, the ARX 123 %;
+/// The persistent-excitation monitor, run once per sample by the pipeline (every estimator reads the same input). An
+/// estimator whose floor is above zero starves (its parameters and their covariance held, [`Adaptation::Starved`]
+/// reported) when the input is
+/// - **too weak**: the power of the pre-filtered input `u_f`, averaged over 10 ms, below the floor (1e-6 V^2 by
+///   default). With nothing to learn from, the parameters would only follow the noise: 10 s after the excitation
+///   stopped, the continuous-time RLS was 66 % off, the ARX 123 %;
 /// - **not rich enough**: a single sinusoid identifies two numbers (a gain and a phase), not three, and along the
 ///   direction it leaves open the estimates drift: 10 s of a 1 V sine at 100, 450 or 1 000 Hz after PRBS moved the
-///   continuous-time RLS by up to 391 %, the ARX by 284 %, the EKFs by 2.3 %. For a single sinusoid `u'' = -w^2 u`
-///   at every instant, so the Cauchy-Schwarz inequality `<u u''>^2 <= <u^2> <u''^2>` holds with equality whatever
-///   the averaging window; its slack, the spread `1 - <u u''>^2 / (<u^2> <u''^2>)`, is 1e-6 to 2e-3 for such sines
-///   on the simulated board (the DAC's steps and the replicas keep it off zero) and at least 0.06 for the paper's
-///   PRBS over 30 ms (0.02 over 10 ms). Below [`PE_SPREAD_MIN`] it starves, within 0.5 s of a switch from PRBS
-///   to a sine. An input that is one frequency at a time over 30 ms (a slow sweep) would starve too (reasoned, not
-///   measured): a floor of 0 turns the monitor off for such data.
+///   continuous-time RLS by up to 391 %, the ARX by 284 %, the EKFs by 2.3 %. For a single sinusoid `v'' = -w^2 v`
+///   at every instant, so the Cauchy-Schwarz inequality `<v v''>^2 <= <v^2> <v''^2>` holds with equality whatever
+///   the averaging window, and through any linear filter. Its slack, the spread `1 - <v v''>^2 / (<v^2> <v''^2>)`
+///   of `v`, the replicas' `u'` through [`PE_SPREAD_SHAPE`], is on the simulated board at most 3e-3 for 1 V sines
+///   from 5 Hz to 1 kHz and for 50 mV sines from 20 Hz to 1 kHz (the DAC's steps keep it off zero), and at least
+///   0.4 for the paper's PRBS and 0.07 for its smoothed triangle. Below [`PE_SPREAD_MIN`] it starves, within 0.3 s
+///   of a switch from PRBS to a sine.
+///
+/// Limits: a sine only a few DAC steps high at a few Hz (50 mV at 10 Hz or below: spread 0.015 to 0.5) is a
+/// staircase the test takes for rich. An input that is one frequency at a time over 10 ms (a slow sweep) would
+/// starve (reasoned, not measured): a floor of 0 turns the monitor off for such data.
 ///
 /// Measured once, not in each estimator: an estimator reset or selected at run time sees the input's level at
-/// once. A non-finite `u_f` (which the board cannot produce: it delivers integer codes) restarts the averages from
-/// zero, which starves, so it cannot leave the monitor stuck. `hal-sim/tests/ekf_health.rs` measures
-/// both tests. Cost: 4 running means, a comparison and the finiteness check, about 20 flops per sample.
+/// once. A non-finite input (which the board cannot produce: it delivers integer codes) restarts the averages and the
+/// shaping filter from zero, which starves, so it cannot leave the monitor stuck. `hal-sim/tests/ekf_health.rs`
+/// measures both tests. Cost: the shaping filter (14 multiplies, 12 adds), 4 running means, a comparison and the
+/// finiteness check: about 45 flops per sample.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PeMonitor<T> {
+    shape: Prefilter<T>,
+    shaped: PrefilterState<T>,
+    /// `T / PE_TAU_S`.
     alpha: T,
-    spread_alpha: T,
     /// `1 - PE_SPREAD_MIN`.
     single_ratio: T,
-    /// The filtered input's power, V^2 (over [`PE_POWER_TAU_S`]).
+    /// The pre-filtered input's power, V^2.
     power: T,
-    /// `<u^2>`, `<u''^2>` and `<u u''>` over [`PE_SPREAD_TAU_S`].
-    uu: T,
+    /// `<v^2>`, `<v''^2>` and `<v v''>`, `v` the input through [`PE_SPREAD_SHAPE`].
+    vv: T,
     aa: T,
-    ua: T,
+    va: T,
 }
 
 impl<T: Real> PeMonitor<T> {
     /// At rest (no power: starving) for the sample period `t_s`.
     pub fn new(t_s: f64) -> Self {
         PeMonitor {
-            alpha: T::of(t_s / PE_POWER_TAU_S),
-            spread_alpha: T::of(t_s / PE_SPREAD_TAU_S),
+            shape: PE_SPREAD_SHAPE.design(t_s),
+            shaped: PrefilterState::default(),
+            alpha: T::of(t_s / PE_TAU_S),
             single_ratio: T::of(1.0 - PE_SPREAD_MIN),
             power: T::zero(),
-            uu: T::zero(),
+            vv: T::zero(),
             aa: T::zero(),
-            ua: T::zero(),
+            va: T::zero(),
         }
     }
 
-    /// One sample of `u_f`.
+    /// One sample of the input `u` (the replicas' `u'`) and of its pre-filtered `u_f`.
     #[inline(always)]
-    pub fn update(&mut self, u_f: &Prefiltered<T>) -> PeLevel<T> {
-        let (u, a) = (u_f.value, u_f.d2);
-        let u2 = u * u;
-        self.power += self.alpha * (u2 - self.power);
-        self.uu += self.spread_alpha * (u2 - self.uu);
-        self.aa += self.spread_alpha * (a * a - self.aa);
-        self.ua += self.spread_alpha * (u * a - self.ua);
-        // `power` and `uu` are finite exactly when `u` was; `aa` and `ua` when `a` was too (or, harmlessly, near
-        // overflow anyway).
-        if !(self.power + self.aa + self.ua).is_finite() {
-            (self.power, self.uu, self.aa, self.ua) = (T::zero(), T::zero(), T::zero(), T::zero());
+    pub fn update(&mut self, u: T, u_f: &Prefiltered<T>) -> PeLevel<T> {
+        let shaped = self.shape.update(&mut self.shaped, u);
+        let (v, a) = (shaped.value, shaped.d2);
+        let alpha = self.alpha;
+        self.power += alpha * (u_f.value * u_f.value - self.power);
+        self.vv += alpha * (v * v - self.vv);
+        self.aa += alpha * (a * a - self.aa);
+        self.va += alpha * (v * a - self.va);
+        // `power` is finite exactly when `u_f` was, `aa` and `va` when `u` was (or, harmlessly, near overflow
+        // anyway), and `vv` with them.
+        if !(self.power + self.aa + self.va).is_finite() {
+            (self.power, self.vv, self.aa, self.va) = (T::zero(), T::zero(), T::zero(), T::zero());
+            self.shaped = PrefilterState::default();
         }
-        PeLevel { power: self.power, single: self.ua * self.ua > self.single_ratio * (self.uu * self.aa) }
+        PeLevel { power: self.power, single: self.va * self.va > self.single_ratio * (self.vv * self.aa) }
     }
 }
 
@@ -246,23 +266,50 @@ bank_for_tuple!(5; A.0, B.1, C.2, D.3, E.4);
 mod tests {
     use super::*;
 
-    /// A non-finite `u_f` restarts the averages from zero (no power: starving) instead of leaving them stuck, and
-    /// they build up again from the next finite sample.
+    fn at(value: f64) -> Prefiltered<f64> {
+        Prefiltered { value, d1: 0.0, d2: 0.0 }
+    }
+
+    /// A 50 Hz square wave (its odd harmonics: rich), as the input and as its pre-filtered value.
+    fn square(k: u32) -> f64 {
+        if (k / 100) % 2 == 0 {
+            1.0
+        } else {
+            -1.0
+        }
+    }
+
+    /// A non-finite input or pre-filtered input restarts the averages and the shaping filter from zero (no power:
+    /// starving) instead of leaving them stuck, and they build up again from the next finite sample.
     #[test]
     fn a_non_finite_input_restarts_the_excitation_monitor() {
         let mut pe = PeMonitor::<f64>::new(1e-4);
-        let at = |value: f64, d2: f64| Prefiltered { value, d1: 0.0, d2 };
-        // A square wave's filtered curvature is not tied to its value: rich.
-        let square = |k: u32| if (k / 20) % 2 == 0 { 1.0 } else { -1.0 };
         let mut level = PeLevel::default();
-        for k in 0..1000 {
-            level = pe.update(&at(square(k), -3.0 * square(k + 7)));
+        for k in 0..3000 {
+            level = pe.update(square(k), &at(square(k)));
         }
         assert!(level.power > 0.9 && !level.single, "{level:?}");
-        for bad in [at(f64::NAN, 0.0), at(0.5, f64::INFINITY), at(f64::NEG_INFINITY, f64::NAN)] {
-            assert_eq!(pe.update(&bad), PeLevel { power: 0.0, single: false }, "{bad:?}");
-            let next = pe.update(&at(1.0, 2.0));
+        for (u, u_f) in [(f64::NAN, 0.5), (0.5, f64::INFINITY), (f64::NEG_INFINITY, f64::NAN)] {
+            assert_eq!(pe.update(u, &at(u_f)), PeLevel { power: 0.0, single: false }, "{u} {u_f}");
+            let next = pe.update(1.0, &at(1.0));
             assert!(next.power.is_finite() && next.power > 0.0, "{next:?}");
         }
+    }
+
+    /// A single sinusoid, with an offset or without, is `single` at any frequency from 5 Hz to 2 kHz once the
+    /// averages have settled; a square wave is not.
+    #[test]
+    fn a_single_sinusoid_is_told_from_a_rich_input() {
+        let settled = |input: &dyn Fn(f64) -> f64| {
+            let mut pe = PeMonitor::<f64>::new(1e-4);
+            (0..20_000).map(|k| pe.update(input(k as f64 * 1e-4), &at(1.0))).skip(10_000).all(|l| l.single)
+        };
+        for hz in [5.0, 20.0, 100.0, 450.0, 2000.0] {
+            let w = 2.0 * core::f64::consts::PI * hz;
+            assert!(settled(&|t| libm::sin(w * t)), "{hz} Hz");
+            assert!(settled(&|t| 0.5 + 0.1 * libm::sin(w * t)), "{hz} Hz with an offset");
+        }
+        let mut pe = PeMonitor::<f64>::new(1e-4);
+        assert!((0..20_000).map(|k| pe.update(square(k), &at(1.0))).skip(10_000).all(|l| !l.single));
     }
 }

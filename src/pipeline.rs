@@ -526,7 +526,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             y: y_um,
             u_f,
             y_f: cfg.prefilter.update(&mut self.prefilter_y, y_um),
-            pe: self.pe.update(&u_f),
+            pe: self.pe.update(u_replica, &u_f),
         }
     }
 

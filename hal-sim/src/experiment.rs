@@ -285,7 +285,7 @@ impl<T: nanopos_id::Real> Feed<T> {
     pub fn sample(&mut self, u: T, y: T) -> nanopos_id::estimator::FilteredSample<T> {
         let u_f = self.prefilter.update(&mut self.u, u);
         let y_f = self.prefilter.update(&mut self.y, y);
-        nanopos_id::estimator::FilteredSample { u, y, u_f, y_f, pe: self.pe.update(&u_f) }
+        nanopos_id::estimator::FilteredSample { u, y, u_f, y_f, pe: self.pe.update(u, &u_f) }
     }
 }
 
