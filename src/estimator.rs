@@ -75,7 +75,11 @@ pub const PE_SPREAD_SHAPE: PrefilterDesign = PrefilterDesign { f_lc_hz: 5.0, f_p
 ///   of a switch from PRBS to a sine.
 ///
 /// Limits: a sine only a few DAC steps high at a few Hz (50 mV at 10 Hz or below: spread 0.015 to 0.5) is a
-/// staircase the test takes for rich. An input that is one frequency at a time over 10 ms, a slow sweep, starves: a
+/// staircase the test takes for rich. The other way, the test is strict with fast triangles: through the shaping
+/// filter their harmonics (1/9, 1/25, ... of the fundamental) weigh little, so from about 200 Hz a triangle is
+/// always taken for a single sinusoid and starves, 30 to 100 Hz ones part of the time (15 to 50 %); the paper's
+/// 10 Hz triangle never (`hal-sim/tests/ekf_health.rs`). Weighing harmonics more, as `W_p` does, lets the DAC's
+/// rounding in again: the choice is to hold on doubtful input rather than drift. An input that is one frequency at a time over 10 ms, a slow sweep, starves: a
 /// linear sweep from 10 Hz to 1 kHz over 1 s is `single` 82 % of the time, over 10 s 99.3 %
 /// (`a_slow_sweep_passes_for_a_single_sinusoid`). A floor of 0 turns the monitor off for such data.
 ///
