@@ -37,7 +37,7 @@
 //! ## Health
 //! A non-finite value anywhere in the state resets the estimator to its initial state and is counted. `P` stops
 //! adapting while `||P||_F > R0`, the paper's bound against windup. The persistent-excitation monitor
-//! ([`crate::estimator::PeMonitor`], which the pipeline runs once for every estimator on its pre-filtered input)
+//! ([`crate::estimator::PeMonitor`], which the pipeline runs once for every estimator on its input)
 //! holds it too: below its floor (1e-6 V^2 over 10 ms), or on a single sinusoid, `theta` and `P` are held and the
 //! health reports `Starved`. Without it the bound keeps `P` finite but not
 //! the estimate: 10 s after the excitation stopped, the noise had carried it 66 % off (on the reference-style PRBS
