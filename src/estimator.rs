@@ -139,6 +139,30 @@ impl<T: Real> PeMonitor<T> {
     }
 }
 
+/// What turns the input `u'` and the reading `y'` into a [`FilteredSample`]: both through the pre-filter, and the
+/// input's excitation measured. The pipeline runs it after its replicas; hosts replaying data without analog
+/// filters run it alone.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SampleFilter<T> {
+    u: PrefilterState<T>,
+    y: PrefilterState<T>,
+    pe: PeMonitor<T>,
+}
+
+impl<T: Real> SampleFilter<T> {
+    /// At rest, for the sample period `t_s`.
+    pub fn new(t_s: f64) -> Self {
+        SampleFilter { u: PrefilterState::default(), y: PrefilterState::default(), pe: PeMonitor::new(t_s) }
+    }
+
+    /// One sample of `u'` and `y'` through `prefilter`.
+    #[inline(always)]
+    pub fn sample(&mut self, prefilter: &Prefilter<T>, u: T, y: T) -> FilteredSample<T> {
+        let u_f = prefilter.update(&mut self.u, u);
+        FilteredSample { u, y, u_f, y_f: prefilter.update(&mut self.y, y), pe: self.pe.update(u, &u_f) }
+    }
+}
+
 /// Whether an estimator is adapting its parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]

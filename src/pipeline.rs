@@ -24,10 +24,10 @@
 //! (they are not fed) until [`Pipeline::clear_faults`]. Each event is counted. Cost per sample, without estimators:
 //! two biquads, two pre-filters, the excitation, the limits: about 60 flops.
 
-use crate::estimator::{EstimatorBank, FilteredSample, PeMonitor};
+use crate::estimator::{EstimatorBank, FilteredSample, SampleFilter};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
-use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign, PrefilterState};
+use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign};
 use crate::hal::{BoardDescription, BoardFaults};
 use crate::scalar::{fmax, fmin};
 use crate::Real;
@@ -424,9 +424,7 @@ pub struct Pipeline<T, E> {
     reconstruction: BiquadState<T>,
     antialias: BiquadState<T>,
     lags: BiquadState<T>,
-    prefilter_u: PrefilterState<T>,
-    prefilter_y: PrefilterState<T>,
-    pe: PeMonitor<T>,
+    sample_filter: SampleFilter<T>,
     last_probe_code: u32,
     same_code_run: u32,
     faults: Faults,
@@ -445,9 +443,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             reconstruction: BiquadState::default(),
             antialias: BiquadState::default(),
             lags: BiquadState::default(),
-            prefilter_u: PrefilterState::default(),
-            prefilter_y: PrefilterState::default(),
-            pe: PeMonitor::new(cfg.sample_period_s),
+            sample_filter: SampleFilter::new(cfg.sample_period_s),
             last_probe_code: u32::MAX,
             same_code_run: 0,
             faults: Faults::default(),
@@ -520,14 +516,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     fn filter(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
         let rc = cfg.reconstruction.update(&mut self.reconstruction, u_v);
         let u_replica = cfg.lags.update(&mut self.lags, cfg.antialias.update(&mut self.antialias, rc));
-        let u_f = cfg.prefilter.update(&mut self.prefilter_u, u_replica);
-        FilteredSample {
-            u: u_replica,
-            y: y_um,
-            u_f,
-            y_f: cfg.prefilter.update(&mut self.prefilter_y, y_um),
-            pe: self.pe.update(u_replica, &u_f),
-        }
+        self.sample_filter.sample(&cfg.prefilter, u_replica, y_um)
     }
 
     /// One sample of a recording: `u_v` the command in effect over the sample period, `y_um` the reading at its

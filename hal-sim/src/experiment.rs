@@ -265,9 +265,7 @@ impl ReferenceData {
 /// both through the default pre-filter `W_p`, and the filtered input's excitation level.
 pub struct Feed<T> {
     prefilter: nanopos_id::filters::Prefilter<T>,
-    u: nanopos_id::filters::PrefilterState<T>,
-    y: nanopos_id::filters::PrefilterState<T>,
-    pe: nanopos_id::estimator::PeMonitor<T>,
+    filter: nanopos_id::estimator::SampleFilter<T>,
 }
 
 impl<T: nanopos_id::Real> Feed<T> {
@@ -275,17 +273,13 @@ impl<T: nanopos_id::Real> Feed<T> {
     pub fn new(t_s: f64) -> Self {
         Feed {
             prefilter: nanopos_id::filters::PrefilterDesign::default().design::<T>(t_s),
-            u: Default::default(),
-            y: Default::default(),
-            pe: nanopos_id::estimator::PeMonitor::new(t_s),
+            filter: nanopos_id::estimator::SampleFilter::new(t_s),
         }
     }
 
     /// One sample.
     pub fn sample(&mut self, u: T, y: T) -> nanopos_id::estimator::FilteredSample<T> {
-        let u_f = self.prefilter.update(&mut self.u, u);
-        let y_f = self.prefilter.update(&mut self.y, y);
-        nanopos_id::estimator::FilteredSample { u, y, u_f, y_f, pe: self.pe.update(u, &u_f) }
+        self.filter.sample(&self.prefilter, u, y)
     }
 }
 
