@@ -133,3 +133,24 @@ fn prefilter_outputs_are_the_analytic_ones_delayed_half_a_sample_in_the_resonanc
         }
     }
 }
+
+/// The white-noise gains (the persistent-excitation monitor's reference for the DAC's rounding) are the sums of the
+/// squared impulse responses, for the pre-filter and for the monitor's shaping filter (a pole at 5 Hz: 0.9969 per
+/// sample, so the direct sum runs 20 000 samples, e^-63 of the way).
+#[test]
+fn noise_gains_are_the_sums_of_the_squared_impulse_responses() {
+    for design in [PrefilterDesign::default(), nanopos_id::estimator::PE_SPREAD_SHAPE] {
+        let filter = design.design::<f64>(T);
+        let mut state = PrefilterState::default();
+        let mut sums = [0.0f64; 2];
+        for k in 0..20_000 {
+            let out = filter.update(&mut state, if k == 0 { 1.0 } else { 0.0 });
+            sums[0] += out.value * out.value;
+            sums[1] += out.d2 * out.d2;
+        }
+        let gains = design.noise_gains(T);
+        for i in 0..2 {
+            assert!((gains[i] / sums[i] - 1.0).abs() < 1e-9, "{design:?}: {gains:?} against {sums:?}");
+        }
+    }
+}

@@ -35,7 +35,7 @@
 //! alone would add a jump of `w_p^2 (in[k] - in[k-1])` per sample. Cost per sample: 14 multiplies, 12 adds.
 
 use crate::filters::response::{polyval, s_at, Complex};
-use crate::linalg::{mat_vec, zoh};
+use crate::linalg::{mat_mul, mat_vec, zoh, Mat};
 use crate::Real;
 
 /// Physical description of `W_p`.
@@ -78,18 +78,60 @@ impl PrefilterDesign {
     /// The discrete filter for sample period `t_s`.
     #[inline(never)]
     pub fn design<T: Real>(&self, t_s: f64) -> Prefilter<T> {
+        let d = self.discrete(t_s);
+        let c = T::of;
+        Prefilter {
+            phi: d.phi.map(|row| row.map(c)),
+            gam: d.gam.map(c),
+            accel: d.accel.map(c),
+            half_feedthrough: c(d.half_feedthrough),
+        }
+    }
+
+    /// The discrete filter's white-noise gains: the sums of the squares of the impulse responses of its `value` and
+    /// `d2` outputs, so that a white input of variance `s2` comes out with the powers `s2 * gains`. From the
+    /// controllability Gramian `P = sum_j Phi^j Gam Gam' Phi'^j`, summed by doubling (`P += M P M'`, `M = M^2`,
+    /// 2^24 samples: far past the slowest pole's decay for any corner above a hundredth of a hertz at 10 kHz).
+    /// The impulse gives `value = xi2` from the first sample on, and `d2 = h` at once, `accel . Gam + h` one sample
+    /// later and `accel . Phi^(k-1) Gam` after, `h` the half feed-through.
+    #[inline(never)]
+    pub fn noise_gains(&self, t_s: f64) -> [f64; 2] {
+        let d = self.discrete(t_s);
+        let mut p: Mat<3> = core::array::from_fn(|i| core::array::from_fn(|j| d.gam[i] * d.gam[j]));
+        let mut m = d.phi;
+        for _ in 0..24 {
+            let mt = transpose(&m);
+            let add = mat_mul(&mat_mul(&m, &p), &mt);
+            p = core::array::from_fn(|i| core::array::from_fn(|j| p[i][j] + add[i][j]));
+            m = mat_mul(&m, &m);
+        }
+        let later = mat_mul(&mat_mul(&d.phi, &p), &transpose(&d.phi));
+        let quad = |q: &Mat<3>| -> f64 {
+            (0..3).map(|i| (0..3).map(|j| d.accel[i] * q[i][j] * d.accel[j]).sum::<f64>()).sum()
+        };
+        let first = (0..3).map(|i| d.accel[i] * d.gam[i]).sum::<f64>() + d.half_feedthrough;
+        let h = d.half_feedthrough;
+        [p[1][1], h * h + first * first + quad(&later)]
+    }
+
+    fn discrete(&self, t_s: f64) -> Discrete {
         let ([d0, d1, d2], g) = self.continuous();
         let a = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-d0, -d1, -d2]];
         let (phi, psi) = zoh(&a, t_s);
-        let gam = mat_vec(&psi, &[0.0, 0.0, g]);
-        let c = T::of;
-        Prefilter {
-            phi: phi.map(|row| row.map(c)),
-            gam: gam.map(c),
-            accel: [c(-d0), c(-d1), c(-d2)],
-            half_feedthrough: c(g / 2.0),
-        }
+        Discrete { phi, gam: mat_vec(&psi, &[0.0, 0.0, g]), accel: [-d0, -d1, -d2], half_feedthrough: g / 2.0 }
     }
+}
+
+/// [`Prefilter`] in `f64`, before rounding to the working scalar.
+struct Discrete {
+    phi: Mat<3>,
+    gam: [f64; 3],
+    accel: [f64; 3],
+    half_feedthrough: f64,
+}
+
+fn transpose(m: &Mat<3>) -> Mat<3> {
+    core::array::from_fn(|i| core::array::from_fn(|j| m[j][i]))
 }
 
 /// The discretised pre-filter (the configuration).
