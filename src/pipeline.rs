@@ -246,6 +246,8 @@ pub struct PipelineConfig<T> {
     pub actuation_delay_samples: u8,
     /// Sample period, s.
     pub sample_period_s: f64,
+    /// The command's step for one DAC code, V: the rounding the excitation monitor discounts.
+    pub command_lsb_v: f64,
     /// Which estimators are fed (bit `i`: the bank's `i`-th).
     pub estimators: u8,
 }
@@ -338,6 +340,7 @@ impl PipelineSettings {
             stuck_samples: self.faults.stuck_samples.max(2),
             actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
+            command_lsb_v: vpc_out / libm::fabs(a.dac_v_per_command_v),
             estimators: self.estimators,
         })
     }
@@ -443,7 +446,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             reconstruction: BiquadState::default(),
             antialias: BiquadState::default(),
             lags: BiquadState::default(),
-            sample_filter: SampleFilter::new(cfg.sample_period_s),
+            sample_filter: SampleFilter::new(cfg.sample_period_s, cfg.command_lsb_v),
             last_probe_code: u32::MAX,
             same_code_run: 0,
             faults: Faults::default(),

@@ -262,7 +262,8 @@ impl ReferenceData {
 }
 
 /// What the pipeline feeds the estimators, without its replicas (for data with no analog filters): raw `(u, y)`,
-/// both through the default pre-filter `W_p`, and the filtered input's excitation level.
+/// both through the default pre-filter `W_p`, and the filtered input's excitation level (`u` taken as unrounded:
+/// the monitor discounts no DAC steps).
 pub struct Feed<T> {
     prefilter: nanopos_id::filters::Prefilter<T>,
     filter: nanopos_id::estimator::SampleFilter<T>,
@@ -273,7 +274,7 @@ impl<T: nanopos_id::Real> Feed<T> {
     pub fn new(t_s: f64) -> Self {
         Feed {
             prefilter: nanopos_id::filters::PrefilterDesign::default().design::<T>(t_s),
-            filter: nanopos_id::estimator::SampleFilter::new(t_s),
+            filter: nanopos_id::estimator::SampleFilter::new(t_s, 0.0),
         }
     }
 

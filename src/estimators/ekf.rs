@@ -784,9 +784,10 @@ impl<T: Real> EkfCore<T> {
     #[cfg_attr(target_os = "none", link_section = ".ramtext.ekf_bound_covariance")]
     fn bound_covariance(&mut self, repairs: &mut u32) {
         // The continuous filter integrates the Riccati equation in one RK4 step per sample, and a state variance
-        // swinging near zero can overshoot below it (on the board's triangle, 30 ms after the start, the x2 variance
-        // fell from 37.6 by 84 um^2/s^2 per sample). Decorrelate that state and give it its floor: `P` is then
-        // positive semidefinite again if the rest of it was, and the filter carries on instead of resetting.
+        // swinging near zero can overshoot below it (on the board's triangle, adapting from the first sample, 30 ms
+        // after the start, the x2 variance fell from 37.6 by 84 um^2/s^2 per sample: `hal-sim/tests/ekf_health.rs`).
+        // Decorrelate that state and give it its floor: `P` is then positive semidefinite again if the rest of it
+        // was, and the filter carries on instead of resetting.
         for i in 0..2 {
             if self.p[idx(i, i)] < T::zero() {
                 for j in 0..5 {
