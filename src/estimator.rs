@@ -61,12 +61,12 @@ pub const PE_SPREAD_SHAPE: PrefilterDesign = PrefilterDesign { f_lc_hz: 5.0, f_p
 /// The off-sine power a rich input must have beyond the DAC's rounding, in units of that rounding taken as white
 /// noise (variance `lsb^2 / 12`) through [`PE_SPREAD_SHAPE`]: over `<v''^2>` (`v` units, first) and over `<v^2>`
 /// (`v''` units, second). The rounding is no white noise: it follows the signal, in lines wherever a sine's
-/// harmonics fold to. Measured on the simulated board over 350 sines (0.2 Hz to 4.9 kHz, 3 mV to 2 V; a scratch
-/// grid, of which `no_sine_passes_for_rich_input_whatever_its_frequency_and_amplitude` keeps 55), the slack that
-/// passed the relative test reached 19 times the white level in `v` units (a 1 kHz sine of 30 mV, whose rounding
-/// folds into the 5-20 Hz band) and 4.3 times in `v''` units (slow sines); the least of rich inputs: the paper's
-/// triangle at 0.1 V 84 000 and 11.7 times, the 50 mV PRBS 220 and 1 380 times. The margins are thin on the `v''`
-/// side (1.6 times both ways): a board with another DAC or amplifier gain should measure its own.
+/// harmonics fold to. Measured on the simulated board over 280 sines (0.2 Hz to 4.9 kHz, 3 mV to 2 V) where the
+/// spread test alone passed them, in the unit that decides: up to 21 times the white level in `v` units (fast or
+/// small sines, whose rounding folds into the 5-20 Hz band) and 4.3 times in `v''` units (slow sines); the least of
+/// rich inputs: the paper's triangle at 0.1 V 11.7 times (`v''`), its PRBS at 50 mV 217 times (`v`)
+/// (`cargo test --release -p hal-sim --test ekf_health -- --ignored --nocapture rounding_floor`). The margin is
+/// thin on the `v''` side (1.6 times both ways): a board with another DAC or amplifier gain should measure its own.
 pub const PE_ROUNDING_FLOOR: [f64; 2] = [48.0, 7.0];
 
 /// The persistent-excitation monitor, run once per sample by the pipeline (every estimator reads the same input). An
