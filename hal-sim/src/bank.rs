@@ -1,7 +1,7 @@
 //! The estimators chosen at run time (`--estimators rls,ekf,hekf,arx`), as one estimator bank for the pipeline,
 //! and their tuning presets.
 
-use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample};
+use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::estimators::arx::ArxEstimator;
 use nanopos_id::estimators::crls::Crls;
 use nanopos_id::estimators::ekf::{Cekf, Hekf};
@@ -35,13 +35,13 @@ impl<T: Real> Bank<T> {
         }
     }
 
-    /// The innovation RMS (um) of each estimator present, in report order (`NaN` where it has none).
-    pub fn innovation_rms_um(&self) -> impl Iterator<Item = f32> + '_ {
+    /// The health of each estimator present, in report order.
+    pub fn healths(&self) -> impl Iterator<Item = Health> + '_ {
         [
-            self.rls.as_ref().map(|e| e.health().innovation_rms_um),
-            self.ekf.as_ref().map(|e| e.health().innovation_rms_um),
-            self.hekf.as_ref().map(|e| e.health().innovation_rms_um),
-            self.arx.as_ref().map(|e| e.health().innovation_rms_um),
+            self.rls.as_ref().map(|e| e.health()),
+            self.ekf.as_ref().map(|e| e.health()),
+            self.hekf.as_ref().map(|e| e.health()),
+            self.arx.as_ref().map(|e| e.health()),
         ]
         .into_iter()
         .flatten()

@@ -134,6 +134,9 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 plot: plot.as_deref(),
             };
             let result = identify::run(&args)?;
+            for note in identify::starvation_notes(&result) {
+                eprintln!("nanopos-sim: note: {note}");
+            }
             if args.summary.is_none() {
                 print!("{}", identify::summary_json(&result));
             }

@@ -50,6 +50,7 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
         "\"arx\"",
         "\"rmse_nm\"",
         "\"innovation_rms_nm\"",
+        "\"starved\": 0.0",
         "\"f0_hz\"",
         "\"zeta\"",
         "\"dc_gain\"",
@@ -61,6 +62,31 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
     let svg = std::fs::read_to_string(d.join("fig.svg")).unwrap();
     for word in ["<svg", "hekf", "arx", "truth", "error against the truth"] {
         assert!(svg.contains(word), "{word} missing in the plot");
+    }
+}
+
+/// A record whose input is one sinusoid (1 V at 100 Hz, in the board's DAC steps) identifies nothing: every
+/// estimator is held by the excitation monitor, the summary says so (`starved` 1 over a window after the first
+/// second), and a note on standard error per estimator and window tells the user the means are held values.
+#[test]
+fn identify_reports_a_window_the_excitation_monitor_held() {
+    let dir = tempfile::tempdir().unwrap();
+    let lsb = 3.3 / 4096.0 / 0.165;
+    let mut text = String::from("t,u,y\n");
+    for k in 0..30_000 {
+        let t = k as f64 * 1e-4;
+        let u = ((2.0 * std::f64::consts::PI * 100.0 * t).sin() / lsb).round() * lsb;
+        text += &format!("{t},{u},{}\n", 0.1 * u);
+    }
+    std::fs::write(dir.path().join("sine.csv"), text).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "sine.csv", "--window", "2:3"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(json.matches("\"starved\": 1.0").count(), 4, "{json}");
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    for name in ["rls", "ekf", "hekf", "arx"] {
+        let note = format!("note: {name} was held by the excitation monitor for 100 % of window 2:3");
+        assert!(stderr.contains(&note), "{note} missing in {stderr}");
     }
 }
 

@@ -11,7 +11,10 @@
 //!   model (1) with those means, simulated exactly (zero-order hold) on the replica input `u'` from zero state one
 //!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`; and
 //!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
-//!   health view of the same question: far above the noise floor, the model does not fit.
+//!   health view of the same question: far above the noise floor, the model does not fit; and `starved`, the share
+//!   of the window the excitation monitor held the estimator (input too weak, or a single sinusoid; sampled with the
+//!   100 Hz rows), where the mean is of held values. Above 10 % a note on standard error says so
+//!   ([`starvation_notes`]).
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
@@ -24,7 +27,7 @@ use super::{fail, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
 use crate::board::SimBoard;
 use crate::csv::{Reader, Time};
-use nanopos_id::estimator::{EstimatorBank, FilteredSample};
+use nanopos_id::estimator::{Adaptation, EstimatorBank, FilteredSample, Health};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
 use nanopos_id::pipeline::{Pipeline, PipelineSettings};
@@ -65,6 +68,9 @@ pub struct WindowFigures {
     /// Mean of the estimator's own innovation RMS over the window, nm (`NaN` if it reports none): far above the
     /// noise, the model does not fit (health's view; the RMSE is the validation's).
     pub innovation_rms_nm: f64,
+    /// Share of the window's rows (0 to 1) at which the excitation monitor held the estimator (`Starved`): where it
+    /// is large, the mean is of held values, not of what this input identifies (`NaN` for the truth).
+    pub starved: f64,
 }
 
 /// The result of a run.
@@ -77,6 +83,8 @@ pub struct Identified {
     pub estimates: Vec<Vec<StageParams<f64>>>,
     /// Innovation RMS per row, um, in `names` order.
     pub innovations: Vec<Vec<f32>>,
+    /// Whether each estimator was held by the excitation monitor at each row, in `names` order.
+    pub starved: Vec<Vec<bool>>,
     /// Truth per row, when the input has it.
     pub truth: Option<Vec<StageParams<f64>>>,
     /// Windows and, per window, the figures of each estimator in `names` order, and the truth's when known: its
@@ -316,9 +324,12 @@ fn identify_blocks<T: Real>(
             .expect("every estimator ran")
     };
     let columns: Vec<_> = names.iter().map(|n| column(n)).collect();
-    let (estimates, innovations): (Vec<Vec<StageParams<f64>>>, Vec<Vec<f32>>) = (0..times.len())
-        .map(|r| columns.iter().map(|(g, i)| (g.estimates[r][*i], g.innovations[r][*i])).unzip())
-        .unzip();
+    let (estimates, healths): (Vec<Vec<StageParams<f64>>>, Vec<Vec<Health>>) =
+        (0..times.len()).map(|r| columns.iter().map(|(g, i)| (g.estimates[r][*i], g.healths[r][*i])).unzip()).unzip();
+    let innovations: Vec<Vec<f32>> =
+        healths.iter().map(|row| row.iter().map(|h| h.innovation_rms_um).collect()).collect();
+    let starved: Vec<Vec<bool>> =
+        healths.iter().map(|row| row.iter().map(|h| h.adaptation == Adaptation::Starved).collect()).collect();
 
     let mut summary = Vec::new();
     for (i, w) in windows.iter().enumerate() {
@@ -336,17 +347,18 @@ fn identify_blocks<T: Real>(
                 let mean = mean_params(rows.iter().map(|&i| estimates[i][col]));
                 let innovation_rms_nm =
                     1e3 * rows.iter().map(|&i| innovations[i][col] as f64).sum::<f64>() / rows.len() as f64;
-                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm }
+                let starved = rows.iter().filter(|&&i| starved[i][col]).count() as f64 / rows.len() as f64;
+                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved }
             })
             .collect();
         let window_truth = record.has_truth.then(|| {
             let mean = mean_params(rows.iter().map(|&i| truth_rows[i]));
-            WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm: f64::NAN }
+            WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm: f64::NAN, starved: f64::NAN }
         });
         summary.push((*w, figures, window_truth));
     }
     let truth = record.has_truth.then_some(truth_rows);
-    Ok(Identified { names, times, estimates, innovations, truth, windows: summary })
+    Ok(Identified { names, times, estimates, innovations, starved, truth, windows: summary })
 }
 
 /// Hand one block of filtered samples to every estimator worker.
@@ -392,11 +404,11 @@ fn cost_groups(names: &[&'static str], workers: usize) -> Vec<Vec<&'static str>>
     groups.into_iter().map(|(_, g)| g).filter(|g| !g.is_empty()).collect()
 }
 
-/// One group's estimates and innovation RMS at every reported row, in its bank's order of `names`.
+/// One group's estimates and health at every reported row, in its bank's order of `names`.
 struct GroupRows {
     names: Vec<&'static str>,
     estimates: Vec<Vec<StageParams<f64>>>,
-    innovations: Vec<Vec<f32>>,
+    healths: Vec<Vec<Health>>,
 }
 
 /// Run the estimators `group` on every block `feed` delivers, keeping their state every `every` samples.
@@ -408,7 +420,7 @@ fn run_group<T: Real>(
 ) -> GroupRows {
     let mut bank = Bank::<T>::new(group, tuning);
     let mut rows =
-        GroupRows { names: bank.estimates().map(|(n, _)| n).collect(), estimates: Vec::new(), innovations: Vec::new() };
+        GroupRows { names: bank.estimates().map(|(n, _)| n).collect(), estimates: Vec::new(), healths: Vec::new() };
     let mut k = 0;
     for block in feed {
         for s in block.iter() {
@@ -416,7 +428,7 @@ fn run_group<T: Real>(
             k += 1;
             if k % every == 0 {
                 rows.estimates.push(bank.estimates().map(|(_, p)| p.cast::<f64>()).collect());
-                rows.innovations.push(bank.innovation_rms_um().collect());
+                rows.healths.push(bank.healths().collect());
             }
         }
     }
@@ -495,6 +507,26 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     Ok(result)
 }
 
+/// One line per estimator and window where the excitation monitor held the estimator for more than a tenth of the
+/// window: its window means there are not what the input identifies.
+pub fn starvation_notes(r: &Identified) -> Vec<String> {
+    let mut notes = Vec::new();
+    for (w, figs, _) in &r.windows {
+        for (name, f) in r.names.iter().zip(figs) {
+            if f.starved > 0.1 {
+                notes.push(format!(
+                    "{name} was held by the excitation monitor for {:.0} % of window {}:{} (the input too weak, or a \
+                     single sinusoid): its means there are of held values",
+                    100.0 * f.starved,
+                    w.t0,
+                    w.t1
+                ));
+            }
+        }
+    }
+    notes
+}
+
 fn write_estimates(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
     let mut f = OutputFile::create(path)?;
     let res = (|| -> std::io::Result<()> {
@@ -545,10 +577,11 @@ pub fn summary_json(r: &Identified) -> String {
                 .zip(figs)
                 .map(|(n, f)| {
                     format!(
-                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}}}",
+                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}, \"starved\": {}}}",
                         json_params(&f.mean),
                         num(f.rmse_nm),
-                        num(f.innovation_rms_nm)
+                        num(f.innovation_rms_nm),
+                        num(f.starved)
                     )
                 })
                 .collect();
