@@ -37,7 +37,7 @@ pub struct PeLevel<T> {
     /// The pre-filtered input's power averaged over [`PE_TAU_S`], V^2.
     pub power: T,
     /// Whether the input looks like a single sinusoid: its spread (through [`PE_SPREAD_SHAPE`], over [`PE_TAU_S`])
-    /// below [`PE_SPREAD_MIN`].
+    /// below [`PE_SPREAD_MIN`], or no more than the DAC's rounding can leave ([`PE_ROUNDING_FLOOR`]).
     pub single: bool,
 }
 
