@@ -54,6 +54,10 @@ enum Command {
         /// Every estimate against time (and the truth when present), SVG.
         #[arg(long)]
         plot: Option<PathBuf>,
+        /// The input's step for one DAC code, V, which the excitation monitor does not take for excitation (0: an
+        /// input that is not rounded) [default: the board's, 3.3 V / 4096 / 0.165 = 4.88 mV].
+        #[arg(long, value_name = "V", allow_negative_numbers = true)]
+        dac_step: Option<hal_sim::cmd::identify::DacStep>,
     },
     /// The paper's whole experiment on the simulated board: PRBS and triangle, every estimator, f64 and f32;
     /// prints a Table II-style table and writes the summaries.
@@ -121,7 +125,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
             let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
             simulate::run(&args).map(|_| ())
         }
-        Command::Identify { input, estimators, tuning, windows, out, summary, plot } => {
+        Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step } => {
             use hal_sim::cmd::identify;
             let tuning = hal_sim::tuning::resolve(&tuning)?;
             let args = identify::IdentifyArgs {
@@ -132,6 +136,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 out: out.as_deref(),
                 summary: summary.as_deref(),
                 plot: plot.as_deref(),
+                dac_step_v: dac_step,
             };
             let result = identify::run(&args)?;
             for note in identify::starvation_notes(&result) {

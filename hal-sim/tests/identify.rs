@@ -90,6 +90,35 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
     }
 }
 
+/// The excitation monitor discounts the board's DAC steps (4.88 mV) by default; a record from elsewhere, not rounded,
+/// says so with `--dac-step 0`. A PRBS of 5 mV (about one DAC step) that is not rounded is then rich; taken for the
+/// board's it is held more than half the time (its spread is what the rounding could leave).
+#[test]
+fn identify_takes_the_inputs_dac_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("t,u,y\n");
+    let mut lfsr = 0x7FFFu16;
+    for k in 0..30_000 {
+        if k % 5 == 0 {
+            lfsr = ((lfsr << 1) | (((lfsr >> 14) ^ (lfsr >> 13)) & 1)) & 0x7FFF;
+        }
+        let u = if lfsr & 1 == 1 { 0.005 } else { -0.005 };
+        text += &format!("{},{u},{}\n", k as f64 * 1e-4, 0.1 * u);
+    }
+    std::fs::write(dir.path().join("prbs.csv"), text).unwrap();
+    let starved = |extra: &[&str]| {
+        let args = [&["identify", "--input", "prbs.csv", "--estimators", "hekf", "--window", "2:3"], extra].concat();
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json = String::from_utf8(out.stdout).unwrap();
+        let at = json.find("\"starved\": ").unwrap() + 11;
+        json[at..].split(['}', ',']).next().unwrap().trim().parse::<f64>().unwrap()
+    };
+    let (board, unrounded) = (starved(&[]), starved(&["--dac-step", "0"]));
+    eprintln!("5 mV PRBS held {board} of the window as the board's input, {unrounded} as unrounded");
+    assert!(board > 0.5 && unrounded == 0.0, "{board} {unrounded}");
+}
+
 #[test]
 fn validation_rmse_on_noise_only_data_is_the_noise() {
     // u = 0 and y = white noise of 2 nm RMS: every model predicts 0, so the RMSE is the noise's RMS.
@@ -136,6 +165,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--tuning", "fast"], "'fast' is neither a preset"),
         (&["identify", "--input", "ok.csv", "--tuning", "missing.toml"], "missing.toml: cannot read"),
         (&["identify", "--input", "ok.csv", "--window", "5:1"], "T0 < T1"),
+        (&["identify", "--input", "ok.csv", "--dac-step", "-1"], "'-1': expected the input's step for one DAC code"),
+        (&["identify", "--input", "ok.csv", "--dac-step", "nan"], "'nan': expected the input's step"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
     ];
     for (args, mention) in cases {

@@ -1,5 +1,5 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
-//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg]`
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
 //! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
@@ -16,6 +16,9 @@
 //!   100 Hz rows), where the mean is of held values. Above 10 % a note on standard error says so
 //!   ([`starvation_notes`]).
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
+//! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
+//!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
+//!   rounded).
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
 //! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file is read a block (8 MiB) at
@@ -142,6 +145,7 @@ pub fn identify_in<T: Real>(
         last_t: rec.t.last().copied(),
         has_truth: rec.truth.is_some(),
         progress_total: rec.t.len() as u64,
+        dac_step_v: None,
     };
     identify_blocks::<T>(&record, names, tuning, windows, rec.blocks(1 << 16))
 }
@@ -170,6 +174,8 @@ struct Stream<'a> {
     has_truth: bool,
     /// Progress units of the whole record (each block says how far it reaches).
     progress_total: u64,
+    /// The input's step for one DAC code, V, which the excitation monitor discounts (`None`: the simulated board's).
+    dac_step_v: Option<f64>,
 }
 
 /// What is kept of the pipeline's output for the validation of one window: `t`, `u'`, `y'` from a second before the
@@ -217,9 +223,12 @@ fn identify_blocks<T: Real>(
     let settings =
         PipelineSettings { sample_rate_hz: 1.0 / dt, prefilter: tuning.rls.prefilter, ..PipelineSettings::default() };
     let board = SimBoard::new(Default::default());
-    let cfg = settings
+    let mut cfg = settings
         .design::<T>(&board.description())
         .map_err(|e| CliError(format!("{source}: sample period {dt} s: {e}")))?;
+    if let Some(step) = record.dac_step_v {
+        cfg.command_lsb_v = step;
+    }
     let mut tuning = *tuning;
     tuning.rls.sample_period_s = dt;
     tuning.ekf.sample_period_s = dt;
@@ -478,6 +487,22 @@ pub struct IdentifyArgs<'a> {
     pub summary: Option<&'a Path>,
     /// `FIG.svg`.
     pub plot: Option<&'a Path>,
+    /// The input's step for one DAC code, V (0: not rounded; `None`: the simulated board's, as the firmware's).
+    pub dac_step_v: Option<DacStep>,
+}
+
+/// `--dac-step V`: the input's step for one DAC code, finite and not negative.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DacStep(pub f64);
+
+impl std::str::FromStr for DacStep {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().parse::<f64>() {
+            Ok(v) if v.is_finite() && v >= 0.0 => Ok(DacStep(v)),
+            _ => Err(format!("'{s}': expected the input's step for one DAC code in volts, 0 or more (0: not rounded)")),
+        }
+    }
 }
 
 /// Run the command: the input is read a block at a time ([`Reader`]); what is held is what the report needs (the
@@ -490,6 +515,7 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
         last_t: reader.last_time(),
         has_truth: reader.has_optional(),
         progress_total: reader.progress().1,
+        dac_step_v: args.dac_step_v.map(|s| s.0),
     };
     let blocks = std::iter::from_fn(|| match reader.next_block() {
         Ok(Some(block)) => Some(Ok((block, reader.progress().0))),
@@ -725,6 +751,7 @@ mod tests {
             out: None,
             summary: None,
             plot: None,
+            dac_step_v: None,
         };
         let streamed = run(&args).unwrap();
 
@@ -735,7 +762,13 @@ mod tests {
         let whole = identify(&Recording { source: "test", t, u, y, truth }, &NAMES, &tuning, &[]).unwrap();
         let unknown_end = {
             let blocks = Recording { source: "test", t, u, y, truth }.blocks(50_000);
-            let record = Stream { source: "test", last_t: None, has_truth: true, progress_total: t.len() as u64 };
+            let record = Stream {
+                source: "test",
+                last_t: None,
+                has_truth: true,
+                progress_total: t.len() as u64,
+                dac_step_v: None,
+            };
             identify_blocks::<f64>(&record, &NAMES, &tuning, &[], blocks).unwrap()
         };
         for other in [&whole, &unknown_end] {
