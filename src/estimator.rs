@@ -166,6 +166,12 @@ impl<T: Real> PeMonitor<T> {
             (self.power, self.vv, self.aa, self.va) = (T::zero(), T::zero(), T::zero(), T::zero());
             self.shaped = PrefilterState::default();
         }
+        self.level()
+    }
+
+    /// The level of the samples so far (what the last [`Self::update`] returned).
+    #[inline(always)]
+    pub fn level(&self) -> PeLevel<T> {
         // Rich when the slack `<v^2> <v''^2> - <v v''>^2` is a share of the whole and, as an off-sine power, above
         // what the rounding can leave over `<v''^2>` and over `<v^2>`.
         let (vv, aa) = (self.vv, self.aa);
@@ -189,6 +195,11 @@ impl<T: Real> SampleFilter<T> {
     /// At rest, for the sample period `t_s` and an input `u'` in steps of `lsb_v` ([`PeMonitor::new`]).
     pub fn new(t_s: f64, lsb_v: f64) -> Self {
         SampleFilter { u: PrefilterState::default(), y: PrefilterState::default(), pe: PeMonitor::new(t_s, lsb_v) }
+    }
+
+    /// The excitation monitor's level of the samples so far.
+    pub fn excitation(&self) -> PeLevel<T> {
+        self.pe.level()
     }
 
     /// One sample of `u'` and `y'` through `prefilter`.

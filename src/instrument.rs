@@ -16,7 +16,7 @@
 //! leave a gap: what was recorded is contiguous, and the stop is reported.
 
 use crate::control::EstimatorSet;
-use crate::estimator::{Estimator, Health};
+use crate::estimator::{Estimator, Health, PeLevel};
 use crate::estimators::{full_bank, FullBank, TuningConfig};
 use crate::hal::{run_sample, StageBoard};
 use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOutput};
@@ -71,6 +71,8 @@ pub struct Status<T> {
     pub counters: FaultCounters,
     /// The last command written, V.
     pub command_v: T,
+    /// The excitation monitor's level of the input.
+    pub excitation_level: PeLevel<T>,
     /// Estimators fed (bit `i`: [`crate::control::ESTIMATOR_NAMES`]`[i]`).
     pub selected: EstimatorSet,
     /// Each estimator's parameters and health, in the bank's order.
@@ -239,6 +241,7 @@ impl<T: Real> Instrument<T> {
             faults: self.pipeline.faults(),
             counters: self.pipeline.fault_counters(),
             command_v: self.pipeline.command_v(),
+            excitation_level: self.pipeline.excitation_level(),
             selected: EstimatorSet(self.config.estimators & EstimatorSet::ALL.0),
             estimates: self.estimates(),
             record: self.record_status(),

@@ -24,7 +24,7 @@
 //! (they are not fed) until [`Pipeline::clear_faults`]. Each event is counted. Cost per sample, without estimators:
 //! two biquads, two pre-filters, the excitation, the limits: about 60 flops.
 
-use crate::estimator::{EstimatorBank, FilteredSample, SampleFilter};
+use crate::estimator::{EstimatorBank, FilteredSample, PeLevel, SampleFilter};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign};
@@ -562,6 +562,12 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     /// The last command written, V.
     pub fn command_v(&self) -> T {
         self.command_v
+    }
+
+    /// The excitation monitor's level of the input so far ([`crate::estimator::PeMonitor`]): what each estimator
+    /// compares with its floor.
+    pub fn excitation_level(&self) -> PeLevel<T> {
+        self.sample_filter.excitation()
     }
 }
 

@@ -136,6 +136,9 @@ fn every_command_is_answered_and_does_what_it_says() {
     // Every estimator line carries the health counters, the covariance repairs among them.
     assert_eq!(r.lines().filter(|l| l.starts_with("est ") && l.contains(" resets=0 repairs=0 ")).count(), 4, "{r}");
     assert!(r.contains("excitation=prbs 1 V running"), "{r}");
+    // The excitation monitor's level: the PRBS is rich, and its power far above the default floor (1e-6 V^2).
+    let power: f64 = r.split("pe_power_v2=").nth(1).and_then(|s| s.split(' ').next()).unwrap().parse().unwrap();
+    assert!(power > 1e-3 && r.contains(" pe_single=no "), "{r}");
 
     // Selection: only hekf runs; the others hold their estimates; selecting them again restarts them.
     assert_eq!(verdict(&lab.send("select hekf\n")), "ok select hekf");
@@ -229,6 +232,13 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert_eq!(verdict(&lab.send("excite sine 0.5 200\n")), "ok excite sine 0.5 V 200 Hz (running)");
     let peak = lab.run(500).iter().map(|o| o.u_v.abs()).fold(0.0, f32::max);
     assert!((peak - 0.5).abs() < 0.01, "{peak}");
+    // A single sinusoid: the monitor says so (after its 10 ms averages have forgotten the PRBS), and no estimator
+    // adapts (those not frozen above read `starved`).
+    lab.run(5000);
+    let r = lab.send("status\n");
+    assert!(r.contains(" pe_single=yes "), "{r}");
+    assert!(r.lines().any(|l| l.starts_with("est hekf") && l.contains(" starved ")), "{r}");
+    assert!(!r.contains(" adapting "), "{r}");
     assert_eq!(verdict(&lab.send("stop\n")), "ok stop (output to 0 V at the slew limit)");
     let tail = lab.run(100);
     assert!(

@@ -223,6 +223,7 @@ fn idle_status() -> Status<f32> {
         faults: Faults::default(),
         counters: FaultCounters::default(),
         command_v: 0.0,
+        excitation_level: Default::default(),
         selected: Default::default(),
         estimates: [(StageParams::INITIAL.cast(), Health::new()); 4],
         record: Default::default(),
