@@ -350,7 +350,7 @@ fn the_innovation_rms_restarts_with_the_filter() {
     assert_eq!(est.health().innovation_rms_um, 0.0);
 }
 
-/// The paper's PRBS on the board for 30 s, then a 1 V sine at `hz` for 10 s (no payload change): the relative
+/// The paper's PRBS on the board for 30 s, then a sine of `volts` at `hz` for 10 s (no payload change): the relative
 /// change of `E`'s f64 and f32 estimates (largest of a0, a1, b0) from 30 s to 30.5 s and from 30.5 s to 40 s.
 fn drift_under_a_sine<E64: Estimator<f64>, E32: Estimator<f32>>(
     (hz, volts): (f64, f64),
@@ -378,11 +378,11 @@ fn drift_under_a_sine<E64: Estimator<f64>, E32: Estimator<f32>>(
 /// input through its shaping filter, `estimator::PeMonitor`) and holds every estimator from 0.5 s after the switch
 /// from PRBS on, from 5 Hz to 1 kHz at 1 V, and the small or fast sines whose spread is the DAC's rounding (450 Hz
 /// at 0.1 V, 1 200 Hz at 50 mV, 3.5 kHz at 1 V), which without the rounding floor moved rls / arx / hekf / cekf by
-/// 0.75 / 264 / 0.50 / 0.47 %, 38 / 243 / 0.04 / 0.04 % and 57 / 294 / 0.03 / 0.02 % over 30.5-40 s. Measured, largest parameter change over 30.5-40 s, rls / arx / hekf / cekf: 0
-/// for all. With the power test alone, at 100, 450 and 1 000 Hz: 20 / 274 / 2.3 / 2.2 %, 0.5 / 278 / 0.1 / 0.1 %
-/// and 391 / 284 / 1.6 / 1.6 %; with the spread measured on the pre-filtered input `u_f` instead (as it once was),
-/// whose curvature below about 60 Hz is the DAC's rounding, at 5, 20 and 50 Hz: 41 / 240 / 1.1 / 1.1 %,
-/// 5 / 80 / 2.9 / 2.8 % and 11 / 267 / 2.9 / 2.9 %. Before the monitor sees the sine (30-30.5 s) the estimates move
+/// 0.75 / 264 / 0.50 / 0.47 %, 38 / 243 / 0.04 / 0.04 % and 57 / 294 / 0.03 / 0.02 % over 30.5-40 s. Measured,
+/// largest parameter change over 30.5-40 s, rls / arx / hekf / cekf: 0 for all. With the power test alone, at 100,
+/// 450 and 1 000 Hz: 20 / 274 / 2.3 / 2.2 %, 0.5 / 278 / 0.1 / 0.1 % and 391 / 284 / 1.6 / 1.6 %; with the spread
+/// measured on the pre-filtered input `u_f` instead (as it once was), whose curvature below about 60 Hz is the
+/// DAC's rounding, at 5, 20 and 50 Hz: 41 / 240 / 1.1 / 1.1 %, 5 / 80 / 2.9 / 2.8 % and 11 / 267 / 2.9 / 2.9 %. Before the monitor sees the sine (30-30.5 s) the estimates move
 /// at most 0.8 % (the EKFs at 450 Hz) but for the RLS at 1 kHz, 3.6 %: held to 5 %.
 #[test]
 fn a_single_sine_starves_every_estimator() {
@@ -417,7 +417,8 @@ fn a_single_sine_starves_every_estimator() {
     });
     for ((hz, volts), d) in &drifts {
         eprintln!(
-            "sine {hz} Hz {volts} V: change [f64: 30-30.5 s, 30.5-40 s; f32: the same] rls {:?} arx {:?} hekf {:?} cekf {:?}",
+            "sine {hz} Hz {volts} V: change [f64: 30-30.5 s, 30.5-40 s; f32: the same] rls {:?} arx {:?} \
+             hekf {:?} cekf {:?}",
             d[0], d[1], d[2], d[3]
         );
     }
