@@ -91,10 +91,11 @@ pub const PE_ROUNDING_FLOOR: [f64; 2] = [48.0, 7.0];
 ///   `<v^2>`. Without that, 29 of 55 sines from 1 Hz to 4.5 kHz and 3 mV to 2 V passed for rich part of the time
 ///   with the power above the default floor (`no_sine_passes_for_rich_input_whatever_its_frequency_and_amplitude`),
 ///   and 10 s of a 1 200 Hz sine of 50 mV, or of a 3.5 kHz sine of 1 V, after PRBS moved the continuous-time RLS by
-///   38 % and 57 %, the ARX by 243 % and 294 % (the EKFs by 0.04 %); a 450 Hz sine of 0.1 V the ARX by 264 %.
+///   38 % and 57 %, the ARX by 243 % and 294 % (the EKFs by at most 0.04 %); a 450 Hz sine of 0.1 V the ARX by 264 %.
 ///
 /// Limits: the rounding floor makes a rich input of a few DAC steps starve too: the paper's triangle at 50 mV
-/// (10 steps) starves 39 % of the time, its PRBS at 20 mV 0.6 %. The test is strict with fast triangles: through
+/// (10 steps) starves 39 % of the time, its PRBS at 20 mV 0.6 % (`rounding_floor_margins` in
+/// `hal-sim/tests/ekf_health.rs`, ignored by default). The test is strict with fast triangles: through
 /// the shaping filter their harmonics (1/9, 1/25, ... of the fundamental) weigh little, so from about 200 Hz a
 /// triangle is always taken for a single sinusoid and starves, 30 to 100 Hz ones part of the time (15 to 50 %); the
 /// paper's 10 Hz triangle never (`hal-sim/tests/ekf_health.rs`). An input that is one frequency at a time over
