@@ -30,6 +30,12 @@ pub fn mat_mul<const N: usize>(a: &Mat<N>, b: &Mat<N>) -> Mat<N> {
     c
 }
 
+/// `m * p * m'`: `p` mapped through `m` (a covariance or Gramian through a state transition).
+pub fn congruence<const N: usize>(m: &Mat<N>, p: &Mat<N>) -> Mat<N> {
+    let mt: Mat<N> = core::array::from_fn(|i| core::array::from_fn(|j| m[j][i]));
+    mat_mul(&mat_mul(m, p), &mt)
+}
+
 /// `a * v`.
 pub fn mat_vec<const N: usize>(a: &Mat<N>, v: &[f64; N]) -> [f64; N] {
     let mut y = [0.0; N];

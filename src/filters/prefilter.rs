@@ -35,7 +35,7 @@
 //! alone would add a jump of `w_p^2 (in[k] - in[k-1])` per sample. Cost per sample: 14 multiplies, 12 adds.
 
 use crate::filters::response::{polyval, s_at, Complex};
-use crate::linalg::{mat_mul, mat_vec, zoh, Mat};
+use crate::linalg::{congruence, mat_mul, mat_vec, zoh, Mat};
 use crate::Real;
 
 /// Physical description of `W_p`.
@@ -100,12 +100,11 @@ impl PrefilterDesign {
         let mut p: Mat<3> = core::array::from_fn(|i| core::array::from_fn(|j| d.gam[i] * d.gam[j]));
         let mut m = d.phi;
         for _ in 0..24 {
-            let mt = transpose(&m);
-            let add = mat_mul(&mat_mul(&m, &p), &mt);
+            let add = congruence(&m, &p);
             p = core::array::from_fn(|i| core::array::from_fn(|j| p[i][j] + add[i][j]));
             m = mat_mul(&m, &m);
         }
-        let later = mat_mul(&mat_mul(&d.phi, &p), &transpose(&d.phi));
+        let later = congruence(&d.phi, &p);
         let quad = |q: &Mat<3>| -> f64 {
             (0..3).map(|i| (0..3).map(|j| d.accel[i] * q[i][j] * d.accel[j]).sum::<f64>()).sum()
         };
@@ -128,10 +127,6 @@ struct Discrete {
     gam: [f64; 3],
     accel: [f64; 3],
     half_feedthrough: f64,
-}
-
-fn transpose(m: &Mat<3>) -> Mat<3> {
-    core::array::from_fn(|i| core::array::from_fn(|j| m[j][i]))
 }
 
 /// The discretised pre-filter (the configuration).
