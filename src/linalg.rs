@@ -63,7 +63,15 @@ fn norm1<const N: usize>(a: &Mat<N>) -> f64 {
 /// Exact ZOH discretisation over `t` seconds: returns `(Phi, Psi)` with `Phi = e^{A t}` and
 /// `Psi = integral_0^t e^{A s} ds`, so that for an input held at `u` over the interval
 /// `x(t) = Phi x(0) + Psi B u`.
+///
+/// Any finite `||A t||_1` terminates (scaling and squaring: at most about 1 100 squarings, for a norm near
+/// `f64::MAX`); a non-finite entry of `A` or `t`, or a norm that overflows, gives NaN in every entry of both, for the
+/// caller to refuse.
 pub fn zoh<const N: usize>(a: &Mat<N>, t: f64) -> (Mat<N>, Mat<N>) {
+    // (`norm1` alone would pass a NaN: `f64::max` ignores it.)
+    if !((norm1(a) * libm::fabs(t)).is_finite() && a.iter().flatten().all(|x| x.is_finite())) {
+        return ([[f64::NAN; N]; N], [[f64::NAN; N]; N]);
+    }
     let (ab, d) = balance(a);
     let (phi, psi) = zoh_balanced(&ab, t);
     let unbalance = |m: Mat<N>| -> Mat<N> { core::array::from_fn(|i| core::array::from_fn(|j| m[i][j] * d[i] / d[j])) };
@@ -85,7 +93,8 @@ fn balance<const N: usize>(a: &Mat<N>) -> (Mat<N>, [f64; N]) {
                     r += libm::fabs(m[i][j]);
                 }
             }
-            if c == 0.0 || r == 0.0 {
+            // (An infinite sum of finite entries would never leave the loops below.)
+            if c == 0.0 || r == 0.0 || !(c + r).is_finite() {
                 continue;
             }
             let mut f = 1.0;
@@ -117,11 +126,14 @@ fn balance<const N: usize>(a: &Mat<N>) -> (Mat<N>, [f64; N]) {
 }
 
 fn zoh_balanced<const N: usize>(a: &Mat<N>, t: f64) -> (Mat<N>, Mat<N>) {
-    let norm = norm1(a) * t;
+    // Halve `h` until `||A h||_1 <= 1/2`. Counted by halving a float, not by `norm / 2^k` with an integer shift:
+    // that overflowed past 63 halvings (`||A t|| > 2^62`) and, wrapped in a release build, never ended.
+    let mut norm = norm1(a) * libm::fabs(t);
     let mut squarings = 0u32;
     let mut h = t;
-    while norm / ((1u64 << squarings) as f64) > 0.5 {
+    while norm > 0.5 {
         squarings += 1;
+        norm *= 0.5;
         h *= 0.5;
     }
     // Taylor terms: term_k = (A h)^k / k!, Phi = sum term_k, Psi = h * sum term_k / (k + 1).
@@ -191,6 +203,27 @@ mod tests {
         // Psi [0, 1]' is the response to a unit step in x2': [(1 - cos)/w^2, sin/w].
         assert!((psi[0][1] / ((1.0 - c) / (w * w)) - 1.0).abs() < 1e-14);
         assert!((psi[1][1] / (s / w) - 1.0).abs() < 1e-14);
+    }
+
+    #[test]
+    fn zoh_ends_for_any_finite_matrix_and_refuses_a_non_finite_one() {
+        // A stage with a1 = 1e38 over 1e-4 s: ||A t|| ~ 1e34, 113 halvings (the integer count overflowed at 64 and
+        // looped forever). Its poles, -1e38 and -a0 / a1 ~ -6e-32: the slow one integrates, the fast one is gone.
+        let (phi, psi) = zoh(&[[0.0, 1.0], [-6e6, -1e38]], 1e-4);
+        assert!(phi.iter().chain(psi.iter()).flatten().all(|x| x.is_finite()), "{phi:?} {psi:?}");
+        assert_eq!(phi[0][0], 1.0);
+        assert!((psi[0][0] - 1e-4).abs() <= 1e-4 * 1e-12, "{psi:?}");
+        // Near the largest f64: ends, about 1 000 squarings.
+        let (phi, _) = zoh(&[[-1e300]], 1e8);
+        assert_eq!(phi[0][0], 0.0);
+        let (phi, _) = zoh(&[[-1e300]], 1e9);
+        assert!(phi[0][0].is_nan(), "the norm overflows");
+        for bad in [f64::INFINITY, f64::NAN] {
+            let (phi, psi) = zoh(&[[0.0, 1.0], [-6e6, -bad]], 1e-4);
+            assert!(phi.iter().chain(psi.iter()).flatten().all(|x| x.is_nan()));
+            let (phi, _) = zoh(&[[-1.0]], bad);
+            assert!(phi[0][0].is_nan());
+        }
     }
 
     #[test]
