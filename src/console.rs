@@ -186,7 +186,7 @@ impl Controller {
             Command::Tuning(p) => {
                 // The preset for the input; the stage's initial parameters and pre-filter stay.
                 let t = Tuning::of(p).with_stage_of(&self.tuning);
-                change.tuning = Some(t.design());
+                change.tuning = Some(fitting(&t)?);
                 // The estimators restart with the new tuning; frozen ones stay frozen.
                 change.freeze = self.frozen;
                 self.preset = p;
@@ -208,6 +208,7 @@ impl Controller {
                     value: values[r.index],
                     expected: r.expected,
                 })?;
+                let designed = fitting(&t)?;
                 // The stage's pre-filter: the pipeline's and the continuous-time RLS's change together, in one sample.
                 if t.rls.prefilter != self.settings.prefilter {
                     let mut s = self.settings;
@@ -215,7 +216,7 @@ impl Controller {
                     change.config = Some(self.design(&s, self.running)?);
                     self.settings = s;
                 }
-                change.tuning = Some(t.design());
+                change.tuning = Some(designed);
                 change.freeze = self.frozen;
                 self.tuning = t;
                 self.tuned = true;
@@ -358,6 +359,20 @@ impl fmt::Display for Refusal {
             Refusal::Text(t) => f.write_str(t),
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }
+    }
+}
+
+/// `t` designed in the working scalar, or the refusal of a tuning whose normalised constants leave its range (the
+/// estimators would reset on every sample: [`TuningConfig::fits`]).
+fn fitting<T: Real>(t: &Tuning) -> Result<TuningConfig<T>, Refusal> {
+    let designed = t.design::<T>();
+    if designed.fits() {
+        Ok(designed)
+    } else {
+        Err(Refusal::Text(
+            "the estimators cannot hold this tuning: a normalised constant (Q, P0 or a bound over the square of an \
+             initial parameter, 1 / R, ...) leaves the range of their arithmetic",
+        ))
     }
 }
 

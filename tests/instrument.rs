@@ -286,6 +286,11 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "tune ekf reopen 5000",
         "tune ekf q 1 1 -1 1 1",
         "tune initial 5e5 70 0",
+        // In range, but out of f32's once normalised (`q_b0 / b0^2`, `1 / R`); the last hung the console before
+        // `linalg::zoh` counted its halvings in floating point.
+        "tune initial 1e-20 70 6e6",
+        "tune ekf r 1e-45",
+        "tune initial 500000 1e38 6e6",
     ];
     for line in bad {
         let r = lab.send(&format!("{line}\n"));
@@ -304,6 +309,22 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     assert_eq!(lab.send("tune ekf q 1 1 -1 1 1\n").trim_end(), "error: word 6: -1: must be a positive number");
     assert_eq!(lab.send("tune initial 5e5 70 0\n").trim_end(), "error: word 5: 0: must be a positive number");
     assert!(lab.send("status\n").contains(" tuning=prbs "), "no refused value was kept");
+    assert_eq!(
+        lab.send("tune ekf r 1e-45\n").trim_end(),
+        "error: the estimators cannot hold this tuning: a normalised constant (Q, P0 or a bound over the square of an \
+         initial parameter, 1 / R, ...) leaves the range of their arithmetic"
+    );
+    // A stage that fits the PRBS tuning (Q2) but not the triangle's, whose Q is 100 times larger: the preset is
+    // refused, and the tuning stays.
+    assert_eq!(
+        verdict(&lab.send("tune initial 3e-13 70 6e6\n")),
+        "ok tune initial = 3e-13 70 6e6 (estimators restarted)"
+    );
+    let tuning = lab.ctl.tuning::<f32>();
+    assert!(verdict(&lab.send("tuning triangle\n")).starts_with("error: the estimators cannot hold this tuning"));
+    assert_eq!(lab.ctl.tuning::<f32>(), tuning);
+    assert!(lab.send("status\n").contains(" tuning=prbs+tune "));
+    lab.send("tuning prbs\ntune initial 5e5 70 6e6\n");
     let r = lab.send(&format!("{}\n", "x".repeat(200)));
     assert!(r.starts_with("error: line longer than 96 bytes"), "{r}");
 

@@ -36,7 +36,7 @@
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
 use crate::estimators::rls::{DiscreteRls, RlsErrors, RlsGain};
-use crate::estimators::PeFloor;
+use crate::estimators::{all_finite, PeFloor};
 use crate::linalg::zoh;
 use crate::{Real, Scalar, StageParams};
 use core::cell::Cell;
@@ -200,6 +200,14 @@ pub struct ArxEstimator<T: Copy> {
     adapting: bool,
     health: Health,
     last_valid: Cell<StageParams<T>>,
+}
+
+impl<T: Real> ArxConfig<T> {
+    /// Whether every constant is a finite number (see [`crate::estimators::TuningConfig::fits`]).
+    pub(crate) fn fits(&self) -> bool {
+        let initial = [self.initial.b0, self.initial.a1, self.initial.a0];
+        self.gain.fits() && self.pe.fits() && all_finite(&[&self.f0, &self.nominal, &initial])
+    }
 }
 
 impl<T: Real> ArxEstimator<T> {

@@ -61,7 +61,7 @@
 //! law (a gain on the update, or a different normalisation), not a reset.
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
+use crate::estimators::{all_finite, axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -177,6 +177,16 @@ pub struct Crls<T> {
     y_prev: [T; 3],
     adapting: bool,
     health: Health,
+}
+
+impl<T: Real> CrlsConfig<T> {
+    /// Whether every constant is a finite number and the normalisation `theta0` did not vanish (see
+    /// [`crate::estimators::TuningConfig::fits`]).
+    pub(crate) fn fits(&self) -> bool {
+        let scalars = [self.gamma, self.r0_sq, self.h, self.h6, self.gain];
+        let finite = all_finite(&[&scalars, &self.p0, &self.norm_weight, &self.accel]);
+        finite && self.scale.iter().all(|x| x.is_normal()) && self.pe.fits()
+    }
 }
 
 impl<T: Real> Crls<T> {

@@ -53,7 +53,7 @@
 pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
+use crate::estimators::{all_finite, axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
 use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
@@ -482,6 +482,23 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
     /// The covariance in the paper's units.
     pub fn covariance(&self) -> [[f64; 5]; 5] {
         self.core.covariance()
+    }
+}
+
+impl<T: Real> EkfConfig<T> {
+    /// Whether every constant is a finite number and no normalisation (`W`, `c0`, `c1`, `c2`, `1 / R`) vanished
+    /// (see [`crate::estimators::TuningConfig::fits`]). `drift_ratio` is infinite by design when drift detection is
+    /// off.
+    pub(crate) fn fits(&self) -> bool {
+        let s = [self.gate2, self.nis_alpha, self.drift_alpha, self.innovation_alpha, self.r_d, self.h, self.h_quarter];
+        let t = [self.h_third, self.h_sq_half, self.period, self.period6, self.bow_gain, self.half_period];
+        let (q_xt, q_xx) = (self.q_xt.as_flattened(), self.q_xx.as_flattened());
+        let arrays = [&self.p_ceiling[..], &self.p_floor, &self.p_ramp_step, &self.q, &self.p0, &self.q_period];
+        let scales = [self.inv_r, self.w, self.c0, self.c1, self.c2, self.c0w];
+        all_finite(&[&s, &t, q_xt, q_xx])
+            && all_finite(&arrays)
+            && scales.iter().all(|x| x.is_normal())
+            && self.pe.fits()
     }
 }
 

@@ -76,6 +76,20 @@ pub struct TuningConfig<T> {
     pub arx: arx::ArxConfig<T>,
 }
 
+impl<T: Real> TuningConfig<T> {
+    /// Whether every constant of the design is a finite number of `T` and no normalisation vanished in it.
+    ///
+    /// The tuning's ranges ([`Expected`]) are checked in f64, before the design normalises: `Q`, `P0` and the
+    /// bounds are divided by the squares of the initial parameters, `R` is inverted, and a value each range
+    /// accepts can still leave f32's range (`tune initial 1e-20 70 6e6`: `q_b0 / b0^2 = 5e48`; `tune ekf r 1e-45`:
+    /// `1 / R` infinite). An estimator designed so would reset on every sample; the console refuses such a tuning
+    /// instead. A tuning that fits but diverges on the data (a `Q` far too large) is the health logic's to report
+    /// (`resets=` in `status`).
+    pub fn fits(&self) -> bool {
+        self.rls.fits() && self.ekf.fits() && self.arx.fits()
+    }
+}
+
 /// Every estimator, in the order of [`crate::control::ESTIMATOR_NAMES`] (`rls`, `ekf`, `hekf`, `arx`): the bank the
 /// firmware's interrupt runs, any subset of it selected at run time.
 pub type FullBank<T> = (crls::Crls<T>, ekf::Cekf<T>, ekf::Hekf<T>, arx::ArxEstimator<T>);
@@ -119,6 +133,20 @@ pub(crate) fn rk4_combine<T: Real, const N: usize>(out: &mut [T; N], x: &[T; N],
 /// [`PeMonitor`]: crate::estimator::PeMonitor
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct PeFloor<T>(T);
+
+/// Whether every value of every slice is a finite number. Not inlined: a check at the console's pace, where
+/// unrolled it cost 1.7 KiB of flash.
+#[inline(never)]
+pub(crate) fn all_finite<T: Real>(slices: &[&[T]]) -> bool {
+    slices.iter().all(|s| s.iter().all(|x| x.is_finite()))
+}
+
+impl<T: Real> PeFloor<T> {
+    /// Whether the floor is a finite number.
+    pub(crate) fn fits(&self) -> bool {
+        self.0.is_finite()
+    }
+}
 
 impl<T: Scalar> PeFloor<T> {
     /// Floor `floor_v2`, V^2 (0: the monitor off).

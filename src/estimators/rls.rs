@@ -51,6 +51,13 @@ pub struct RlsGain<T> {
     inv_lambda1: T,
 }
 
+impl<T: Real> RlsGain<T> {
+    /// Whether every constant is a finite number (see [`crate::estimators::TuningConfig::fits`]).
+    pub(crate) fn fits(&self) -> bool {
+        crate::estimators::all_finite(&[&[self.lambda1, self.lambda2, self.max_trace, self.r, self.inv_lambda1]])
+    }
+}
+
 impl<T: Scalar> RlsGain<T> {
     /// The general gain: forgetting `0 < lambda1 <= 1`, weight of the new sample `0 <= lambda2 <= 2`, forgetting
     /// paused while `trace F` would exceed `max_trace`.

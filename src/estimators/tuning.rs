@@ -357,6 +357,30 @@ mod tests {
     }
 
     #[test]
+    fn a_tuning_fits_the_working_scalar_or_says_so() {
+        for preset in [TuningPreset::Prbs, TuningPreset::Triangle] {
+            assert!(Tuning::of(preset).design::<f32>().fits() && Tuning::of(preset).design::<f64>().fits());
+        }
+        // Each accepted by its range, each out of f32's once normalised, each within f64's.
+        let cases: [(TuningKey, &[f64]); 6] = [
+            (TuningKey::Initial, &[1e-20, 70.0, 6e6]), // q_b0 / b0^2 = 5e48
+            (TuningKey::Initial, &[5e5, 70.0, 1e-90]), // P0 / W^2 (W = sqrt(a0))
+            (TuningKey::Initial, &[5e5, 1e38, 6e6]),   // the RLS's norm weights, a1^4
+            (TuningKey::EkfR, &[1e-45]),               // 1 / R
+            (TuningKey::EkfR, &[1e39]),                // R itself
+            (TuningKey::RlsP0, &[1e6, 10.0, 1e300]),   // P0 / a0^2
+        ];
+        for (key, values) in cases {
+            let mut t = Tuning::of(TuningPreset::Prbs);
+            t.set(key, values).unwrap();
+            assert!(!t.design::<f32>().fits(), "{key} {values:?}");
+            if values != [1e6, 10.0, 1e300] {
+                assert!(t.design::<f64>().fits(), "{key} {values:?}");
+            }
+        }
+    }
+
+    #[test]
     fn a_refused_value_names_its_index_and_changes_nothing() {
         let base = Tuning::of(TuningPreset::Triangle);
         let cases: [(TuningKey, &[f64], usize, Expected); 9] = [
