@@ -3,7 +3,7 @@
 //! column, a field that is not a number, NaN or infinity, a row with the wrong number of fields, time that does
 //! not advance uniformly.
 
-use crate::cmd::CliError;
+use crate::cmd::{show, CliError};
 use std::io::Read;
 use std::path::Path;
 
@@ -330,7 +330,7 @@ impl Reader {
                 (None, _) => self.t0 = Some(now),
                 (Some(t0), None) => {
                     if now - t0 <= 0.0 {
-                        return Err((i, format!("time {now} does not advance from {t0}")));
+                        return Err((i, format!("time {} does not advance from {}", show(now), show(t0))));
                     }
                     self.step = Some(now - t0);
                 }
@@ -339,7 +339,12 @@ impl Reader {
                     if (now - expected).abs() > 1e-6 * step + 1e-12 * now.abs() {
                         return Err((
                             i,
-                            format!("time {now} breaks the uniform sampling (expected {expected}, step {step})"),
+                            format!(
+                                "time {} breaks the uniform sampling (expected {}, step {})",
+                                show(now),
+                                show(expected),
+                                show(step)
+                            ),
                         ));
                     }
                 }

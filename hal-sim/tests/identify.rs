@@ -119,6 +119,30 @@ fn identify_takes_the_inputs_dac_step() {
     assert!(board > 0.5 && unrounded == 0.0, "{board} {unrounded}");
 }
 
+/// A record no stage could produce (the probe pinned at 1e30 um under a PRBS) drives estimates where the derived
+/// quantities have no value (`a0 < 0`: no `f0`): the summary says `null`, and stays JSON (it wrote `NaN`).
+#[test]
+fn a_diverged_estimate_is_null_in_the_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+    let mut csv = String::from("t,u,y\n");
+    for k in 0..20_000 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        csv += &format!("{},{},1e30\n", k as f64 * 1e-4, if seed & 1 == 0 { 1 } else { -1 });
+    }
+    std::fs::write(d.join("pinned.csv"), csv).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "pinned.csv", "--summary", "sum.json"], d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let sum = std::fs::read_to_string(d.join("sum.json")).unwrap();
+    assert!(sum.contains("\"f0_hz\": null"), "the case this test is for: {sum}");
+    for word in ["NaN", "nan", "inf"] {
+        assert!(!sum.contains(word), "{word} in {sum}");
+    }
+}
+
 #[test]
 fn validation_rmse_on_noise_only_data_is_the_noise() {
     // u = 0 and y = white noise of 2 nm RMS: every model predicts 0, so the RMSE is the noise's RMS.
@@ -157,6 +181,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     )
     .unwrap();
     std::fs::write(d.join("no_t.csv"), "u,y\n0,0\n").unwrap();
+    std::fs::write(d.join("late.csv"), "t,u,y\n1e300,0,0\n1.0000000000000001e300,0,0\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
@@ -168,12 +193,16 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--dac-step", "-1"], "'-1': expected the input's step for one DAC code"),
         (&["identify", "--input", "ok.csv", "--dac-step", "nan"], "'nan': expected the input's step"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
+        // In exponent form, not the 301 digits of `Display`.
+        (&["identify", "--input", "late.csv", "--out", "e.csv"], "late.csv:3: time 1e300 does not advance from 1e300"),
+        (&["identify", "--input", "ok.csv", "--window", "1e-300:1e-299"], "window 1e-300:1e-299 holds no estimate"),
     ];
     for (args, mention) in cases {
         let out = nanopos_sim(args, d);
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
         assert_eq!(stderr.trim_end().lines().count(), 1, "{args:?}: {stderr:?}");
+        assert!(stderr.len() < 200, "{args:?}: {stderr:?}");
         assert!(stderr.contains(mention), "{args:?}: {stderr:?}");
         assert!(!d.join("e.csv").exists(), "no partial output");
     }

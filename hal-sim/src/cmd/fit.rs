@@ -7,7 +7,7 @@
 //! the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
 //! present, must be uniformly sampled.
 
-use super::{fail, CliError};
+use super::{fail, json_number, CliError};
 use crate::csv::{Reader, Time};
 use nanopos_id::estimators::lsq::{LsError, WeightedLs};
 use std::path::Path;
@@ -88,12 +88,12 @@ pub struct ArxFit {
 impl ArxFit {
     /// The JSON the command prints.
     pub fn to_json(&self) -> String {
-        let list = |v: &[f64]| v.iter().map(|x| format!("{x:?}")).collect::<Vec<_>>().join(", ");
+        let list = |v: &[f64]| v.iter().map(|&x| json_number(x)).collect::<Vec<_>>().join(", ");
         format!(
-            "{{\"a\": [{}], \"b\": [{}], \"sse\": {:?}, \"rows\": {}}}",
+            "{{\"a\": [{}], \"b\": [{}], \"sse\": {}, \"rows\": {}}}",
             list(&self.a),
             list(&self.b),
-            self.sse,
+            json_number(self.sse),
             self.rows
         )
     }

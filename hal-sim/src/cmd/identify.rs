@@ -26,7 +26,7 @@
 //! window's validation, the replicas' `u'`, `y'` and `t` from a second before it to its end (24 bytes a sample).
 //! The default windows need the record's last time before the rest: it is read from the end of the file.
 
-use super::{fail, CliError, OutputFile, Progress};
+use super::{fail, json_number, show, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
 use crate::board::SimBoard;
 use crate::csv::{Reader, Time};
@@ -225,7 +225,7 @@ fn identify_blocks<T: Real>(
     let board = SimBoard::new(Default::default());
     let mut cfg = settings
         .design::<T>(&board.description())
-        .map_err(|e| CliError(format!("{source}: sample period {dt} s: {e}")))?;
+        .map_err(|e| CliError(format!("{source}: sample period {} s: {e}", show(dt))))?;
     if let Some(step) = record.dac_step_v {
         cfg.command_lsb_v = step;
     }
@@ -323,7 +323,7 @@ fn identify_blocks<T: Real>(
         None => default_windows(t_last),
     };
     if defaulted && record.last_t.is_some_and(|t| t != t_last) {
-        return fail(format!("{source}: the file changed while it was read (its last time {t_last} s)"));
+        return fail(format!("{source}: the file changed while it was read (its last time {} s)", show(t_last)));
     }
     // Rows in report order: each estimator's column from its group.
     let column = |name: &str| {
@@ -346,8 +346,11 @@ fn identify_blocks<T: Real>(
         let rows: Vec<usize> = (0..times.len()).filter(|&i| times[i] >= w.t0 && times[i] < w.t1).collect();
         if rows.is_empty() {
             return fail(format!(
-                "{source}: window {}:{} holds no estimate (the record covers {t_first} to {t_last} s)",
-                w.t0, w.t1
+                "{source}: window {}:{} holds no estimate (the record covers {} to {} s)",
+                show(w.t0),
+                show(w.t1),
+                show(t_first),
+                show(t_last)
             ));
         }
         let validation = |p: &StageParams<f64>| validation_rmse_nm(p, &keep.t, &keep.u, &keep.y, dt, w);
@@ -579,20 +582,21 @@ fn write_estimates(path: &Path, r: &Identified) -> Result<OutputFile, CliError> 
 }
 
 fn json_params(p: &StageParams<f64>) -> String {
+    let n = json_number;
     format!(
-        "\"a0\": {:?}, \"a1\": {:?}, \"b0\": {:?}, \"f0_hz\": {:?}, \"zeta\": {:?}, \"dc_gain\": {:?}",
-        p.a0,
-        p.a1,
-        p.b0,
-        p.f0_hz(),
-        p.damping_ratio(),
-        p.dc_gain()
+        "\"a0\": {}, \"a1\": {}, \"b0\": {}, \"f0_hz\": {}, \"zeta\": {}, \"dc_gain\": {}",
+        n(p.a0),
+        n(p.a1),
+        n(p.b0),
+        n(p.f0_hz()),
+        n(p.damping_ratio()),
+        n(p.dc_gain())
     )
 }
 
 /// The summary as JSON (SPEC section 9), with the truth per window when known (and its validation RMSE).
 pub fn summary_json(r: &Identified) -> String {
-    let num = |x: f64| if x.is_finite() { format!("{x:?}") } else { "null".into() };
+    let num = json_number;
     let windows: Vec<String> = r
         .windows
         .iter()
@@ -659,6 +663,17 @@ impl Identified {
 mod tests {
     use super::*;
     use crate::sim::{Scenario, Simulation};
+
+    #[test]
+    fn numbers_without_a_value_are_null_in_json() {
+        let p = StageParams { b0: 5e5, a1: f64::INFINITY, a0: -6e6 };
+        let json = json_params(&p);
+        assert_eq!(
+            json,
+            "\"a0\": -6000000.0, \"a1\": null, \"b0\": 500000.0, \"f0_hz\": null, \"zeta\": null, \"dc_gain\": \
+             -0.08333333333333333"
+        );
+    }
 
     #[test]
     fn groups_balance_cost_and_keep_every_estimator_once() {

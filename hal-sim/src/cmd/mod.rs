@@ -24,6 +24,27 @@ impl fmt::Display for CliError {
 
 impl std::error::Error for CliError {}
 
+/// A number as JSON: the shortest text that reads back to `x` (`1e-6`, `0.25`), or `null` for NaN and the
+/// infinities, which JSON has no word for (a diverged estimate's `f0_hz` is NaN; `NaN` in the text would make the
+/// whole file unreadable to a JSON parser).
+pub fn json_number(x: f64) -> String {
+    if x.is_finite() {
+        format!("{x:?}")
+    } else {
+        "null".into()
+    }
+}
+
+/// A number for a message: as `Display` writes it for everyday magnitudes, in exponent form beyond them, where
+/// `Display` would write `1e300` with 300 digits and `1e-300` with 300 zeros.
+pub fn show(x: f64) -> String {
+    if x == 0.0 || !x.is_finite() || (1e-4..1e16).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
 /// Shorthand for building a [`CliError`].
 pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))
