@@ -15,6 +15,8 @@
 //! ## Rank
 //! Column `j` is (nearly) dependent on the columns before it when the part of it that they cannot explain,
 //! `|R_jj|`, is below `sqrt(eps) / 10` of its weighted norm (for f64, 1.5e-9: a condition number beyond ~1e9).
+//! That norm is the norm of `R`'s column `j` (the rotations keep it), taken by `hypot`: a running sum of squares
+//! of the data overflowed for entries beyond about 1e154 (f64) or 1e19 (f32) and called every column dependent.
 //! [`WeightedLs::solve`] then returns [`RankDeficient`] with that column and the earlier columns it combines,
 //! `R[..j, ..j] c = R[..j, j]`, rather than numbers. Capacity: `MAX` parameters (a const generic, no allocation).
 //!
@@ -31,7 +33,6 @@ pub struct WeightedLs<T, const MAX: usize> {
     r: [[T; MAX]; MAX],
     z: [T; MAX],
     e2: T,
-    col_norm2: [T; MAX],
     rows: u64,
 }
 
@@ -77,14 +78,7 @@ impl<T: Real, const MAX: usize> WeightedLs<T, MAX> {
     /// An empty problem with `n <= MAX` parameters.
     pub fn new(n: usize) -> Self {
         assert!(n <= MAX && n <= 64, "at most MAX (and 64) parameters");
-        WeightedLs {
-            n,
-            r: [[T::zero(); MAX]; MAX],
-            z: [T::zero(); MAX],
-            e2: T::zero(),
-            col_norm2: [T::zero(); MAX],
-            rows: 0,
-        }
+        WeightedLs { n, r: [[T::zero(); MAX]; MAX], z: [T::zero(); MAX], e2: T::zero(), rows: 0 }
     }
 
     /// Number of parameters.
@@ -106,7 +100,6 @@ impl<T: Real, const MAX: usize> WeightedLs<T, MAX> {
                 *x *= s;
             }
             self.z[i] *= s;
-            self.col_norm2[i] *= gamma;
         }
         self.e2 *= gamma;
     }
@@ -116,9 +109,8 @@ impl<T: Real, const MAX: usize> WeightedLs<T, MAX> {
         debug_assert_eq!(d.len(), self.n);
         let s = weight.sqrt();
         let mut row = [T::zero(); MAX];
-        for (j, (rj, dj)) in row.iter_mut().zip(d.iter()).enumerate() {
+        for (rj, dj) in row.iter_mut().zip(d.iter()) {
             *rj = s * *dj;
-            self.col_norm2[j] += *rj * *rj;
         }
         let mut rhs = s * y;
         for j in 0..self.n {
@@ -155,7 +147,8 @@ impl<T: Real, const MAX: usize> WeightedLs<T, MAX> {
         }
         let tol = T::epsilon().sqrt() * T::of(0.1);
         for j in 0..n {
-            let norm = self.col_norm2[j].sqrt();
+            // The weighted column's norm: `Q` is orthogonal, so it is that of `R`'s column.
+            let norm = self.r[..=j].iter().fold(T::zero(), |acc, row| acc.hypot(row[j]));
             let rjj = self.r[j][j].abs();
             if rjj <= tol * norm || rjj.is_nan() {
                 // Which earlier columns explain it: R[..j, ..j] c = R[..j, j].
