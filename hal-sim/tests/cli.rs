@@ -68,6 +68,8 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--duration", "ten", "--out", "x.csv"], "ten"),
         (&["simulate", "--scenario", "prbs", "--duration", "1e9", "--out", "x.csv"], "--duration"),
         (&["simulate", "--scenario", "prbs", "--duration", "0.00001", "--out", "x.csv"], "two samples"),
+        // In exponent form, not 1e-300 with its 300 zeros.
+        (&["simulate", "--scenario", "prbs", "--duration", "1e-300", "--out", "x.csv"], "--duration 1e-300: shorter"),
         (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
         (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),
@@ -221,12 +223,19 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     damaged[3] = damaged[3].replacen('A', "B", 1);
     // A frame lost in the capture.
     let gap: Vec<&str> = lines.iter().enumerate().filter(|(i, _)| *i != 4).map(|(_, l)| *l).collect();
-    let cases: [(String, &[&str], &str); 5] = [
+    let cases: [(String, &[&str], &str); 7] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
         (good.clone(), &["--recording", "2"], "recording 2 asked for, the capture holds 1"),
         (good.replace("rate_hz=10000", "rate_hz=fast"), &[], "cap.txt:2: rate_hz=fast: not a number"),
+        // Not quietly cast to a u8 (300 would have been 255, 2.5 would have been 2).
+        (
+            good.replace("delay=1", "delay=300"),
+            &[],
+            "cap.txt:2: delay=300: not a whole number of samples from 0 to 255",
+        ),
+        (good.replace("delay=1", "delay=2.5"), &[], "cap.txt:2: delay=2.5: not a whole number"),
     ];
     for (text, extra, msg) in cases {
         let dir = tempfile::tempdir().unwrap();

@@ -83,9 +83,14 @@ fn header_value(name: &str, line_no: usize, line: &str, key: &str) -> Result<f64
 
 fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, CliError> {
     let v = |key| header_value(name, line_no, line, key);
+    let delay = v("delay")?;
+    // A float cast would quietly make 300 of it 255 and 2.5 of it 2: a misaligned replay.
+    if !(delay.fract() == 0.0 && (0.0..=u8::MAX as f64).contains(&delay)) {
+        return fail(format!("{name}:{line_no}: delay={delay}: not a whole number of samples from 0 to 255"));
+    }
     let header = RecordHeader {
         rate_hz: v("rate_hz")?,
-        delay: v("delay")? as u8,
+        delay: delay as u8,
         u_v_per_code: v("u_v_per_code")?,
         u_v_offset: v("u_v_offset")?,
         y_um_per_code: v("y_um_per_code")?,

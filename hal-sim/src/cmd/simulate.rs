@@ -4,7 +4,7 @@
 //! duration. Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
 //! reading (um), and the true stage parameters at that sample.
 
-use super::{fail, CliError, OutputFile, Progress};
+use super::{fail, show, CliError, OutputFile, Progress};
 use crate::sim::{Scenario, Simulation};
 use std::io::Write;
 use std::path::Path;
@@ -28,16 +28,16 @@ pub struct SimulateArgs<'a> {
 /// Run it; returns the number of rows written.
 pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     if !(args.duration_s.is_finite() && args.duration_s > 0.0) {
-        return fail(format!("--duration {}: must be a positive number of seconds", args.duration_s));
+        return fail(format!("--duration {}: must be a positive number of seconds", show(args.duration_s)));
     }
     if args.duration_s > MAX_DURATION_S {
-        return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", args.duration_s));
+        return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", show(args.duration_s)));
     }
     let seed = args.seed.unwrap_or(args.scenario.default_seed());
     let (board, pipeline) = args.scenario.settings(args.duration_s, seed);
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
-        return fail(format!("--duration {}: shorter than two samples", args.duration_s));
+        return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
     }
     let mut sim = Simulation::new(board, &pipeline, ()).map_err(|e| CliError(format!("settings: {e}")))?;
     let time = TimeColumn::new(sim.config.sample_period_s);
