@@ -84,10 +84,8 @@ pub struct Identified {
     pub times: Vec<f64>,
     /// Estimates per row, in `names` order.
     pub estimates: Vec<Vec<StageParams<f64>>>,
-    /// Innovation RMS per row, um, in `names` order.
-    pub innovations: Vec<Vec<f32>>,
-    /// Whether each estimator was held by the excitation monitor at each row, in `names` order.
-    pub starved: Vec<Vec<bool>>,
+    /// Health per row (the innovation RMS, whether the excitation monitor held the estimator, ...), in `names` order.
+    pub healths: Vec<Vec<Health>>,
     /// Truth per row, when the input has it.
     pub truth: Option<Vec<StageParams<f64>>>,
     /// Windows and, per window, the figures of each estimator in `names` order, and the truth's when known: its
@@ -335,10 +333,6 @@ fn identify_blocks<T: Real>(
     let columns: Vec<_> = names.iter().map(|n| column(n)).collect();
     let (estimates, healths): (Vec<Vec<StageParams<f64>>>, Vec<Vec<Health>>) =
         (0..times.len()).map(|r| columns.iter().map(|(g, i)| (g.estimates[r][*i], g.healths[r][*i])).unzip()).unzip();
-    let innovations: Vec<Vec<f32>> =
-        healths.iter().map(|row| row.iter().map(|h| h.innovation_rms_um).collect()).collect();
-    let starved: Vec<Vec<bool>> =
-        healths.iter().map(|row| row.iter().map(|h| h.adaptation == Adaptation::Starved).collect()).collect();
 
     let mut summary = Vec::new();
     for (i, w) in windows.iter().enumerate() {
@@ -357,9 +351,11 @@ fn identify_blocks<T: Real>(
         let figures = (0..names.len())
             .map(|col| {
                 let mean = mean_params(rows.iter().map(|&i| estimates[i][col]));
+                let health = |i: usize| &healths[i][col];
                 let innovation_rms_nm =
-                    1e3 * rows.iter().map(|&i| innovations[i][col] as f64).sum::<f64>() / rows.len() as f64;
-                let starved = rows.iter().filter(|&&i| starved[i][col]).count() as f64 / rows.len() as f64;
+                    1e3 * rows.iter().map(|&i| health(i).innovation_rms_um as f64).sum::<f64>() / rows.len() as f64;
+                let held = rows.iter().filter(|&&i| health(i).adaptation == Adaptation::Starved).count();
+                let starved = held as f64 / rows.len() as f64;
                 WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved }
             })
             .collect();
@@ -370,7 +366,7 @@ fn identify_blocks<T: Real>(
         summary.push((*w, figures, window_truth));
     }
     let truth = record.has_truth.then_some(truth_rows);
-    Ok(Identified { names, times, estimates, innovations, starved, truth, windows: summary })
+    Ok(Identified { names, times, estimates, healths, truth, windows: summary })
 }
 
 /// Hand one block of filtered samples to every estimator worker.
