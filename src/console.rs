@@ -8,7 +8,7 @@
 
 use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
 use crate::estimator::Adaptation;
-use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey};
+use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey, Unrunnable};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
 use crate::instrument::{Change, RecordStatus, Status};
@@ -335,6 +335,8 @@ enum Refusal {
         expected: Expected,
     },
     Text(&'static str),
+    /// Each value in range, the whole not runnable.
+    Unrunnable(Unrunnable),
     /// The reply did not fit its buffer (it was cut, and says so).
     Reply,
 }
@@ -357,23 +359,15 @@ impl fmt::Display for Refusal {
             Refusal::Settings(e) => write!(f, "{e}"),
             Refusal::Value { word, value, expected } => write!(f, "word {word}: {}: {expected}", Num(*value, 6)),
             Refusal::Text(t) => f.write_str(t),
+            Refusal::Unrunnable(u) => write!(f, "{u}"),
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }
     }
 }
 
-/// `t` designed in the working scalar, or the refusal of a tuning whose normalised constants leave its range (the
-/// estimators would reset on every sample: [`TuningConfig::fits`]).
+/// `t` designed in the working scalar, or the refusal of a tuning the estimators could not run ([`Tuning::runnable`]).
 fn fitting<T: Real>(t: &Tuning) -> Result<TuningConfig<T>, Refusal> {
-    let designed = t.design::<T>();
-    if designed.fits() {
-        Ok(designed)
-    } else {
-        Err(Refusal::Text(
-            "the estimators cannot hold this tuning: a normalised constant (Q, P0 or a bound over the square of an \
-             initial parameter, 1 / R, ...) leaves the range of their arithmetic",
-        ))
-    }
+    t.runnable().map_err(Refusal::Unrunnable)
 }
 
 /// `ok tune KEY = V...`, without the line end.

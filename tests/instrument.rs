@@ -210,6 +210,18 @@ fn every_command_is_answered_and_does_what_it_says() {
     let r = lab.send("tune prefilter 100 6000 0.1\n");
     assert!(verdict(&r).starts_with("error: ") && r.contains("pre-filter"), "{r}");
     assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
+    // Nor one whose poles the continuous-time RLS's RK4 step cannot follow (a real pole at -11.9 W: it reset the
+    // RLS 564 times in 5 s), though the pipeline's exact pre-filter could; 4 is within reach.
+    assert_eq!(
+        verdict(&lab.send("tune prefilter 100 450 6\n")),
+        "error: the continuous-time RLS steps its pre-filter by RK4 at the sample period, and this pre-filter has a \
+         pole too fast for that step (amplified 2.3 times a sample): lower f_lc, f_p or zeta_p"
+    );
+    assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
+    assert_eq!(
+        verdict(&lab.send("tune prefilter 100 450 4\n")),
+        "ok tune prefilter = 100 450 4 (estimators restarted)"
+    );
     lab.send("tune prefilter 100 450 0.1\n");
     lab.send("tune initial 5e5 70 6e6\n");
     // Frozen, so that the sample that applies a restart does not also move the estimate.

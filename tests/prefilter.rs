@@ -154,3 +154,50 @@ fn noise_gains_are_the_sums_of_the_squared_impulse_responses() {
         }
     }
 }
+
+/// `rk4_amplification` against the thing itself: RK4 steps of `x' = A x` (the companion form of `W_p`'s
+/// denominator) at 0.1 ms from a unit state, 2 000 of them. Above 1 the state grows without bound (the
+/// continuous-time RLS's own pre-filter then overflows and resets it over and over); below 1 it decays.
+#[test]
+fn rk4_amplification_says_whether_an_rk4_integration_of_the_prefilter_grows() {
+    let h = 1e-4;
+    let grows = |d: &PrefilterDesign| {
+        let ([d0, d1, d2], _) = d.continuous();
+        let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
+        let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
+        // Scaled so that the three states weigh alike (W_p's coefficients span 1e11).
+        let w = 2.0 * std::f64::consts::PI * d.f_p_hz.max(d.f_lc_hz);
+        let mut x = [1.0, w, w * w];
+        let size = |x: &[f64; 3]| x[0].abs() + x[1].abs() / w + x[2].abs() / (w * w);
+        for _ in 0..2000 {
+            let k1 = f(x);
+            let k2 = f(add(x, k1, h / 2.0));
+            let k3 = f(add(x, k2, h / 2.0));
+            let k4 = f(add(x, k3, h));
+            x = core::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+        }
+        // Overflowed to infinity or NaN counts as grown.
+        let s = size(&x);
+        s.is_nan() || s >= 1e3
+    };
+    let cases = [
+        ((100.0, 450.0, 0.1), false), // the paper's
+        ((100.0, 450.0, 4.0), false),
+        ((100.0, 450.0, 6.0), true), // a real pole at -11.9 w: |z| = 3.4
+        ((100.0, 4000.0, 0.1), false),
+        ((100.0, 4900.0, 0.1), true), // |z| = 3.1, lightly damped
+        ((4000.0, 450.0, 0.1), false),
+        ((4900.0, 450.0, 0.1), true), // |z| = 3.1 on the real axis
+    ];
+    // Poles that overflow: above 1 or not a number, refused either way by `Tuning::runnable`.
+    for zeta_p in [1e200, 1e300] {
+        let a = PrefilterDesign { f_lc_hz: 100.0, f_p_hz: 450.0, zeta_p }.rk4_amplification(h);
+        assert!(a.is_nan() || a > 1.0, "{zeta_p}: {a}");
+    }
+    for ((f_lc_hz, f_p_hz, zeta_p), unstable) in cases {
+        let d = PrefilterDesign { f_lc_hz, f_p_hz, zeta_p };
+        let a = d.rk4_amplification(h);
+        assert_eq!(a > 1.0, unstable, "{d:?}: amplification {a}");
+        assert_eq!(grows(&d), unstable, "{d:?}: amplification {a}");
+    }
+}

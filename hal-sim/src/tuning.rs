@@ -136,14 +136,9 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
             set(key, &v)?;
         }
     }
-    // The console's second check: each value in its range can still leave the arithmetic's once normalised. Here in
-    // f64, the scalar `identify` runs; the board's f32 is narrower (`tune` on the console checks that).
-    if !t.design::<f64>().fits() {
-        return Err(CliError(format!(
-            "{name}: the estimators cannot hold this tuning: a normalised constant (Q, P0 or a bound over the square \
-             of an initial parameter, 1 / R, ...) leaves the range of f64"
-        )));
-    }
+    // The console's second check: values each in range that the estimators still could not run. Here in f64, the
+    // scalar `identify` runs; the board's f32 is narrower (`tune` on the console checks that).
+    t.runnable::<f64>().map_err(|u| CliError(format!("{name}: {u}")))?;
     Ok(t)
 }
 
@@ -195,6 +190,7 @@ mod tests {
             ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
             // Each value in range; `q_b0 / b0^2` is not a number in f64.
             ("initial = [1e-160, 70, 6e6]\n", "t.toml: the estimators cannot hold this tuning"),
+            ("prefilter = [100, 450, 6]\n", "t.toml: the continuous-time RLS steps its pre-filter by RK4"),
         ];
         for (text, want) in cases {
             let e = parse("t.toml", text).unwrap_err().0;

@@ -63,6 +63,54 @@ impl Tuning {
     pub fn design<T: Real>(&self) -> TuningConfig<T> {
         TuningConfig { rls: self.rls.design(), ekf: self.ekf.design(), arx: self.arx.design() }
     }
+
+    /// [`Tuning::design`], or why the estimators could not run it although each value is in its range (they would
+    /// reset over and over): a constant out of `T`'s range once normalised ([`TuningConfig::fits`]), or a
+    /// pre-filter the continuous-time RLS cannot integrate by RK4 at the sample period
+    /// ([`PrefilterDesign::rk4_amplification`] above 1; the pipeline's own pre-filter is exact at any pole).
+    ///
+    /// [`PrefilterDesign::rk4_amplification`]: crate::filters::prefilter::PrefilterDesign::rk4_amplification
+    pub fn runnable<T: Real>(&self) -> Result<TuningConfig<T>, Unrunnable> {
+        let growth = self.rls.prefilter.rk4_amplification(self.rls.sample_period_s);
+        if growth.is_nan() || growth > 1.0 {
+            return Err(Unrunnable::PrefilterRk4 { growth });
+        }
+        let designed = self.design::<T>();
+        if designed.fits() {
+            Ok(designed)
+        } else {
+            Err(Unrunnable::Range)
+        }
+    }
+}
+
+/// Why the estimators cannot run a tuning ([`Tuning::runnable`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Unrunnable {
+    /// A normalised constant leaves the working scalar's range.
+    Range,
+    /// The continuous-time RLS's RK4 step amplifies the pre-filter's fastest pole `growth` times per sample.
+    PrefilterRk4 {
+        /// `|R(lambda T)|`, above 1.
+        growth: f64,
+    },
+}
+
+impl core::fmt::Display for Unrunnable {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Unrunnable::Range => f.write_str(
+                "the estimators cannot hold this tuning: a normalised constant (Q, P0 or a bound over the square of \
+                 an initial parameter, 1 / R, ...) leaves the range of their arithmetic",
+            ),
+            Unrunnable::PrefilterRk4 { growth } => write!(
+                f,
+                "the continuous-time RLS steps its pre-filter by RK4 at the sample period, and this pre-filter has a \
+                 pole too fast for that step (amplified {} times a sample): lower f_lc, f_p or zeta_p",
+                crate::text::Num(*growth, 3)
+            ),
+        }
+    }
 }
 
 /// [`Tuning`], designed: the estimators' configurations.
