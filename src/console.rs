@@ -209,10 +209,10 @@ impl Controller {
                     expected: r.expected,
                 })?;
                 let designed = fitting(&t)?;
-                // The stage's pre-filter: the pipeline's and the continuous-time RLS's change together, in one sample.
+                // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
+                // together, in one sample.
                 if t.rls.prefilter != self.settings.prefilter {
-                    let mut s = self.settings;
-                    s.prefilter = t.rls.prefilter;
+                    let s = self.settings.with_prefilter(t.rls.prefilter);
                     change.config = Some(self.design(&s, self.running)?);
                     self.settings = s;
                 }

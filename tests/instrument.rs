@@ -436,9 +436,9 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
 
 /// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they
 /// settle on a wrong solution (`b0` of the wrong sign) and stay there; the ARX, linear in its parameters, finds the
-/// stage within 5 s, and the EKFs restarted from its estimate (`tune initial`) and with the pre-filter centred on
-/// the stage land with it. (The 6 % left on `b0` is the board's: its 1 kHz reconstruction and anti-aliasing filters
-/// and its second mode at 1.9 kHz are close to this stage.)
+/// stage within 5 s, and the EKFs restarted from its estimate (`tune initial`), with the pre-filter (and so the
+/// replicas' match) moved to the stage, land within 1 % on `b0`. With the replicas left matched at 450 Hz, `b0` was
+/// 6 % high in every estimator. The continuous EKF's `a1` stays about 5 % low at this `w T` (0.63).
 #[test]
 fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
     let w = 2.0 * std::f64::consts::PI * 1000.0;
@@ -462,9 +462,12 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
     lab.run(50_000);
     for ekf in [1, 2] {
         let e = err(lab.params(ekf));
-        println!("{} 5 s after its seed from the arx: a0, a1, b0 {e:+.3?}", ESTIMATOR_NAMES[ekf]);
-        assert!(e.iter().all(|e| e.abs() < 0.1), "{}: {e:?}", ESTIMATOR_NAMES[ekf]);
+        println!("{} 5 s after its seed from the arx: a0, a1, b0 {e:+.4?}", ESTIMATOR_NAMES[ekf]);
+        assert!(e[0].abs() < 1e-3 && e[1].abs() < 0.1 && e[2].abs() < 0.01, "{}: {e:?}", ESTIMATOR_NAMES[ekf]);
     }
+    assert_eq!(lab.isr.config(), &lab.ctl.config(), "what the console designed is what runs");
+    let s = lab.ctl.settings();
+    assert_eq!([s.reconstruction.prewarp_hz, s.antialias.prewarp_hz, s.lags.match_hz], [1000.0; 3]);
 }
 
 #[test]

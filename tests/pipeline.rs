@@ -4,7 +4,7 @@ use hal_sim::board::{BoardSettings, SimBoard};
 use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
-use nanopos_id::filters::BiquadState;
+use nanopos_id::filters::{BiquadState, PrefilterDesign};
 use nanopos_id::hal::{run_sample, BoardFaults, StageBoard};
 use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
@@ -229,4 +229,18 @@ fn replaying_a_recording_feeds_the_estimators_exactly_what_the_live_run_did() {
         replay.replay(&live.config, u, y);
     }
     assert_eq!(replay.estimators.0.seen, live.pipeline.estimators.0.seen);
+}
+
+#[test]
+fn a_moved_prefilter_moves_where_the_replicas_match_the_chain() {
+    let paper = PipelineSettings::default();
+    assert_eq!(paper.with_prefilter(paper.prefilter), paper, "the defaults already match at the pre-filter's 450 Hz");
+    let p = PrefilterDesign { f_lc_hz: 100.0, f_p_hz: 1000.0, zeta_p: 0.1 };
+    let moved = paper.with_prefilter(p);
+    assert_eq!(moved.prefilter, p);
+    assert_eq!([moved.reconstruction.prewarp_hz, moved.antialias.prewarp_hz, moved.lags.match_hz], [1000.0; 3]);
+    assert_eq!(
+        (moved.reconstruction.cutoff_hz, moved.lags.poles_hz),
+        (paper.reconstruction.cutoff_hz, paper.lags.poles_hz)
+    );
 }

@@ -217,9 +217,10 @@ fn identify_blocks<T: Real>(
         return fail(format!("{source}: too few rows ({n_head}): identification needs a record of at least 4 samples"));
     }
     let (t_first, dt) = (head[2][0], head[2][1] - head[2][0]);
-    // The stage's pre-filter is the tuning's: the continuous-time RLS has its own copy of it.
-    let settings =
-        PipelineSettings { sample_rate_hz: 1.0 / dt, prefilter: tuning.rls.prefilter, ..PipelineSettings::default() };
+    // The stage's pre-filter is the tuning's (the continuous-time RLS has its own copy of it), the replicas matched
+    // at its centre as on the board.
+    let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
+        .with_prefilter(tuning.rls.prefilter);
     let board = SimBoard::new(Default::default());
     let mut cfg = settings
         .design::<T>(&board.description())
