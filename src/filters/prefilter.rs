@@ -73,12 +73,12 @@ impl PrefilterDesign {
     pub fn rk4_amplification(&self, h: f64) -> f64 {
         let two_pi = 2.0 * core::f64::consts::PI;
         let (wc, wp, z) = (two_pi * self.f_lc_hz, two_pi * self.f_p_hz, self.zeta_p);
-        // The pair: -z wp +- wp sqrt(z^2 - 1), real for z >= 1 (the conjugate of a complex one amplifies alike).
+        // The pair: -z wp +- wp sqrt(z^2 - 1), real for z >= 1.
         let (re, root) = (-z * wp, wp * libm::sqrt(libm::fabs(z * z - 1.0)));
         let poles = if z >= 1.0 {
             [Complex::new(-wc, 0.0), Complex::new(re + root, 0.0), Complex::new(re - root, 0.0)]
         } else {
-            [Complex::new(-wc, 0.0), Complex::new(re, root), Complex::new(re, root)]
+            [Complex::new(-wc, 0.0), Complex::new(re, root), Complex::new(re, -root)]
         };
         // One pole at a time, not inlined: unrolled over the three in soft double it took 2.7 KiB of the firmware.
         #[inline(never)]
