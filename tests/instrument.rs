@@ -302,6 +302,7 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "tune kalman q 1",
         "tune ekf q 1 2 3",
         "tune rls gamma x",
+        "tune rls gamma 1e20",
         // Parse, but out of range.
         "tune ekf reopen 5000",
         "tune ekf q 1 1 -1 1 1",
@@ -328,6 +329,10 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     );
     assert_eq!(lab.send("tune ekf q 1 1 -1 1 1\n").trim_end(), "error: word 6: -1: must be a positive number");
     assert_eq!(lab.send("tune initial 5e5 70 0\n").trim_end(), "error: word 5: 0: must be a positive number");
+    assert_eq!(
+        lab.send("tune rls gamma 1e20\n").trim_end(),
+        "error: word 4: 1e20: above 0 and at most 10000 /s (the sample rate)"
+    );
     assert!(lab.send("status\n").contains(" tuning=prbs "), "no refused value was kept");
     assert_eq!(
         lab.send("tune ekf r 1e-45\n").trim_end(),

@@ -179,7 +179,7 @@ mod tests {
             ("[ekf]\nsubsteps = 0\n", "t.toml: [ekf] substeps = 0: between 1 and 64"),
             ("[ekf]\nq = [1, 2]\n", "t.toml:2:"),
             ("[ekf]\nkalman = 1\n", "kalman"),
-            ("[rls]\ngamma = -1\n", "[rls] gamma = -1: must be a positive number"),
+            ("[rls]\ngamma = -1\n", "[rls] gamma = -1: above 0 and at most 10000 /s (the sample rate)"),
             ("preset = \"fast\"\n", "preset 'fast' unknown"),
             ("[arx]\nlambda = 1.5\n", "[arx] lambda = 1.5: must be in (0, 1]"),
             ("[arx]\npe_floor_v2 = -1\n", "[arx] pe_floor_v2 = -1: must be zero or positive"),

@@ -188,6 +188,11 @@ pub enum Expected {
     },
     /// In `(0, 1]`.
     Forgetting,
+    /// A rate above zero and at most `max` (per second).
+    Rate {
+        /// The largest rate, 1/s.
+        max: f64,
+    },
 }
 
 impl fmt::Display for Expected {
@@ -203,6 +208,9 @@ impl fmt::Display for Expected {
                 write!(f, "between 1 and {} (the variance ceiling)", crate::text::Num(*ceiling, 6))
             }
             Expected::Forgetting => f.write_str("must be in (0, 1]"),
+            Expected::Rate { max } => {
+                write!(f, "above 0 and at most {} /s (the sample rate)", crate::text::Num(*max, 6))
+            }
         }
     }
 }
@@ -228,6 +236,7 @@ impl Expected {
             Expected::DriftRatio => x == 0.0 || (x.is_finite() && x >= 1.0),
             Expected::Reopen { ceiling } => (1.0..=ceiling).contains(&x),
             Expected::Forgetting => x > 0.0 && x <= 1.0,
+            Expected::Rate { max } => x > 0.0 && x <= max,
         }
     }
 }
@@ -242,6 +251,9 @@ impl Tuning {
             TuningKey::EkfReopen => Expected::Reopen { ceiling: self.ekf.health.ceiling },
             TuningKey::RlsPeFloor | TuningKey::EkfPeFloor | TuningKey::ArxPeFloor => Expected::NonNegative,
             TuningKey::ArxLambda => Expected::Forgetting,
+            // A forgetting time shorter than a sample means nothing; far beyond it, one RK4 step of `P' = gamma P`
+            // overflows (`gamma = 1e20` reset the RLS on every sample).
+            TuningKey::RlsGamma => Expected::Rate { max: 1.0 / self.rls.sample_period_s },
             _ => Expected::Positive,
         }
     }
@@ -383,7 +395,7 @@ mod tests {
     #[test]
     fn a_refused_value_names_its_index_and_changes_nothing() {
         let base = Tuning::of(TuningPreset::Triangle);
-        let cases: [(TuningKey, &[f64], usize, Expected); 9] = [
+        let cases: [(TuningKey, &[f64], usize, Expected); 10] = [
             (TuningKey::EkfQ, &[1e-12, 1e-6, -1.0, 1.0, 1.0], 2, Expected::Positive),
             (TuningKey::Initial, &[5e5, 70.0, f64::NAN], 2, Expected::Positive),
             (TuningKey::EkfSubsteps, &[0.0], 0, Expected::Substeps),
@@ -393,6 +405,7 @@ mod tests {
             (TuningKey::EkfReopen, &[5000.0], 0, Expected::Reopen { ceiling: 500.0 }),
             (TuningKey::EkfPeFloor, &[f64::INFINITY], 0, Expected::NonNegative),
             (TuningKey::ArxLambda, &[1.5], 0, Expected::Forgetting),
+            (TuningKey::RlsGamma, &[1e20], 0, Expected::Rate { max: 1e4 }),
         ];
         for (key, values, index, expected) in cases {
             let mut t = base;
