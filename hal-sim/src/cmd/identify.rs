@@ -232,6 +232,8 @@ fn identify_blocks<T: Real>(
     tuning.rls.sample_period_s = dt;
     tuning.ekf.sample_period_s = dt;
     tuning.arx.sample_period_s = dt;
+    // The tuning was checked at the board's rate when it was read; the record's may differ.
+    tuning.runnable::<T>().map_err(|u| CliError(format!("{source}: sample period {} s: {u}", show(dt))))?;
     let default_windows = |t_last: f64| {
         let (start, end) = (t_first, t_last + dt);
         let half = (end - start) / 2.0;
