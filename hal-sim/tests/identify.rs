@@ -182,6 +182,13 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     .unwrap();
     std::fs::write(d.join("no_t.csv"), "u,y\n0,0\n").unwrap();
     std::fs::write(d.join("late.csv"), "t,u,y\n1e300,0,0\n1.0000000000000001e300,0,0\n").unwrap();
+    // A pre-filter the RLS's RK4 follows at the board's 10 kHz (|lambda T| = 0.75) but not at this record's 2.5 kHz.
+    std::fs::write(
+        d.join("slow.csv"),
+        (0..100).map(|k| format!("{},0,0\n", k as f64 * 4e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
+    )
+    .unwrap();
+    std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
@@ -196,13 +203,18 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         // In exponent form, not the 301 digits of `Display`.
         (&["identify", "--input", "late.csv", "--out", "e.csv"], "late.csv:3: time 1e300 does not advance from 1e300"),
         (&["identify", "--input", "ok.csv", "--window", "1e-300:1e-299"], "window 1e-300:1e-299 holds no estimate"),
+        (
+            &["identify", "--input", "slow.csv", "--tuning", "fast_band.toml"],
+            "slow.csv: sample period 0.0004 s: the continuous-time RLS steps its pre-filter by RK4",
+        ),
     ];
     for (args, mention) in cases {
         let out = nanopos_sim(args, d);
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
         assert_eq!(stderr.trim_end().lines().count(), 1, "{args:?}: {stderr:?}");
-        assert!(stderr.len() < 200, "{args:?}: {stderr:?}");
+        // One line of words, not a number written out in 300 digits.
+        assert!(stderr.len() < 280, "{args:?}: {stderr:?}");
         assert!(stderr.contains(mention), "{args:?}: {stderr:?}");
         assert!(!d.join("e.csv").exists(), "no partial output");
     }
