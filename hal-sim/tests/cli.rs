@@ -223,7 +223,7 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     damaged[3] = damaged[3].replacen('A', "B", 1);
     // A frame lost in the capture.
     let gap: Vec<&str> = lines.iter().enumerate().filter(|(i, _)| *i != 4).map(|(_, l)| *l).collect();
-    let cases: [(String, &[&str], &str); 7] = [
+    let cases: [(String, &[&str], &str); 8] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
@@ -236,6 +236,7 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
             "cap.txt:2: delay=300: not a whole number of samples from 0 to 255",
         ),
         (good.replace("delay=1", "delay=2.5"), &[], "cap.txt:2: delay=2.5: not a whole number"),
+        (good.replace("delay=1", "delay=1e300"), &[], "cap.txt:2: delay=1e300: not a whole number"),
     ];
     for (text, extra, msg) in cases {
         let dir = tempfile::tempdir().unwrap();

@@ -12,7 +12,7 @@
 //! every gap-free run of samples goes to its own file, `OUT` with `-1`, `-2`, ... before the extension. `t` keeps
 //! counting from the recording's first sample in every segment, so the segments keep their place in time.
 
-use super::{fail, io_reason, CliError, OutputFile};
+use super::{fail, io_reason, show, CliError, OutputFile};
 use nanopos_id::record::{decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG};
 use std::io::Write;
 use std::path::Path;
@@ -86,7 +86,7 @@ fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, 
     let delay = v("delay")?;
     // A float cast would quietly make 300 of it 255 and 2.5 of it 2: a misaligned replay.
     if !(delay.fract() == 0.0 && (0.0..=u8::MAX as f64).contains(&delay)) {
-        return fail(format!("{name}:{line_no}: delay={delay}: not a whole number of samples from 0 to 255"));
+        return fail(format!("{name}:{line_no}: delay={}: not a whole number of samples from 0 to 255", show(delay)));
     }
     let header = RecordHeader {
         rate_hz: v("rate_hz")?,
