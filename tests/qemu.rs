@@ -7,12 +7,13 @@ use std::path::PathBuf;
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
-const KERNELS: [&str; 14] = [
+const KERNELS: [&str; 15] = [
     "pipeline_all_f32",
     "pipeline_bare_f32",
     "crls_f32",
     "cekf_f32",
     "hekf_f32",
+    "hekf_f32_64_substeps",
     "hekf_dense_f32",
     "arx_rls_f32",
     "arx_rls_fixed",

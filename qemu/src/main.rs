@@ -271,6 +271,15 @@ fn main() -> ! {
     table.kernel("crls_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| crls.update(x)).1)));
     table.kernel("cekf_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| cekf.update(x)).1)));
     table.kernel("hekf_f32", |c, s| window.iter().for_each(|x| s.add(c.count(|| hekf.update(x)).1)));
+    // The hybrid filter at the largest substep count the tuning accepts (`tune ekf substeps 64`): what that setting
+    // costs the interrupt. From its initial state, over the same window.
+    let mut hekf64 = {
+        use nanopos_id::estimators::{ekf::Hekf, Tuning, TuningKey};
+        let mut t = Tuning::of(nanopos_id::control::TuningPreset::Prbs);
+        t.set(TuningKey::EkfSubsteps, &[64.0]).unwrap_or_else(|_| fail("64 substeps refused"));
+        Hekf::new(t.design::<f32>().ekf)
+    };
+    table.kernel("hekf_f32_64_substeps", |c, s| window.iter().for_each(|x| s.add(c.count(|| hekf64.update(x)).1)));
     let mut dense = start.hekf_dense;
     table.kernel("hekf_dense_f32", |c, s| {
         window.iter().for_each(|x| s.add(c.count(|| dense.update(x.u_f.value, x.y_f.value)).1))
