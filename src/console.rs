@@ -186,7 +186,7 @@ impl Controller {
             Command::Tuning(p) => {
                 // The preset for the input; the stage's initial parameters and pre-filter stay.
                 let t = Tuning::of(p).with_stage_of(&self.tuning);
-                change.tuning = Some(fitting(&t)?);
+                change.tuning = Some(t.runnable()?);
                 // The estimators restart with the new tuning; frozen ones stay frozen.
                 change.freeze = self.frozen;
                 self.preset = p;
@@ -208,7 +208,7 @@ impl Controller {
                     value: values[r.index],
                     expected: r.expected,
                 })?;
-                let designed = fitting(&t)?;
+                let designed = t.runnable()?;
                 // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
                 // together, in one sample.
                 if t.rls.prefilter != self.settings.prefilter {
@@ -341,6 +341,13 @@ enum Refusal {
     Reply,
 }
 
+/// A tuning the estimators could not run ([`Tuning::runnable`]).
+impl From<Unrunnable> for Refusal {
+    fn from(u: Unrunnable) -> Self {
+        Refusal::Unrunnable(u)
+    }
+}
+
 impl From<SettingsError> for Refusal {
     fn from(e: SettingsError) -> Self {
         Refusal::Settings(e)
@@ -363,11 +370,6 @@ impl fmt::Display for Refusal {
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }
     }
-}
-
-/// `t` designed in the working scalar, or the refusal of a tuning the estimators could not run ([`Tuning::runnable`]).
-fn fitting<T: Real>(t: &Tuning) -> Result<TuningConfig<T>, Refusal> {
-    t.runnable().map_err(Refusal::Unrunnable)
 }
 
 /// `ok tune KEY = V...`, without the line end.
