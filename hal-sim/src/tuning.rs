@@ -1,7 +1,9 @@
 //! `--tuning`: a preset name (`prbs`, `triangle`) or a TOML file that starts from a preset and overrides any single
 //! value. Every key is optional; an unknown key, a wrong type or an out-of-range value is an error naming the file,
 //! the key and the problem. The values are checked by the core's [`Tuning::set`], as the firmware's `tune` command
-//! checks them (see [`nanopos_id::estimators::tuning`] for the keys and ranges).
+//! checks them (see [`nanopos_id::estimators::tuning`] for the keys and ranges), at the sample period of the record
+//! they are used on (`identify` reads it from the record's first rows): `rls gamma`'s range and whether the
+//! estimators can run the whole (`Tuning::runnable`) depend on it.
 //!
 //! ```toml
 //! preset = "triangle"            # the base (default: prbs)
@@ -29,7 +31,7 @@
 //! ```
 
 use crate::bank::Tuning;
-use crate::cmd::{fail, CliError};
+use crate::cmd::{fail, show, CliError};
 use nanopos_id::estimators::TuningKey;
 use serde::Deserialize;
 use std::path::Path;
@@ -76,10 +78,43 @@ struct Arx {
     pe_floor_v2: Option<f64>,
 }
 
+/// A `--tuning` as read: its preset and the file's values over it, checked and applied once the sample period is
+/// known ([`TuningArg::at`]): `rls gamma`'s range and what the estimators can run depend on it (a pre-filter at
+/// 4 kHz suits a 40 kHz record, not the board's 10 kHz).
+#[derive(Clone, Debug)]
+pub struct TuningArg {
+    /// The file, or `--tuning NAME` for a preset (for messages).
+    pub name: String,
+    base: Tuning,
+    /// The file's values, in its section order.
+    values: Vec<(TuningKey, Vec<f64>)>,
+}
+
+impl From<Tuning> for TuningArg {
+    /// A tuning already made (its sample period is replaced by the record's).
+    fn from(base: Tuning) -> Self {
+        TuningArg { name: "the tuning".into(), base, values: Vec::new() }
+    }
+}
+
+impl TuningArg {
+    /// The tuning for samples `dt` seconds apart: the preset's, with every value of the file through the core's one
+    /// check (the console's `tune` uses it too), in the file's section order; `q` before `p0`, since `q` also sets
+    /// `p0` to 10 Q. Whether the estimators can run the whole is the caller's check (in its scalar).
+    pub fn at(&self, dt: f64) -> Result<Tuning, CliError> {
+        let mut t = self.base.at_sample_period(dt);
+        for (key, values) in &self.values {
+            t.set(*key, values)
+                .map_err(|r| CliError(format!("{}: {key} = {}: {}", self.name, show(values[r.index]), r.expected)))?;
+        }
+        Ok(t)
+    }
+}
+
 /// Resolve `--tuning`: a preset name, or a TOML file.
-pub fn resolve(arg: &str) -> Result<Tuning, CliError> {
-    if let Some(t) = Tuning::preset(arg) {
-        return Ok(t);
+pub fn resolve(arg: &str) -> Result<TuningArg, CliError> {
+    if let Some(base) = Tuning::preset(arg) {
+        return Ok(TuningArg { name: format!("--tuning {arg}"), base, values: Vec::new() });
     }
     let path = Path::new(arg);
     if !path.exists() && !arg.ends_with(".toml") {
@@ -90,24 +125,17 @@ pub fn resolve(arg: &str) -> Result<Tuning, CliError> {
     parse(arg, &text)
 }
 
-/// Parse a tuning file's text (`name` for messages).
-pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
+/// Parse a tuning file's text (`name` for messages): its syntax, keys, types and preset now, its values at
+/// [`TuningArg::at`].
+pub fn parse(name: &str, text: &str) -> Result<TuningArg, CliError> {
     let file: File = toml::from_str(text).map_err(|e| {
         let msg = e.message().replace('\n', " ");
         let at = e.span().map(|s| format!(":{}", 1 + text[..s.start].matches('\n').count())).unwrap_or_default();
         CliError(format!("{name}{at}: {msg}"))
     })?;
     let preset = file.preset.as_deref().unwrap_or("prbs");
-    let mut t = Tuning::preset(preset)
+    let base = Tuning::preset(preset)
         .ok_or_else(|| CliError(format!("{name}: preset '{preset}' unknown (known: prbs, triangle)")))?;
-    // Every value through the core's one check (the console's `tune` uses it too), in the file's section order;
-    // `q` before `p0`, since `q` also sets `p0` to 10 Q.
-    let mut set = |key: TuningKey, values: &[f64]| -> Result<(), CliError> {
-        t.set(key, values).map_err(|r| {
-            let shown = values[r.index];
-            CliError(format!("{name}: {key} = {shown}: {}", r.expected))
-        })
-    };
     let one = |x: Option<f64>| x.map(|x| vec![x]);
     let whole = |n: Option<u32>| n.map(|n| vec![n as f64]);
     let (r, e, a) = (file.rls.unwrap_or_default(), file.ekf.unwrap_or_default(), file.arx.unwrap_or_default());
@@ -131,15 +159,8 @@ pub fn parse(name: &str, text: &str) -> Result<Tuning, CliError> {
         (TuningKey::ArxMaxTrace, one(a.max_trace)),
         (TuningKey::ArxPeFloor, one(a.pe_floor_v2)),
     ];
-    for (key, v) in values {
-        if let Some(v) = v {
-            set(key, &v)?;
-        }
-    }
-    // The console's second check: values each in range that the estimators still could not run. Here in f64, the
-    // scalar `identify` runs; the board's f32 is narrower (`tune` on the console checks that).
-    t.runnable::<f64>().map_err(|u| CliError(format!("{name}: {u}")))?;
-    Ok(t)
+    let values = values.into_iter().filter_map(|(key, v)| Some((key, v?))).collect();
+    Ok(TuningArg { name: name.to_string(), base, values })
 }
 
 #[cfg(test)]
@@ -147,10 +168,14 @@ mod tests {
     use super::*;
     use nanopos_id::estimators::ekf::EkfDesign;
 
+    /// A file's tuning at the board's sample period.
+    fn at_board(text: &str) -> Result<Tuning, CliError> {
+        parse("t.toml", text)?.at(1e-4)
+    }
+
     #[test]
     fn a_file_overrides_single_values_of_its_preset() {
-        let t = parse(
-            "t.toml",
+        let t = at_board(
             "preset = \"triangle\"\n[ekf]\nsubsteps = 8\ndrift_ratio = 0\nreopen = 10\n[rls]\ngamma = 0.5\n\
              pe_floor_v2 = 0\n",
         )
@@ -160,11 +185,11 @@ mod tests {
         assert_eq!((t.ekf.health.drift_ratio, t.ekf.health.reopen), (0.0, 10.0));
         assert_eq!((t.rls.gamma, t.rls.pe_floor_v2), (0.5, 0.0));
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
-        assert_eq!(parse("t.toml", "[arx]\npe_floor_v2 = 2e-6\n").unwrap().arx.pe_floor_v2, 2e-6);
-        let q = parse("t.toml", "[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
+        assert_eq!(at_board("[arx]\npe_floor_v2 = 2e-6\n").unwrap().arx.pe_floor_v2, 2e-6);
+        let q = at_board("[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
         assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
         // Another stage: every estimator starts from its parameters.
-        let other = parse("t.toml", "initial = [1e6, 90, 3.9e7]\nprefilter = [150, 1000, 0.2]\n").unwrap();
+        let other = at_board("initial = [1e6, 90, 3.9e7]\nprefilter = [150, 1000, 0.2]\n").unwrap();
         assert_eq!(
             (other.rls.prefilter.f_lc_hz, other.rls.prefilter.f_p_hz, other.rls.prefilter.zeta_p),
             (150.0, 1000.0, 0.2)
@@ -188,14 +213,28 @@ mod tests {
             ("[ekf]\nreopen = 5000\n", "[ekf] reopen = 5000: between 1 and 500 (the variance ceiling)"),
             ("initial = [5e5, 70, -6e6]\n", "t.toml: initial = -6000000: must be a positive number"),
             ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
-            // Each value in range; `q_b0 / b0^2` is not a number in f64.
-            ("initial = [1e-160, 70, 6e6]\n", "t.toml: the estimators cannot hold this tuning"),
-            ("prefilter = [100, 450, 6]\n", "t.toml: the continuous-time RLS steps its pre-filter by RK4"),
         ];
         for (text, want) in cases {
-            let e = parse("t.toml", text).unwrap_err().0;
+            let e = at_board(text).unwrap_err().0;
             assert!(e.contains(want), "{text:?}: {e}");
             assert!(!e.contains('\n'));
         }
+    }
+
+    /// A file's values are checked at the sample period they are used at, not the board's: `gamma` of 15 000 /s is
+    /// refused for 10 kHz samples and taken for 20 kHz ones, and the tuning is designed for the period given.
+    #[test]
+    fn a_files_values_are_checked_at_the_records_rate() {
+        let file = parse("t.toml", "[rls]\ngamma = 15000\n").unwrap();
+        let e = file.at(1e-4).unwrap_err().0;
+        assert_eq!(e, "t.toml: [rls] gamma = 15000: above 0 and at most 10000 /s (the sample rate)");
+        let fast = file.at(5e-5).unwrap();
+        assert_eq!(fast.rls.gamma, 15000.0);
+        assert_eq!((fast.rls.sample_period_s, fast.ekf.sample_period_s, fast.arx.sample_period_s), (5e-5, 5e-5, 5e-5));
+        // The file is read once: syntax, keys and types at once, before any period is known.
+        assert!(parse("t.toml", "[rls]\ngamma = \"fast\"\n").unwrap_err().0.starts_with("t.toml:2:"));
+        let preset = resolve("triangle").unwrap();
+        assert_eq!(preset.name, "--tuning triangle");
+        assert_eq!(preset.at(1e-4).unwrap(), Tuning::preset("triangle").unwrap());
     }
 }

@@ -119,6 +119,29 @@ fn identify_takes_the_inputs_dac_step() {
     assert!(board > 0.5 && unrounded == 0.0, "{board} {unrounded}");
 }
 
+/// A tuning is checked at the sample period of the record it runs on, not the board's 10 kHz: a pre-filter at 4.9 kHz
+/// (beyond what the continuous-time RLS's RK4 step follows at 10 kHz) and a forgetting rate of 15 000 /s run on a
+/// 40 kHz record, and are refused for a 10 kHz one. (They were refused on reading the file, whatever the record.)
+#[test]
+fn a_tuning_is_checked_at_its_records_sample_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for (name, dt, n) in [("r40.csv", 2.5e-5, 20_000), ("r10.csv", 1e-4, 5_000)] {
+        let rows = (0..n).map(|k| format!("{},{},0\n", k as f64 * dt, if k % 7 < 3 { 0.5 } else { -0.5 }));
+        std::fs::write(d.join(name), rows.fold("t,u,y\n".to_string(), |a, b| a + &b)).unwrap();
+    }
+    std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 4900, 0.1]\n").unwrap();
+    std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
+    for toml in ["fast_band.toml", "fast_rls.toml"] {
+        let out = nanopos_sim(&["identify", "--input", "r40.csv", "--tuning", toml, "--estimators", "rls"], d);
+        assert!(out.status.success(), "{toml}: {}", String::from_utf8_lossy(&out.stderr));
+        let out = nanopos_sim(&["identify", "--input", "r10.csv", "--tuning", toml, "--estimators", "rls"], d);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{toml}: {stderr}");
+        assert!(stderr.contains(&format!("nanopos-sim: {toml}: ")), "{stderr}");
+    }
+}
+
 /// A record no stage could produce (the probe pinned at 1e30 um under a PRBS) drives estimates where the derived
 /// quantities have no value (`a0 < 0`: no `f0`): the summary says `null`, and stays JSON (it wrote `NaN`).
 #[test]
@@ -189,6 +212,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     )
     .unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
+    std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
+    std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
@@ -205,8 +230,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--window", "1e-300:1e-299"], "window 1e-300:1e-299 holds no estimate"),
         (
             &["identify", "--input", "slow.csv", "--tuning", "fast_band.toml"],
-            "slow.csv: sample period 0.0004 s: the continuous-time RLS steps its pre-filter by RK4",
+            "fast_band.toml: at the sample period of slow.csv (0.0004 s): the continuous-time RLS steps its pre-filter \
+             by RK4",
         ),
+        // Each value in range; `q_b0 / b0^2` is not a number in f64.
+        (&["identify", "--input", "ok.csv", "--tuning", "tiny.toml"], "tiny.toml: at the sample period of ok.csv"),
+        (&["identify", "--input", "ok.csv", "--tuning", "fast_rls.toml"], "fast_rls.toml: [rls] gamma = 15000: above 0 and at most 10000 /s"),
     ];
     for (args, mention) in cases {
         let out = nanopos_sim(args, d);

@@ -258,6 +258,14 @@ impl Tuning {
         }
     }
 
+    /// This tuning for samples `dt` seconds apart (every estimator's design; `rls gamma`'s range follows it).
+    pub fn at_sample_period(mut self, dt: f64) -> Tuning {
+        self.rls.sample_period_s = dt;
+        self.ekf.sample_period_s = dt;
+        self.arx.sample_period_s = dt;
+        self
+    }
+
     /// This tuning with the stage's values ([`TuningKey::STAGE`]) of `stage`.
     pub fn with_stage_of(mut self, stage: &Tuning) -> Tuning {
         self.rls.initial = stage.rls.initial;

@@ -30,6 +30,7 @@ use super::{fail, json_number, show, CliError, OutputFile, Progress};
 use crate::bank::{Bank, Tuning, NAMES};
 use crate::board::SimBoard;
 use crate::csv::{Reader, Time};
+use crate::tuning::TuningArg;
 use nanopos_id::estimator::{Adaptation, EstimatorBank, FilteredSample, Health};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
@@ -145,7 +146,7 @@ pub fn identify_in<T: Real>(
         progress_total: rec.t.len() as u64,
         dac_step_v: None,
     };
-    identify_blocks::<T>(&record, names, tuning, windows, rec.blocks(1 << 16))
+    identify_blocks::<T>(&record, names, &TuningArg::from(*tuning), windows, rec.blocks(1 << 16))
 }
 
 impl<'a> Recording<'a> {
@@ -193,7 +194,7 @@ struct Kept {
 fn identify_blocks<T: Real>(
     record: &Stream,
     names: &[&'static str],
-    tuning: &Tuning,
+    tuning: &TuningArg,
     windows: &[Window],
     mut blocks: impl Iterator<Item = Result<(Vec<Vec<f64>>, u64), CliError>>,
 ) -> Result<Identified, CliError> {
@@ -217,6 +218,12 @@ fn identify_blocks<T: Real>(
         return fail(format!("{source}: too few rows ({n_head}): identification needs a record of at least 4 samples"));
     }
     let (t_first, dt) = (head[2][0], head[2][1] - head[2][0]);
+    // The tuning at the record's sample period: its values' ranges and whether the estimators can run it depend on
+    // it (a tuning is not checked at the board's 10 kHz when it is read).
+    let (name, tuning) = (&tuning.name, tuning.at(dt)?);
+    tuning
+        .runnable::<T>()
+        .map_err(|u| CliError(format!("{name}: at the sample period of {source} ({} s): {u}", show(dt))))?;
     // The stage's pre-filter is the tuning's (the continuous-time RLS has its own copy of it), the replicas matched
     // at its centre as on the board.
     let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
@@ -228,12 +235,6 @@ fn identify_blocks<T: Real>(
     if let Some(step) = record.dac_step_v {
         cfg.command_lsb_v = step;
     }
-    let mut tuning = *tuning;
-    tuning.rls.sample_period_s = dt;
-    tuning.ekf.sample_period_s = dt;
-    tuning.arx.sample_period_s = dt;
-    // The tuning was checked at the board's rate when it was read; the record's may differ.
-    tuning.runnable::<T>().map_err(|u| CliError(format!("{source}: sample period {} s: {u}", show(dt))))?;
     let default_windows = |t_last: f64| {
         let (start, end) = (t_first, t_last + dt);
         let half = (end - start) / 2.0;
@@ -479,8 +480,8 @@ pub struct IdentifyArgs<'a> {
     pub input: &'a Path,
     /// Estimators.
     pub estimators: Vec<&'static str>,
-    /// Tuning.
-    pub tuning: Tuning,
+    /// Tuning (applied at the record's sample period).
+    pub tuning: TuningArg,
     /// Windows (empty: the default two).
     pub windows: Vec<Window>,
     /// `EST.csv`.
@@ -760,7 +761,7 @@ mod tests {
         let args = IdentifyArgs {
             input: &input,
             estimators: NAMES.to_vec(),
-            tuning,
+            tuning: tuning.into(),
             windows: Vec::new(),
             out: None,
             summary: None,
@@ -783,7 +784,7 @@ mod tests {
                 progress_total: t.len() as u64,
                 dac_step_v: None,
             };
-            identify_blocks::<f64>(&record, &NAMES, &tuning, &[], blocks).unwrap()
+            identify_blocks::<f64>(&record, &NAMES, &tuning.into(), &[], blocks).unwrap()
         };
         for other in [&whole, &unknown_end] {
             assert_eq!(streamed.times, other.times);
