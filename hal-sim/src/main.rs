@@ -139,7 +139,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 dac_step_v: dac_step,
             };
             let result = identify::run(&args)?;
-            for note in identify::starvation_notes(&result) {
+            for note in identify::health_notes(&result) {
                 eprintln!("nanopos-sim: note: {note}");
             }
             if args.summary.is_none() {

@@ -51,6 +51,7 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
         "\"rmse_nm\"",
         "\"innovation_rms_nm\"",
         "\"starved\": 0.0",
+        "\"resets\": 0",
         "\"f0_hz\"",
         "\"zeta\"",
         "\"dc_gain\"",
@@ -88,6 +89,37 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
         let note = format!("note: {name} was held by the excitation monitor for 100 % of window 2:3");
         assert!(stderr.contains(&note), "{note} missing in {stderr}");
     }
+}
+
+/// A tuning that drives an estimator to non-finite values resets it over and over (each time back to its initial
+/// parameters, and adapting again): the summary counts the resets per window and a note says its means are of runs
+/// that diverged. Here `R` a million times below the paper's, which the continuous EKF cannot integrate and the
+/// hybrid one can (`tests/instrument.rs`, `a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid`).
+#[test]
+fn identify_reports_an_estimator_that_keeps_resetting() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    assert!(nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "2", "--out", "run.csv"], d)
+        .status
+        .success());
+    std::fs::write(d.join("small_r.toml"), "[ekf]\nr = 1.5e-12\n").unwrap();
+    let args = ["identify", "--input", "run.csv", "--estimators", "ekf,hekf", "--tuning", "small_r.toml"];
+    let out = nanopos_sim(&[&args[..], &["--window", "1:2"]].concat(), d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = String::from_utf8(out.stdout).unwrap();
+    let resets = |name: &str| {
+        let at = json.find(&format!("\"{name}\": {{")).unwrap();
+        let at = at + json[at..].find("\"resets\": ").unwrap() + 10;
+        json[at..].split('}').next().unwrap().trim().parse::<u32>().unwrap()
+    };
+    let (ekf, hekf) = (resets("ekf"), resets("hekf"));
+    eprintln!("resets in 1-2 s: ekf {ekf}, hekf {hekf}");
+    assert!(ekf > 50 && hekf == 0, "{ekf} {hekf}");
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    let note =
+        format!("note: ekf met a non-finite value and went back to its initial parameters {ekf} times in window 1:2");
+    assert!(stderr.contains(&note), "{note} missing in {stderr}");
+    assert!(!stderr.contains("hekf met"), "{stderr}");
 }
 
 /// The excitation monitor discounts the board's DAC steps (4.88 mV) by default; a record from elsewhere, not rounded,

@@ -13,8 +13,10 @@
 //!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
 //!   health view of the same question: far above the noise floor, the model does not fit; and `starved`, the share
 //!   of the window the excitation monitor held the estimator (input too weak, or a single sinusoid; sampled with the
-//!   100 Hz rows), where the mean is of held values. Above 10 % a note on standard error says so
-//!   ([`starvation_notes`]).
+//!   100 Hz rows), where the mean is of held values; and `resets`, the times in the window the estimator met a
+//!   non-finite value and went back to its initial parameters (a tuning that does not suit the record resets it
+//!   over and over, and its mean is then of runs that diverged). Above 10 % starved, or any reset, a note on standard error
+//!   says so ([`health_notes`]).
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
@@ -75,6 +77,8 @@ pub struct WindowFigures {
     /// Share of the window's rows (0 to 1) at which the excitation monitor held the estimator (`Starved`): where it
     /// is large, the mean is of held values, not of what this input identifies (`NaN` for the truth).
     pub starved: f64,
+    /// Numeric resets in the window (sampled with the 100 Hz rows; 0 for the truth).
+    pub resets: u32,
 }
 
 /// The result of a run.
@@ -360,12 +364,21 @@ fn identify_blocks<T: Real>(
                     1e3 * rows.iter().map(|&i| health(i).innovation_rms_um as f64).sum::<f64>() / rows.len() as f64;
                 let held = rows.iter().filter(|&&i| health(i).adaptation == Adaptation::Starved).count();
                 let starved = held as f64 / rows.len() as f64;
-                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved }
+                // Counted from the row before the window (the record's start: none yet).
+                let before = rows[0].checked_sub(1).map_or(0, |i| health(i).numeric_resets);
+                let resets = health(rows[rows.len() - 1]).numeric_resets.wrapping_sub(before);
+                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved, resets }
             })
             .collect();
         let window_truth = record.has_truth.then(|| {
             let mean = mean_params(rows.iter().map(|&i| truth_rows[i]));
-            WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm: f64::NAN, starved: f64::NAN }
+            WindowFigures {
+                mean,
+                rmse_nm: validation(&mean),
+                innovation_rms_nm: f64::NAN,
+                starved: f64::NAN,
+                resets: 0,
+            }
         });
         summary.push((*w, figures, window_truth));
     }
@@ -536,9 +549,10 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     Ok(result)
 }
 
-/// One line per estimator and window where the excitation monitor held the estimator for more than a tenth of the
-/// window: its window means there are not what the input identifies.
-pub fn starvation_notes(r: &Identified) -> Vec<String> {
+/// One line per estimator and window whose means are not what the input identifies: the excitation monitor held the
+/// estimator for more than a tenth of the window (its means are of held values), or it reset itself (its means are
+/// of runs that diverged, each restarted from the initial parameters).
+pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     for (w, figs, _) in &r.windows {
         for (name, f) in r.names.iter().zip(figs) {
@@ -549,6 +563,13 @@ pub fn starvation_notes(r: &Identified) -> Vec<String> {
                     100.0 * f.starved,
                     w.t0,
                     w.t1
+                ));
+            }
+            if f.resets > 0 {
+                notes.push(format!(
+                    "{name} met a non-finite value and went back to its initial parameters {} times in window {}:{} \
+                     (a tuning that does not suit this record): its means there are of runs that diverged",
+                    f.resets, w.t0, w.t1
                 ));
             }
         }
@@ -607,11 +628,12 @@ pub fn summary_json(r: &Identified) -> String {
                 .zip(figs)
                 .map(|(n, f)| {
                     format!(
-                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}, \"starved\": {}}}",
+                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}, \"starved\": {}, \"resets\": {}}}",
                         json_params(&f.mean),
                         num(f.rmse_nm),
                         num(f.innovation_rms_nm),
-                        num(f.starved)
+                        num(f.starved),
+                        f.resets
                     )
                 })
                 .collect();
