@@ -301,3 +301,48 @@ impl WatchdogGate {
         ok
     }
 }
+
+/// What grew since the last look at the interrupt's [`Status`]: for the telemetry, which warns once per event rather
+/// than leaving the user to read it off climbing counters. Numeric resets matter most: a tuning the data drive to
+/// non-finite values resets an estimator over and over, each time back to its initial parameters and `adapting`,
+/// so its parameters look steady while nothing is identified.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EventWatch {
+    seen: News,
+}
+
+/// Events since the last look ([`EventWatch::look`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct News {
+    /// Numeric resets per estimator, in the bank's order.
+    pub resets: [u32; 4],
+    /// Deadline misses.
+    pub deadline_misses: u32,
+    /// ADC overruns.
+    pub adc_overruns: u32,
+}
+
+impl EventWatch {
+    /// Nothing seen yet.
+    pub const fn new() -> Self {
+        EventWatch { seen: News { resets: [0; 4], deadline_misses: 0, adc_overruns: 0 } }
+    }
+
+    /// The counts' growth since the last look. A count that went down was restarted (a new tuning restarts the
+    /// estimators and their health): all of it is new.
+    pub fn look<T>(&mut self, status: &Status<T>) -> News {
+        let now = News {
+            resets: core::array::from_fn(|i| status.estimates[i].1.numeric_resets),
+            deadline_misses: status.counters.deadline_misses,
+            adc_overruns: status.counters.adc_overruns,
+        };
+        let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
+        let news = News {
+            resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
+            deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
+            adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
+        };
+        self.seen = now;
+        news
+    }
+}

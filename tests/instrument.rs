@@ -8,7 +8,7 @@ use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
-use nanopos_id::instrument::{Change, Instrument, WatchdogGate, RECORD_BUFFER};
+use nanopos_id::instrument::{Change, EventWatch, Instrument, News, WatchdogGate, RECORD_BUFFER};
 use nanopos_id::pipeline::{Faults, Pipeline, SampleOutput};
 use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
@@ -437,6 +437,31 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     let (cekf, hekf) = resets("1.5e-12");
     println!("R = 1.5e-12 um^2 over 10 s: the continuous EKF reset {cekf} times, the hybrid {hekf}");
     assert!(cekf > 1000 && hekf == 0, "{cekf} {hekf}");
+}
+
+/// The telemetry's warnings: looked at every 0.1 s, the watch says how many numeric resets each estimator had
+/// since the last look (the continuous EKF's, with `R` a million below the paper's, in nearly every look; nobody
+/// else's), and a new tuning (which restarts the estimators and their counts) is not taken for billions of resets.
+#[test]
+fn the_telemetry_says_when_an_estimator_keeps_resetting() {
+    let mut lab = Lab::new();
+    let mut watch = EventWatch::new();
+    let mut look = |lab: &mut Lab, samples: usize| {
+        lab.run(samples);
+        watch.look(&lab.isr.status())
+    };
+    lab.run(2000);
+    assert_eq!(look(&mut lab, 1000), News::default(), "the paper's tuning");
+    assert!(verdict(&lab.send("tune ekf r 1.5e-12\n")).starts_with("ok tune"));
+    let news: Vec<News> = (0..50).map(|_| look(&mut lab, 1000)).collect();
+    let warned = news.iter().filter(|n| n.resets[1] > 0).count();
+    let total: u32 = news.iter().map(|n| n.resets[1]).sum();
+    println!("R = 1.5e-12 um^2: the continuous EKF warned in {warned} of 50 looks, {total} resets");
+    assert!(warned > 40, "{warned}");
+    assert_eq!(total, lab.isr.status().estimates[1].1.numeric_resets, "every reset told once");
+    assert!(news.iter().all(|n| n.resets[0] == 0 && n.resets[2] == 0 && n.resets[3] == 0 && n.deadline_misses == 0));
+    assert!(verdict(&lab.send("tune ekf r 1.5e-6\n")).starts_with("ok tune"));
+    assert_eq!(look(&mut lab, 1000), News::default(), "restarted counts are not news");
 }
 
 /// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they

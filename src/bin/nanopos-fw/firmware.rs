@@ -29,7 +29,7 @@ use embedded_io_async::{Read, Write};
 use nanopos_id::console::{write_record_end, Controller};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::Health;
-use nanopos_id::instrument::{Change, Instrument, Status, WatchdogGate};
+use nanopos_id::instrument::{Change, EventWatch, Instrument, Status, WatchdogGate};
 use nanopos_id::pipeline::{FaultCounters, Faults};
 use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
@@ -256,7 +256,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
     let mut gate = WatchdogGate::new(500);
     watchdog.unleash();
     let mut ticker = Ticker::every(Duration::from_millis(100));
-    let mut reported_misses = 0;
+    let mut watch = EventWatch::new();
     loop {
         ticker.next().await;
         let Some((s, st)) = with_task(|t| {
@@ -306,10 +306,18 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 h.innovation_rms_um
             );
         }
-        let (misses, overruns) = (c.deadline_misses, c.adc_overruns);
-        if misses + overruns != reported_misses {
-            reported_misses = misses + overruns;
-            defmt::warn!("deadline misses={=u32} adc overruns={=u32}", misses, overruns);
+        let news = watch.look(&st);
+        for (i, &resets) in news.resets.iter().enumerate() {
+            if resets > 0 {
+                defmt::warn!(
+                    "{=str}: {=u32} numeric resets in the last 0.1 s (non-finite values, each time back to the initial parameters): the tuning does not suit this stage or input",
+                    ESTIMATOR_NAMES[i],
+                    resets
+                );
+            }
+        }
+        if news.deadline_misses + news.adc_overruns > 0 {
+            defmt::warn!("deadline misses={=u32} adc overruns={=u32}", c.deadline_misses, c.adc_overruns);
         }
     }
 }
