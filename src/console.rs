@@ -5,6 +5,10 @@
 //! interrupt only ever receives finished values. A command that cannot be honoured changes nothing and is answered
 //! `error: ...` naming why. Replies are lines; the last line of every reply starts with `ok` or `error:`, and
 //! `status` sends one `est ...` line per estimator before its `ok` line.
+//!
+//! A reply is written in parts of at most [`REPLY_BYTES`], the console's buffer: every reply is one part but
+//! `status` (about 1 KiB, 1.3 KiB with every counter at its widest), which comes a line at a time from one snapshot
+//! ([`Rest`]).
 
 use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
 use crate::estimator::Adaptation;
@@ -17,6 +21,42 @@ use crate::record::RecordHeader;
 use crate::text::Num;
 use crate::Real;
 use core::fmt::{self, Write};
+
+/// The most bytes one part of a reply takes: the console's reply buffer. The longest part is `status`'s `ok` line,
+/// 415 bytes with every counter at its widest, the longest numbers and every fault (the whole reply 1 340 bytes;
+/// `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`); the longest error
+/// is about 300.
+pub const REPLY_BYTES: usize = 512;
+
+/// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
+/// at a time by [`Rest::write_next`] from the snapshot taken when the command ran.
+#[derive(Clone, Copy, Debug)]
+pub struct Rest<T> {
+    status: Option<Status<T>>,
+    next: usize,
+}
+
+impl<T> Rest<T> {
+    /// Nothing more.
+    pub const fn none() -> Self {
+        Rest { status: None, next: 0 }
+    }
+}
+
+impl<T: Real> Rest<T> {
+    /// Write the next part into `reply` (emptied by the caller): `false`, writing nothing, when the reply is complete.
+    #[inline(never)]
+    pub fn write_next(&mut self, ctl: &Controller, reply: &mut impl Write) -> bool {
+        let Some(s) = &self.status else { return false };
+        if self.next > s.estimates.len() {
+            return false;
+        }
+        // A part that does not fit is cut by the buffer (and marked); the next ones still come.
+        let _ = ctl.write_status_line(s, self.next, reply);
+        self.next += 1;
+        true
+    }
+}
 
 /// The run-time settings and what the user chose.
 #[derive(Clone, Debug)]
@@ -106,35 +146,34 @@ impl Controller {
         let _ = writeln!(reply, "error: {e}");
     }
 
-    /// Carry out `cmd`: the change to post (if any) and the reply. `status` is called only for `status`. Nothing
-    /// changes when the reply is an error.
+    /// Carry out `cmd`: the change to post (if any), the reply's first part in `reply` and the [`Rest`] of it.
+    /// `status` is called only for `status` (whose reply is all in the rest). Nothing changes when the reply is an
+    /// error.
+    // Not inlined: in the firmware's console task it was, once its reply came in parts, for 4 KiB more flash.
+    #[inline(never)]
     pub fn execute<T: Real>(
         &mut self,
         cmd: Command,
         status: impl FnOnce() -> Status<T>,
         reply: &mut impl Write,
-    ) -> Option<Change<T>> {
-        match self.try_execute(cmd, status, reply) {
-            Ok(change) => change,
+    ) -> (Option<Change<T>>, Rest<T>) {
+        if matches!(cmd, Command::Status) {
+            return (None, Rest { status: Some(status()), next: 0 });
+        }
+        match self.try_execute(cmd, reply) {
+            Ok(change) => (change, Rest::none()),
             Err(e) => {
                 let _ = writeln!(reply, "error: {e}");
-                None
+                (None, Rest::none())
             }
         }
     }
 
-    fn try_execute<T: Real>(
-        &mut self,
-        cmd: Command,
-        status: impl FnOnce() -> Status<T>,
-        reply: &mut impl Write,
-    ) -> Result<Option<Change<T>>, Refusal> {
+    fn try_execute<T: Real>(&mut self, cmd: Command, reply: &mut impl Write) -> Result<Option<Change<T>>, Refusal> {
         let mut change = Change::default();
         match cmd {
-            Command::Status => {
-                self.write_status(&status(), reply)?;
-                return Ok(None);
-            }
+            // Answered by `execute` from the snapshot, a line at a time.
+            Command::Status => return Ok(None),
             Command::Excite(choice) => {
                 let design = excitation(choice);
                 let mut s = self.settings;
@@ -261,14 +300,14 @@ impl Controller {
         Ok(Some(change))
     }
 
-    /// The `est` lines and the `ok status` line.
-    pub fn write_status<T: Real>(&self, s: &Status<T>, w: &mut impl Write) -> fmt::Result {
-        for (i, (p, h)) in s.estimates.iter().enumerate() {
+    /// Line `line` of `status`'s reply: the `est` line of estimator `line`, or, after the last, the `ok status` line.
+    fn write_status_line<T: Real>(&self, s: &Status<T>, line: usize, w: &mut impl Write) -> fmt::Result {
+        if let Some((p, h)) = s.estimates.get(line) {
             let f = |x: T| Num(x.to_f64().unwrap_or(f64::NAN), 6);
             write!(
                 w,
                 "est {} a0={} a1={} b0={} f0_hz={} zeta={} gain_um_per_v={} ",
-                ESTIMATOR_NAMES[i],
+                ESTIMATOR_NAMES[line],
                 f(p.a0),
                 f(p.a1),
                 f(p.b0),
@@ -276,7 +315,7 @@ impl Controller {
                 f(p.damping_ratio()),
                 f(p.dc_gain())
             )?;
-            let state = if !s.selected.contains(i) {
+            let state = if !s.selected.contains(line) {
                 "off"
             } else {
                 match h.adaptation {
@@ -285,7 +324,7 @@ impl Controller {
                     Adaptation::Starved => "starved",
                 }
             };
-            writeln!(
+            return writeln!(
                 w,
                 "{state} rejected={} changes={} resets={} repairs={} innovation_rms_um={}",
                 h.rejected_samples,
@@ -293,7 +332,7 @@ impl Controller {
                 h.numeric_resets,
                 h.covariance_repairs,
                 Num(h.innovation_rms_um as f64, 4)
-            )?;
+            );
         }
         let c = &s.counters;
         writeln!(

@@ -3,13 +3,13 @@
 
 use hal_sim::board::SimBoard;
 use hal_sim::sim::Scenario;
-use nanopos_id::console::{write_record_end, Controller};
+use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
-use nanopos_id::instrument::{Change, EventWatch, Instrument, News, WatchdogGate, RECORD_BUFFER};
-use nanopos_id::pipeline::{Faults, Pipeline, SampleOutput};
+use nanopos_id::instrument::{Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER};
+use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, SampleOutput};
 use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
@@ -47,15 +47,16 @@ impl Lab {
         let start = self.link.len();
         for &b in text.as_bytes() {
             let Some(parsed) = self.line.push(b) else { continue };
-            let mut reply = TextBuf::<1024>::default();
-            let change = match parsed {
+            // The firmware's buffer: every part of every reply must fit it.
+            let mut reply = TextBuf::<REPLY_BYTES>::default();
+            let (change, mut rest) = match parsed {
                 Ok(cmd) => {
                     let isr = &self.isr;
                     self.ctl.execute(cmd, || isr.status(), &mut reply)
                 }
                 Err(e) => {
                     self.ctl.refuse(e, &mut reply);
-                    None
+                    (None, Rest::none())
                 }
             };
             if let Some(c) = change {
@@ -63,7 +64,14 @@ impl Lab {
                 self.sample();
                 assert!(!self.isr.change_pending());
             }
-            self.link.push_str(reply.as_str());
+            loop {
+                assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
+                self.link.push_str(reply.as_str());
+                reply.clear();
+                if !rest.write_next(&self.ctl, &mut reply) {
+                    break;
+                }
+            }
         }
         self.link[start..].to_string()
     }
@@ -413,6 +421,68 @@ fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
         assert!(out.iter().all(|o| o.faults == Faults::default()), "{name}");
         assert!(out.iter().any(|o| o.u_v.abs() > 0.9), "{name}: excitation resumed");
     }
+}
+
+/// `status` at its widest fits the console's buffer a line at a time (it was written whole into the firmware's
+/// 768-byte buffer, which cut it after about three `est` lines: the `ok status` line never reached the board's user;
+/// the host's tests used a 1 KiB buffer). Every counter at its largest, the longest numbers, every fault, the
+/// longest excitation, tuning and recorder words.
+#[test]
+fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
+    let mut lab = Lab::new();
+    lab.run(100);
+    for cmd in ["excite triangle 9.87654321 987.654321\n", "tune ekf r 1.23456789e-7\n", "select all\n"] {
+        assert!(verdict(&lab.send(cmd)).starts_with("ok"), "{cmd}");
+    }
+    let mut st = lab.isr.status();
+    let long = -1.17549e-38f32;
+    st.samples = u64::MAX;
+    st.faults = Faults(0xFF);
+    st.counters = FaultCounters {
+        probe_over_range: u32::MAX,
+        probe_stuck: u32::MAX,
+        command_not_finite: u32::MAX,
+        deadline_misses: u32::MAX,
+        adc_overruns: u32::MAX,
+    };
+    (st.command_v, st.excitation_level.power, st.excitation_level.single) = (long, long, true);
+    st.record =
+        RecordStatus { active: false, remaining: None, recorded: u64::MAX, overflowed: true, buffered: usize::MAX };
+    for (p, h) in st.estimates.iter_mut() {
+        // a0 > 0 and tiny, the rest negative: every derived number in exponent form with a sign.
+        *p = StageParams { a0: 1.23457e-30, a1: -1.23457e-30, b0: long };
+        h.adaptation = Adaptation::Adapting;
+        (h.rejected_samples, h.changes_detected, h.numeric_resets, h.covariance_repairs) =
+            (u32::MAX, u32::MAX, u32::MAX, u32::MAX);
+        h.innovation_rms_um = long;
+    }
+    let cmd = nanopos_id::control::parse(b"status").unwrap();
+    let mut reply = TextBuf::<REPLY_BYTES>::default();
+    let (change, mut rest) = lab.ctl.execute(cmd, || st, &mut reply);
+    assert!(change.is_none() && reply.as_str().is_empty());
+    let mut lines = Vec::new();
+    while {
+        reply.clear();
+        rest.write_next(&lab.ctl, &mut reply)
+    } {
+        assert!(!reply.truncated(), "{}", reply.as_str());
+        lines.push(reply.as_str().to_string());
+    }
+    let widest = lines.iter().map(String::len).max().unwrap();
+    let whole: usize = lines.iter().map(String::len).sum();
+    println!(
+        "status at its widest: {whole} bytes in {} lines, the widest {widest} (buffer {REPLY_BYTES})",
+        lines.len()
+    );
+    for l in &lines {
+        println!("{}", l.trim_end());
+    }
+    assert_eq!(lines.len(), 5);
+    assert!(
+        lines[..4].iter().all(|l| l.starts_with("est "))
+            && lines[4].starts_with("ok status samples=18446744073709551615 ")
+    );
+    assert!(whole > 1024, "the whole would not fit one buffer of 1 KiB either: {whole}");
 }
 
 /// A limit, kept measured: the continuous EKF takes one RK4 step of its Riccati equation per sample (SPEC 6.4), whose

@@ -26,7 +26,7 @@ use embassy_stm32::usart::BufferedUart;
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_time::{Duration, Ticker, Timer};
 use embedded_io_async::{Read, Write};
-use nanopos_id::console::{write_record_end, Controller};
+use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::Health;
 use nanopos_id::instrument::{Change, EventWatch, Instrument, Status, WatchdogGate};
@@ -148,7 +148,7 @@ fn ADC1_2() {
 async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     let (mut tx, mut rx) = uart.split();
     let mut line = LineBuffer::default();
-    let mut reply = TextBuf::<768>::default();
+    let mut reply = TextBuf::<REPLY_BYTES>::default();
     let mut bytes = [0u8; 32];
     let mut frame = [0u8; FRAME_MAX_BYTES];
     let mut samples = [RawSample::default(); FRAME_SAMPLES];
@@ -167,13 +167,13 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
         for &b in &bytes[..n] {
             let Some(parsed) = line.push(b) else { continue };
             reply.clear();
-            let change = match parsed {
+            let (change, mut rest) = match parsed {
                 Ok(cmd) => {
                     ctl.execute(cmd, || with_task(|t| t.instrument.status()).unwrap_or_else(idle_status), &mut reply)
                 }
                 Err(e) => {
                     ctl.refuse(e, &mut reply);
-                    None
+                    (None, Rest::none())
                 }
             };
             if let Some(change) = change {
@@ -183,8 +183,15 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 recording |= change.record.is_some_and(|r| r != Some(0));
                 post(change).await;
             }
-            if tx.write_all(reply.as_bytes()).await.is_err() {
-                defmt::warn!("console: transmit error");
+            // The reply in parts (`status` a line at a time), each sent before the next is written.
+            loop {
+                if tx.write_all(reply.as_bytes()).await.is_err() {
+                    defmt::warn!("console: transmit error");
+                }
+                reply.clear();
+                if !rest.write_next(&ctl, &mut reply) {
+                    break;
+                }
             }
         }
         // The recording: whole frames while it runs; the rest, and the end line, once it stopped.
