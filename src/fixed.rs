@@ -1,4 +1,4 @@
-//! Fixed point: `Fx<F>`, a signed Q(63-F).F number in an `i64` with an `i128` intermediate, for FPU-less chips and
+//! Fixed point: `Fx<F>`, a signed Q(63-F).F number in an `i64` with 128-bit products, for FPU-less chips and
 //! bit-exact reproducibility. It implements [`crate::Scalar`], so the biquad and the discrete RLS run on it from
 //! the same generic code as on `f32`/`f64`.
 //!
@@ -35,11 +35,6 @@ pub type Q32 = Fx<32>;
 impl<const F: u32> Fx<F> {
     /// `2^F`.
     const ONE: i64 = 1 << F;
-
-    #[inline(always)]
-    fn saturate(x: i128) -> Self {
-        Fx(x.clamp(i64::MIN as i128, i64::MAX as i128) as i64)
-    }
 }
 
 impl<const F: u32> Add for Fx<F> {
@@ -60,17 +55,36 @@ impl<const F: u32> Mul for Fx<F> {
     type Output = Self;
     #[inline(always)]
     fn mul(self, o: Self) -> Self {
-        let p = self.0 as i128 * o.0 as i128;
-        // Round to nearest, ties away from zero: add half an LSB of the result in the direction of the sign.
-        let half = 1i128 << (F - 1);
-        let r = if p >= 0 { (p + half) >> F } else { -((-p + half) >> F) };
-        Self::saturate(r)
+        // In magnitudes: the 128-bit product of two `u64` (four 32-bit multiplies), rounded half up (so, with the
+        // sign applied after, to nearest with ties away from zero) and saturated. The same number as the signed
+        // `i128` product rounded by the sign's branch, and cheaper on the Cortex-M4 (`arx_rls_fixed` 8 324 -> 7 499
+        // instructions); a branch-free rounding of the signed product, `(p + half - (p < 0)) >> F`, cost more.
+        let negative = (self.0 < 0) != (o.0 < 0);
+        let p = self.0.unsigned_abs() as u128 * o.0.unsigned_abs() as u128;
+        let m = (p + (1u128 << (F - 1))) >> F;
+        Fx(if negative {
+            if m >= 1 << 63 {
+                i64::MIN
+            } else {
+                -(m as i64)
+            }
+        } else {
+            m.min(i64::MAX as u128) as i64
+        })
     }
 }
+
 impl<const F: u32> Div for Fx<F> {
     type Output = Self;
+    /// `a 2^F / d`, rounded to nearest (ties away from zero), saturated; `x / 0` is the end of the range in `x`'s
+    /// direction (0 for `0 / 0`). In magnitudes, by one 64-bit division for the whole part and, for the fraction
+    /// bits, a second one where `|d| < 2^(64 - F)`, else `F` steps of long division (one step in base 2^32, Knuth's
+    /// algorithm D with a 128-bit correction, measured slower on the Cortex-M4). The division of the `i128` numerator
+    /// it replaces is expanded on a 32-bit target into a loop over all 128 bits. Bit for bit the `i128` division's
+    /// result (the reference in the tests).
     #[inline(always)]
     fn div(self, o: Self) -> Self {
+        const { assert!(F >= 1 && F <= 62, "a fraction of 1 to 62 bits") };
         if o.0 == 0 {
             return Fx(match self.0.cmp(&0) {
                 Ordering::Less => i64::MIN,
@@ -78,14 +92,36 @@ impl<const F: u32> Div for Fx<F> {
                 Ordering::Greater => i64::MAX,
             });
         }
-        let n = (self.0 as i128) << F;
-        let d = o.0 as i128;
-        let (q, r) = (n / d, n % d);
-        // Round to nearest, ties away from zero.
-        let q = if 2 * r.abs() >= d.abs() { q + if (n < 0) == (d < 0) { 1 } else { -1 } } else { q };
-        Self::saturate(q)
+        let negative = (self.0 < 0) != (o.0 < 0);
+        let (a, d) = (self.0.unsigned_abs(), o.0.unsigned_abs());
+        let whole = a / d;
+        // The quotient's whole part at `2^(63 - F)` or more: at least 2^63 with the fraction, beyond the range.
+        if whole >> (63 - F) != 0 {
+            return Fx(if negative { i64::MIN } else { i64::MAX });
+        }
+        let (mut q, mut r) = (whole, a - whole * d);
+        if d >> (64 - F) == 0 {
+            // `r < d < 2^(64 - F)`: `r 2^F` fits, and one more 64-bit division gives the fraction bits.
+            let n = r << F;
+            let frac = n / d;
+            (q, r) = ((q << F) | frac, n - frac * d);
+        } else {
+            for _ in 0..F {
+                // `r < d <= 2^63`: `2 r` fits.
+                r <<= 1;
+                q <<= 1;
+                if r >= d {
+                    r -= d;
+                    q |= 1;
+                }
+            }
+        }
+        // Round to nearest, ties away from zero: `2 r >= d`. Then `q <= 2^63`.
+        q += (r >= d - r) as u64;
+        Fx(if negative { 0i64.wrapping_sub(q as i64) } else { q.min(i64::MAX as u64) as i64 })
     }
 }
+
 impl<const F: u32> Neg for Fx<F> {
     type Output = Self;
     #[inline(always)]
@@ -159,6 +195,91 @@ mod tests {
             assert!(((q(a) / q(b)).as_f64() - exact_div).abs() <= lsb / 2.0 * (1.0 + 1e-9), "{a} / {b}");
         }
         assert_eq!(q(0.1).as_f64(), (0.1f64 * 2f64.powi(32)).round() / 2f64.powi(32));
+    }
+
+    /// The division as it was, by an `i128` numerator.
+    fn div_wide(x: Q32, y: Q32) -> Q32 {
+        if y.0 == 0 {
+            return x / y;
+        }
+        let n = (x.0 as i128) << 32;
+        let d = y.0 as i128;
+        let (q, r) = (n / d, n % d);
+        let q = if 2 * r.abs() >= d.abs() { q + if (n < 0) == (d < 0) { 1 } else { -1 } } else { q };
+        Fx(q.clamp(i64::MIN as i128, i64::MAX as i128) as i64)
+    }
+
+    /// The multiplication as it was, rounding by the sign's branch.
+    fn mul_branching(x: Q32, y: Q32) -> Q32 {
+        let p = x.0 as i128 * y.0 as i128;
+        let half = 1i128 << 31;
+        let r = if p >= 0 { (p + half) >> 32 } else { -((-p + half) >> 32) };
+        Fx(r.clamp(i64::MIN as i128, i64::MAX as i128) as i64)
+    }
+
+    /// The division by 64-bit steps is the `i128` division, and the multiplication's one rounding the branching one,
+    /// bit for bit: edges of the range and of the saturation, divisors on both sides of 2^32, ties, and a million
+    /// pseudo-random pairs over every magnitude.
+    #[test]
+    fn division_and_multiplication_are_the_wide_ones_bit_for_bit() {
+        let edges = [
+            0,
+            1,
+            -1,
+            2,
+            3,
+            (1 << 31) - 1,
+            1 << 31,
+            (1 << 32) - 1,
+            1 << 32,
+            (1 << 32) + 1,
+            1 << 33,
+            (1 << 62) - 1,
+            1 << 62,
+            i64::MAX,
+            i64::MAX - 1,
+            i64::MIN,
+            i64::MIN + 1,
+            -(1 << 32),
+            -(1 << 31),
+            0x1234_5678_9ABC_DEF0,
+            -0x0FED_CBA9_8765_4321,
+        ];
+        let check = |a: i64, d: i64| {
+            let (x, y) = (Fx::<32>(a), Fx::<32>(d));
+            assert_eq!((x / y).0, div_wide(x, y).0, "{a} / {d}");
+            assert_eq!((x * y).0, mul_branching(x, y).0, "{a} * {d}");
+        };
+        for &a in &edges {
+            for &d in &edges {
+                check(a, d);
+            }
+        }
+        // Ties: `a 2^32 / d` exactly half-way, both signs.
+        for (a, d) in [
+            (1, 1 << 33),
+            (3, 1 << 33),
+            (-1, 1 << 33),
+            (1, -(1 << 33)),
+            (5, 10 << 32),
+            (1 << 31, 1),
+            (-(1 << 31), 1),
+            (3 << 31, -1),
+        ] {
+            check(a, d);
+        }
+        // Magnitudes over the whole range: a random value shifted right by a random amount, for both operands.
+        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for _ in 0..1_000_000 {
+            let (ra, rd, sa, sd) = (next(), next(), next() % 64, next() % 64);
+            check((ra as i64) >> sa, (rd as i64) >> sd);
+        }
     }
 
     #[test]
