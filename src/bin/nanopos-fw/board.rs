@@ -152,18 +152,38 @@ pub fn settings() -> PipelineSettings {
 /// [`start_sample_clock`] starts it. `safe_code` is the DAC code the output holds until the pipeline runs.
 pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     // DAC1 channel 1 on PA4: the driver enables the clock, selects the high-frequency interface mode for a
-    // 170 MHz AHB and the buffered external output, and sets PA4 analog. The trigger is set on the registers below,
+    // 170 MHz AHB and the buffered external output, sets PA4 analog, and enables the channel with triggering off, so
+    // that its output register follows the holding register: the safe code goes there at once, with the channel on.
+    // (Written with the channel off, as before, it reached the output only if that transfer happens while the
+    // channel is disabled; if not, the output stayed at the driver's code 0, -10 V at the amplifier, until the
+    // timer's first update, through the ADC's power-up and calibration.) The trigger is set on the registers below,
     // so the driver is forgotten (dropping it would disable the channel).
     let dac = embassy_stm32::dac::DacChannel::new_blocking(p.DAC1, p.PA4);
     core::mem::forget(dac);
     let dac = pac::DAC1;
-    dac.cr().modify(|w| w.set_en(0, false));
     dac.dhr12r(0).write(|w| w.set_dhr(safe_code));
+
+    // TIM2: 10 kHz, TRGO on update (DAC), CH2 in PWM mode 2 rising half a window before the update (ADC). Stopped
+    // until `start_sample_clock`.
+    embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
+    let tim = pac::TIM2;
+    tim.psc().write_value(0);
+    tim.arr().write_value(TICKS_PER_SAMPLE - 1);
+    tim.ccr(1).write_value(TICKS_PER_SAMPLE - WINDOW_TICKS / 2);
+    tim.ccmr_output(0).modify(|w| w.set_ocm(1, Ocm::PWM_MODE2));
+    tim.ccer().modify(|w| w.set_cce(1, true));
+    tim.cr2().modify(|w| w.set_mms(Mms::UPDATE));
+
+    // The DAC on TIM2's update (its trigger is chosen with the channel off), then one update by software: its TRGO
+    // loads the safe code into the output register again, whatever disabling the channel did to it.
+    dac.cr().modify(|w| w.set_en(0, false));
     dac.cr().modify(|w| {
         w.set_tsel(0, DAC_TRIGGER_TIM2_TRGO);
         w.set_ten(0, true);
     });
     dac.cr().modify(|w| w.set_en(0, true));
+    tim.egr().write(|w| w.set_ug(true));
+    tim.sr().write_value(Default::default());
 
     // ADC1: the driver powers up, calibrates and enables it with 64x oversampling; channel, trigger and interrupt are
     // set here. PA0 is in analog mode out of reset on the G4.
@@ -198,18 +218,6 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     });
     adc.ier().modify(|w| w.set_eocie(true));
     adc.cr().modify(|w| w.set_adstart(true));
-
-    // TIM2: 10 kHz, TRGO on update (DAC), CH2 in PWM mode 2 rising half a window before the update (ADC).
-    embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
-    let tim = pac::TIM2;
-    tim.psc().write_value(0);
-    tim.arr().write_value(TICKS_PER_SAMPLE - 1);
-    tim.ccr(1).write_value(TICKS_PER_SAMPLE - WINDOW_TICKS / 2);
-    tim.ccmr_output(0).modify(|w| w.set_ocm(1, Ocm::PWM_MODE2));
-    tim.ccer().modify(|w| w.set_cce(1, true));
-    tim.cr2().modify(|w| w.set_mms(Mms::UPDATE));
-    tim.egr().write(|w| w.set_ug(true));
-    tim.sr().write_value(Default::default());
 
     let mut uart_config = UartConfig::default();
     uart_config.baudrate = CONSOLE_BAUD;
