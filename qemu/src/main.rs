@@ -27,10 +27,13 @@ use nanopos_id::excitation::ExcitationState;
 use nanopos_id::filters::{BiquadState, PrefilterState};
 use nanopos_id::fixed::Q32;
 use nanopos_id::hal::{BoardDescription, BoardFaults, StageBoard};
+use nanopos_id::console::{Controller, REPLY_BYTES};
+use nanopos_id::control::parse;
 use nanopos_id::harness::{Results, Vectors, Workload};
-use nanopos_id::instrument::{Change, Instrument};
-use nanopos_id::pipeline::Pipeline;
+use nanopos_id::instrument::{Change, Instrument, Status};
+use nanopos_id::pipeline::{Pipeline, PipelineSettings};
 use nanopos_id::record::{RawSample, FRAME_SAMPLES};
+use nanopos_id::text::TextBuf;
 use nanopos_id::Scalar;
 
 static VECTORS: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../target/qemu-vectors.bin"));
@@ -249,7 +252,7 @@ fn main() -> ! {
 
     // 2. Each kernel over the window, from the snapshot: the same updates as in the run, so each must end where the
     //    run ended (checked below), and the counts are those of converged estimators on real data.
-    let mut json: Text<2048> = Text::new();
+    let mut json: Text<3072> = Text::new();
     let mut table = Bench { clock: &clock, json: &mut json, first: true };
     let mut bench_ok = true;
 
@@ -347,6 +350,42 @@ fn main() -> ! {
             w.arx.params(),
         ]
         && isr.record_status().recorded == n as u64;
+
+    // 4. The console's heaviest commands, each once from the controller's start: their designs (in f64, in
+    //    software on the M4F) run in thread mode on the board, where they hold up the telemetry task, which feeds the
+    //    watchdog (0.5 s), and the draining of the recording (a ring of 0.1 s). Restarted before each count, SysTick
+    //    holds 5.2 million instructions; had it wrapped, the count would be refused.
+    let mut ctl = Controller::new(PipelineSettings::default(), vectors.board, true)
+        .unwrap_or_else(|_| fail("the controller's settings are invalid"));
+    //    The last is refused, after the longest design there is: the ARX's zero-order hold of a matrix of norm near
+    //    1e38 takes its most squarings (about 130).
+    for (name, line, accepted) in [
+        ("console_tune_initial", "tune initial 5e5 70 6e6", true),
+        ("console_tune_prefilter", "tune prefilter 100 450 0.1", true),
+        ("console_tuning_triangle", "tuning triangle", true),
+        ("console_excite_prbs", "excite prbs 1", true),
+        ("console_limits", "limits -5 5 1000", true),
+        ("console_tune_refused_longest", "tune initial 500000 1e300 6e6", false),
+    ] {
+        let cmd = parse(line.as_bytes()).unwrap_or_else(|_| fail("a console command did not parse"));
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        table.kernel(name, |c, s| {
+            // SAFETY: SysTick's registers, always mapped; nothing else uses them while this runs. Writing the
+            // current value restarts the count from the reload value and clears COUNTFLAG.
+            unsafe { (*SYST::PTR).cvr.write(0) };
+            let ((change, _), n) = c.count(|| ctl.execute::<f32>(cmd, idle_status, &mut reply));
+            // SAFETY: as above; reading the control register clears COUNTFLAG.
+            if unsafe { (*SYST::PTR).csr.read() } & (1 << 16) != 0 {
+                fail("a console command ran past SysTick's range: its count would be wrong");
+            }
+            if change.is_some() != accepted {
+                defmt::error!("{=str}: {=str}", line, reply.as_str());
+                fail("a console command was not answered as expected");
+            }
+            s.add(n);
+        });
+    }
+
     let _ = write!(table.json, "\n}}\n");
     if semihosting::fs::write(c"target/qemu-bench.json", json.as_str().as_bytes()).is_err() {
         fail("could not write target/qemu-bench.json on the host");
@@ -361,6 +400,11 @@ fn main() -> ! {
     }
     defmt::info!("PASS");
     semihosting::process::exit(0)
+}
+
+/// No status: the counted commands do not ask for it.
+fn idle_status() -> Status<f32> {
+    fail("a counted command asked for the status")
 }
 
 /// The recorded run as a board: the probe code of sample `k`; the amplifier's codes are checked elsewhere.
@@ -389,7 +433,7 @@ impl StageBoard for VectorBoard<'_> {
 /// The table on the log and the JSON file.
 struct Bench<'a> {
     clock: &'a Clock,
-    json: &'a mut Text<2048>,
+    json: &'a mut Text<3072>,
     first: bool,
 }
 
