@@ -400,6 +400,8 @@ fn main() -> ! {
         }
     });
     table.kernel("isr_body_applying_change", |_, s| *s = applying);
+    // The snapshot the telemetry (10 Hz) and `status` take under the lock, with the interrupt held off meanwhile.
+    table.kernel("status_snapshot", |c, s| s.add(c.count(|| isr.status()).1));
     let expected = [
         w.pipeline.estimators.0.params(),
         w.pipeline.estimators.1.params(),

@@ -936,8 +936,10 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
     }
 
     fn health(&self) -> Health {
-        // The square root when asked, not per sample.
-        Health { innovation_rms_um: libm::sqrt(self.innovation_ms.as_f64()) as f32, ..self.health }
+        // The square root when asked, not per sample, and in the working scalar: on the target the FPU's, not a
+        // software f64 one under the lock the status is taken in. The same f32 either way (a square root rounded
+        // to f64 and then to f32 is the correctly rounded f32 one).
+        Health { innovation_rms_um: self.innovation_ms.sqrt().as_f64() as f32, ..self.health }
     }
 }
 
