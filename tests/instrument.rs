@@ -511,7 +511,8 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
 
 /// The telemetry's warnings: looked at every 0.1 s, the watch says how many numeric resets each estimator had
 /// since the last look (the continuous EKF's, with `R` a million below the paper's, in nearly every look; nobody
-/// else's), and a new tuning (which restarts the estimators and their counts) is not taken for billions of resets.
+/// else's), a new tuning (which restarts the estimators and their counts) is not taken for billions of resets, and
+/// a deadline miss or an ADC overrun is told once.
 #[test]
 fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let mut lab = Lab::new();
@@ -532,6 +533,11 @@ fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     assert!(news.iter().all(|n| n.resets[0] == 0 && n.resets[2] == 0 && n.resets[3] == 0 && n.deadline_misses == 0));
     assert!(verdict(&lab.send("tune ekf r 1.5e-6\n")).starts_with("ok tune"));
     assert_eq!(look(&mut lab, 1000), News::default(), "restarted counts are not news");
+    // The board's faults, told once each.
+    lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: true });
+    let news = look(&mut lab, 10);
+    assert_eq!((news.deadline_misses, news.adc_overruns, news.resets), (1, 1, [0; 4]));
+    assert_eq!(look(&mut lab, 10), News::default());
 }
 
 /// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they
