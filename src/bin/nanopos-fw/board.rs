@@ -154,11 +154,10 @@ pub fn settings() -> PipelineSettings {
 pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     // DAC1 channel 1 on PA4: the driver enables the clock, selects the high-frequency interface mode for a
     // 170 MHz AHB and the buffered external output, sets PA4 analog, and enables the channel with triggering off, so
-    // that its output register follows the holding register: the safe code goes there at once, with the channel on.
-    // (Written with the channel off, as before, it reached the output only if that transfer happens while the
-    // channel is disabled; if not, the output stayed at the driver's code 0, -10 V at the amplifier, until the
-    // timer's first update, through the ADC's power-up and calibration.) The trigger is set on the registers below,
-    // so the driver is forgotten (dropping it would disable the channel).
+    // that its output register follows the holding register: the safe code goes there at once, with the channel on
+    // (written with the channel off, it would reach the output only if that transfer happened while the channel is
+    // disabled; else the driver's code 0, -10 V at the amplifier, would stay until the timer's first update). The
+    // trigger is set on the registers below, so the driver is forgotten (dropping it would disable the channel).
     let dac = embassy_stm32::dac::DacChannel::new_blocking(p.DAC1, p.PA4);
     core::mem::forget(dac);
     let dac = pac::DAC1;
