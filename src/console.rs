@@ -427,17 +427,21 @@ fn tuning_name(p: TuningPreset) -> &'static str {
 fn excitation(c: ExcitationChoice) -> ExcitationDesign {
     match c {
         ExcitationChoice::Off => ExcitationDesign::OFF,
-        ExcitationChoice::Prbs { amplitude_v } => {
-            ExcitationDesign { amplitude_v: amplitude_v as f64, ..ExcitationDesign::PAPER_PRBS }
-        }
-        ExcitationChoice::Triangle { amplitude_v, frequency_hz } => ExcitationDesign {
+        ExcitationChoice::Constant { level_v } => ExcitationDesign::constant(level_v as f64),
+        ExcitationChoice::Prbs { amplitude_v, offset_v } => ExcitationDesign {
+            amplitude_v: amplitude_v as f64,
+            offset_v: offset_v as f64,
+            ..ExcitationDesign::PAPER_PRBS
+        },
+        ExcitationChoice::Triangle { amplitude_v, frequency_hz, offset_v } => ExcitationDesign {
             waveform: Waveform::Triangle { freq_hz: frequency_hz as f64, max_hz: 1000.0 },
             amplitude_v: amplitude_v as f64,
-            offset_v: 0.0,
+            offset_v: offset_v as f64,
         },
-        ExcitationChoice::Sine { amplitude_v, frequency_hz } => {
-            ExcitationDesign::sine(frequency_hz as f64, amplitude_v as f64)
-        }
+        ExcitationChoice::Sine { amplitude_v, frequency_hz, offset_v } => ExcitationDesign {
+            offset_v: offset_v as f64,
+            ..ExcitationDesign::sine(frequency_hz as f64, amplitude_v as f64)
+        },
     }
 }
 
@@ -446,13 +450,18 @@ struct Exc<'a>(&'a ExcitationDesign);
 
 impl fmt::Display for Exc<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let a = Num(self.0.amplitude_v, 6);
+        let (a, offset) = (Num(self.0.amplitude_v, 6), self.0.offset_v);
         match self.0.waveform {
-            Waveform::Off => f.write_str("off"),
+            Waveform::Off if offset == 0.0 => return f.write_str("off"),
+            Waveform::Off => return write!(f, "constant {} V", Num(offset, 6)),
             Waveform::Prbs { .. } => write!(f, "prbs {a} V"),
             Waveform::Triangle { freq_hz, .. } => write!(f, "triangle {a} V {} Hz", Num(freq_hz, 6)),
             Waveform::Sine { freq_hz } => write!(f, "sine {a} V {} Hz", Num(freq_hz, 6)),
+        }?;
+        if offset != 0.0 {
+            write!(f, " offset {} V", Num(offset, 6))?;
         }
+        Ok(())
     }
 }
 

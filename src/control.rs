@@ -7,7 +7,7 @@
 //! | command | meaning |
 //! |---|---|
 //! | `status` | counters, faults, the excitation and the estimates |
-//! | `excite off` / `excite prbs AMP_V` / `excite triangle AMP_V HZ` / `excite sine AMP_V HZ` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000]) |
+//! | `excite off` / `excite constant V` / `excite prbs AMP_V [OFFSET_V]` / `excite triangle AMP_V HZ [OFFSET_V]` / `excite sine AMP_V HZ [OFFSET_V]` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000], V and OFFSET_V in -10..=10) |
 //! | `start` / `stop` | run or stop the excitation (the output ramps to its safe value) |
 //! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
@@ -42,10 +42,17 @@ impl EstimatorSet {
 pub enum ExcitationChoice {
     /// No excitation (output at its safe value).
     Off,
+    /// A constant level, V: the stage held at an operating point.
+    Constant {
+        /// Level, V.
+        level_v: f32,
+    },
     /// The paper's PRBS with this amplitude, V.
     Prbs {
         /// Amplitude, V.
         amplitude_v: f32,
+        /// Offset the waveform runs about (the operating point), V.
+        offset_v: f32,
     },
     /// The smoothed triangle.
     Triangle {
@@ -53,6 +60,8 @@ pub enum ExcitationChoice {
         amplitude_v: f32,
         /// Frequency, Hz.
         frequency_hz: f32,
+        /// Offset, V.
+        offset_v: f32,
     },
     /// A sine.
     Sine {
@@ -60,6 +69,8 @@ pub enum ExcitationChoice {
         amplitude_v: f32,
         /// Frequency, Hz.
         frequency_hz: f32,
+        /// Offset, V.
+        offset_v: f32,
     },
 }
 
@@ -216,7 +227,10 @@ impl<'a> Words<'a> {
 }
 
 const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
+const EXCITATIONS: &str = "off, constant, prbs, triangle or sine";
 const AMP: &str = "an amplitude in V, 0 to 10";
+const OFFSET: &str = "an offset in V, -10 to 10 (or nothing)";
+const LEVEL: &str = "a level in V, -10 to 10";
 const HZ: &str = "a frequency in Hz, above 0 and at most 1000";
 
 fn estimator_set(word: usize, w: &str, allow_none: bool) -> Result<EstimatorSet, ParseError> {
@@ -255,19 +269,26 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
         "start" => Command::Start,
         "stop" => Command::Stop,
         "excite" => {
-            let (word, kind) = words.next("off, prbs, triangle or sine")?;
+            let (word, kind) = words.next(EXCITATIONS)?;
+            // The waveforms' last word, optional: the offset they run about (0 V if not given).
+            let offset = |words: &mut Words| if words.is_done() { Ok(0.0) } else { words.number(OFFSET, volts) };
             Command::Excite(match kind {
                 "off" => ExcitationChoice::Off,
-                "prbs" => ExcitationChoice::Prbs { amplitude_v: words.number(AMP, amplitude)? },
+                "constant" => ExcitationChoice::Constant { level_v: words.number(LEVEL, volts)? },
+                "prbs" => {
+                    ExcitationChoice::Prbs { amplitude_v: words.number(AMP, amplitude)?, offset_v: offset(&mut words)? }
+                }
                 "triangle" => ExcitationChoice::Triangle {
                     amplitude_v: words.number(AMP, amplitude)?,
                     frequency_hz: words.number(HZ, frequency)?,
+                    offset_v: offset(&mut words)?,
                 },
                 "sine" => ExcitationChoice::Sine {
                     amplitude_v: words.number(AMP, amplitude)?,
                     frequency_hz: words.number(HZ, frequency)?,
+                    offset_v: offset(&mut words)?,
                 },
-                _ => return Err(ParseError::Invalid { word, expected: "off, prbs, triangle or sine" }),
+                _ => return Err(ParseError::Invalid { word, expected: EXCITATIONS }),
             })
         }
         "select" | "reset" | "freeze" | "adapt" => {
@@ -386,14 +407,19 @@ mod tests {
         assert_eq!(p("  start \r"), Ok(Command::Start));
         assert_eq!(p("stop"), Ok(Command::Stop));
         assert_eq!(p("excite off"), Ok(Command::Excite(ExcitationChoice::Off)));
-        assert_eq!(p("excite prbs 1"), Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v: 1.0 })));
+        assert_eq!(p("excite prbs 1"), Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v: 1.0, offset_v: 0.0 })));
+        assert_eq!(
+            p("excite prbs 1 -2.5"),
+            Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v: 1.0, offset_v: -2.5 }))
+        );
+        assert_eq!(p("excite constant 3"), Ok(Command::Excite(ExcitationChoice::Constant { level_v: 3.0 })));
         assert_eq!(
             p("excite\ttriangle 0.5 10"),
-            Ok(Command::Excite(ExcitationChoice::Triangle { amplitude_v: 0.5, frequency_hz: 10.0 }))
+            Ok(Command::Excite(ExcitationChoice::Triangle { amplitude_v: 0.5, frequency_hz: 10.0, offset_v: 0.0 }))
         );
         assert_eq!(
             p("excite sine 2 4.2e2"),
-            Ok(Command::Excite(ExcitationChoice::Sine { amplitude_v: 2.0, frequency_hz: 420.0 }))
+            Ok(Command::Excite(ExcitationChoice::Sine { amplitude_v: 2.0, frequency_hz: 420.0, offset_v: 0.0 }))
         );
         assert_eq!(p("select hekf,arx"), Ok(Command::Select(EstimatorSet(0b1100))));
         assert_eq!(p("select none"), Ok(Command::Select(EstimatorSet(0))));
@@ -424,13 +450,13 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 28] = [
+        let cases: [(&[u8], ParseError); 34] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
             (b"status now", Extra { word: 2 }),
-            (b"excite", Missing { word: 2, expected: "off, prbs, triangle or sine" }),
-            (b"excite square 1", Invalid { word: 2, expected: "off, prbs, triangle or sine" }),
+            (b"excite", Missing { word: 2, expected: EXCITATIONS }),
+            (b"excite square 1", Invalid { word: 2, expected: EXCITATIONS }),
             (b"excite prbs", Missing { word: 3, expected: AMP }),
             (b"excite prbs 11", Invalid { word: 3, expected: AMP }),
             (b"excite prbs -1", Invalid { word: 3, expected: AMP }),
@@ -438,7 +464,13 @@ mod tests {
             (b"excite prbs inf", Invalid { word: 3, expected: AMP }),
             (b"excite sine 1 0", Invalid { word: 4, expected: HZ }),
             (b"excite sine 1 1e9", Invalid { word: 4, expected: HZ }),
-            (b"excite triangle 1 10 3", Extra { word: 5 }),
+            (b"excite triangle 1 10 3 4", Extra { word: 6 }),
+            (b"excite triangle 1 10 11", Invalid { word: 5, expected: OFFSET }),
+            (b"excite prbs 1 nan", Invalid { word: 4, expected: OFFSET }),
+            (b"excite constant", Missing { word: 3, expected: LEVEL }),
+            (b"excite constant -10.5", Invalid { word: 3, expected: LEVEL }),
+            (b"excite constant 1 2", Extra { word: 4 }),
+            (b"excite off 1", Extra { word: 3 }),
             (b"select hekf,,arx", Invalid { word: 2, expected: EST_LIST }),
             (b"reset none", Invalid { word: 2, expected: EST_LIST }),
             (b"freeze", Missing { word: 2, expected: EST_LIST }),

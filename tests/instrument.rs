@@ -295,7 +295,9 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "excite prbs 11",
         "excite prbs NaN",
         "excite sine 1 0",
-        "excite triangle 1 10 3",
+        "excite triangle 1 10 3 4",
+        "excite triangle 1 10 11",
+        "excite constant 10.5",
         "select hekf,,arx",
         "reset none",
         "freeze",
@@ -381,6 +383,47 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         assert!(last.starts_with("ok") || last.starts_with("error: "), "{line:?}: {r}");
         lab.sample();
     }
+}
+
+/// `excite constant V` holds the stage at an operating point, and every waveform can run about one (`excite prbs
+/// AMP OFFSET`): the output is the waveform plus the offset, still clamped by `limits`, `status` says so, and the
+/// estimators, which see the input through band-pass filters, identify the same stage about 2 V as about 0 V.
+#[test]
+fn an_excitation_runs_about_an_offset_and_a_constant_holds_the_stage() {
+    let lsb = 20.0 / 4096.0;
+    // Two runs alike but for the offset of the second half.
+    let hekf_after = |offset: &str| {
+        let mut lab = Lab::new();
+        lab.run(50_000);
+        let reply = lab.send(&format!("excite prbs 1 {offset}\n"));
+        let out = lab.run(50_000);
+        (lab, reply, out)
+    };
+    let (zero, _, _) = hekf_after("0");
+    let (mut lab, reply, out) = hekf_after("2");
+    assert_eq!(verdict(&reply), "ok excite prbs 1 V offset 2 V (running)");
+    assert!(lab.send("status\n").contains(" excitation=prbs 1 V offset 2 V running "));
+    let (lo, hi) = out[100..].iter().fold((f32::MAX, f32::MIN), |(a, b), o| (a.min(o.u_v), b.max(o.u_v)));
+    assert!((lo - 1.0).abs() <= lsb && (hi - 3.0).abs() <= lsb, "{lo} {hi}");
+    let (about_zero, about_two) = (zero.params(2), lab.params(2));
+    let rel = |a: f32, b: f32| (a / b - 1.0).abs();
+    println!("hekf after 5 s about 0 V: {about_zero:?}; about 2 V: {about_two:?}");
+    assert!(rel(about_two.a0, about_zero.a0) < 1e-4 && rel(about_two.b0, about_zero.b0) < 1e-3, "{about_two:?}");
+
+    assert_eq!(verdict(&lab.send("excite constant -1.5\n")), "ok excite constant -1.5 V (running)");
+    assert!(lab.send("status\n").contains(" excitation=constant -1.5 V running "));
+    let out = lab.run(10_000);
+    assert!(out[100..].iter().all(|o| (o.u_v + 1.5).abs() <= lsb), "{:?}", out.last().map(|o| o.u_v));
+    // Once the step has rung out of the monitor's band-pass (5-20 Hz), a constant identifies nothing.
+    let held = lab.isr.estimates().map(|(_, h)| h.adaptation);
+    assert!(held.iter().all(|&a| a == Adaptation::Starved), "{held:?}");
+    // Clamped as any command; refused out of range, nothing changed.
+    assert!(verdict(&lab.send("limits -1 1 25000\n")).starts_with("ok limits"));
+    assert!(lab.run(1000)[100..].iter().all(|o| (o.u_v + 1.0).abs() <= lsb));
+    assert_eq!(verdict(&lab.send("excite constant 12\n")), "error: word 3: expected a level in V, -10 to 10");
+    assert!(lab.send("status\n").contains(" excitation=constant -1.5 V running "));
+    assert_eq!(verdict(&lab.send("excite off\n")), "ok excite off (running)");
+    assert!(lab.run(1000)[500..].iter().all(|o| o.u_v.abs() <= lsb));
 }
 
 #[test]
