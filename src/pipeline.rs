@@ -165,6 +165,9 @@ pub enum SettingsError {
     ActuationDelay,
     /// Excitation frequency or amplitude out of range.
     Excitation,
+    /// A filter whose design at these frequencies is not a stable filter with finite coefficients in the working
+    /// scalar; names the filter.
+    Unrealisable(&'static str),
 }
 
 impl core::fmt::Display for SettingsError {
@@ -188,6 +191,11 @@ impl core::fmt::Display for SettingsError {
             SettingsError::Excitation => {
                 write!(f, "excitation: frequencies below Nyquist, finite amplitude and offset")
             }
+            SettingsError::Unrealisable(which) => write!(
+                f,
+                "{which}: no stable filter with finite coefficients at these frequencies (one too close to 0 Hz \
+                 for the sample rate)"
+            ),
         }
     }
 }
@@ -330,12 +338,27 @@ impl PipelineSettings {
         // V -> code: (u * gain + offset) / (V/code)
         let vpc_out = amplifier_dac.volts_per_code();
         let margin = self.faults.over_range_margin_codes;
+        // Each filter as it will run, checked: the frequency ranges above do not guarantee a design (the lag
+        // replica matched at 1e-6 Hz comes out NaN, and would feed NaN to every estimator on every sample).
+        let (reconstruction, antialias, lags) =
+            (self.reconstruction.design(fs).cast(), self.antialias.design(fs).cast(), self.lags.design(fs).cast());
+        let prefilter = self.prefilter.design(1.0 / fs);
+        for (name, section) in
+            [("reconstruction replica", &reconstruction), ("anti-aliasing replica", &antialias), ("lag replica", &lags)]
+        {
+            if !section.is_stable() {
+                return Err(SettingsError::Unrealisable(name));
+            }
+        }
+        if !prefilter.is_finite() {
+            return Err(SettingsError::Unrealisable("pre-filter"));
+        }
         Ok(PipelineConfig {
             excitation: e.design(fs),
-            reconstruction: self.reconstruction.design(fs).cast(),
-            antialias: self.antialias.design(fs).cast(),
-            lags: self.lags.design(fs).cast(),
-            prefilter: self.prefilter.design(1.0 / fs),
+            reconstruction,
+            antialias,
+            lags,
+            prefilter,
             probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
             amplifier: Affine {
                 scale: T::of(a.dac_v_per_command_v / vpc_out),

@@ -234,6 +234,14 @@ fn every_command_is_answered_and_does_what_it_says() {
          pole too fast for that step (amplified 2.3 times a sample): lower f_lc, f_p or zeta_p"
     );
     assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
+    // Nor one too close to 0 Hz for the replicas' match there (the lag replica came out NaN: every estimator reset on
+    // every sample).
+    assert_eq!(
+        verdict(&lab.send("tune prefilter 100 1e-6 0.1\n")),
+        "error: lag replica: no stable filter with finite coefficients at these frequencies (one too close to 0 Hz \
+         for the sample rate)"
+    );
+    assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
     assert_eq!(
         verdict(&lab.send("tune prefilter 100 450 4\n")),
         "ok tune prefilter = 100 450 4 (estimators restarted)"

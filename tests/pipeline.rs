@@ -4,7 +4,7 @@ use hal_sim::board::{BoardSettings, SimBoard};
 use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
-use nanopos_id::filters::{BiquadState, PrefilterDesign};
+use nanopos_id::filters::{Biquad, BiquadState, PrefilterDesign};
 use nanopos_id::hal::{run_sample, BoardFaults, StageBoard};
 use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
@@ -161,6 +161,24 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     bad.actuation_delay_samples = 2;
     assert_eq!(ok.design::<f32>(&bad).unwrap_err(), SettingsError::ActuationDelay);
     assert!(SettingsError::Limits.to_string().contains("min_v"));
+    // Each frequency in range, the design not a filter: the lag replica matched at 1e-6 Hz came out NaN and was
+    // accepted (every estimator then reset on every sample). At 1e-3 Hz it is a filter.
+    let near_dc = |f_p_hz: f64| ok.with_prefilter(PrefilterDesign { f_p_hz, ..ok.prefilter }).design::<f32>(&desc);
+    assert_eq!(near_dc(1e-6).unwrap_err(), SettingsError::Unrealisable("lag replica"));
+    assert!(near_dc(1e-3).is_ok());
+    assert!(SettingsError::Unrealisable("lag replica").to_string().starts_with("lag replica: no stable filter"));
+}
+
+/// What `Biquad::is_stable` accepts: finite coefficients, both poles inside the unit circle.
+#[test]
+fn a_section_is_stable_with_finite_coefficients_and_its_poles_inside_the_unit_circle() {
+    let section = |a1: f64, a2: f64| Biquad { b: [1.0, 0.0, 0.0], a: [a1, a2] };
+    assert!(section(-1.1682607, 0.42411822).is_stable(), "the reconstruction replica");
+    assert!(section(-0.5, 0.0).is_stable() && Biquad::<f64>::passthrough().is_stable());
+    for (a1, a2) in [(-2.1, 1.1), (0.0, 1.0), (-1.0, 0.0), (2.0, 0.99), (f64::NAN, 0.0), (0.0, f64::INFINITY)] {
+        assert!(!section(a1, a2).is_stable(), "{a1} {a2}");
+    }
+    assert!(!Biquad { b: [f64::NAN, 0.0, 0.0], a: [0.0, 0.0] }.is_stable());
 }
 
 #[test]

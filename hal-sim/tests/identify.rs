@@ -245,6 +245,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     .unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
+    std::fs::write(d.join("near_dc.toml"), "prefilter = [100, 1e-6, 0.1]\n").unwrap();
     std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
@@ -267,6 +268,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         ),
         // Each value in range; `q_b0 / b0^2` is not a number in f64.
         (&["identify", "--input", "ok.csv", "--tuning", "tiny.toml"], "tiny.toml: at the sample period of ok.csv"),
+        (&["identify", "--input", "ok.csv", "--tuning", "near_dc.toml"], "lag replica: no stable filter"),
         (&["identify", "--input", "ok.csv", "--tuning", "fast_rls.toml"], "fast_rls.toml: [rls] gamma = 15000: above 0 and at most 10000 /s"),
     ];
     for (args, mention) in cases {

@@ -55,6 +55,16 @@ impl<T: Scalar> Biquad<T> {
         y
     }
 
+    /// Whether the section can run: every coefficient finite and both poles strictly inside the unit circle
+    /// (`|a2| < 1` and `|a1| < 1 + a2`). A design asked for the impossible (a match at a frequency too close to
+    /// 0 Hz for its sample rate) comes out with NaN or infinite coefficients, or unstable, and fails this.
+    pub fn is_stable(&self) -> bool {
+        let [b0, b1, b2] = self.b.map(|x| x.as_f64());
+        let [a1, a2] = self.a.map(|x| x.as_f64());
+        let finite = [b0, b1, b2, a1, a2].iter().all(|x| x.is_finite());
+        finite && libm::fabs(a2) < 1.0 && libm::fabs(a1) < 1.0 + a2
+    }
+
     /// Gain at DC.
     pub fn dc_gain(&self) -> T {
         (self.b[0] + self.b[1] + self.b[2]) / (T::one() + self.a[0] + self.a[1])

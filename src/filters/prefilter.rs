@@ -185,6 +185,13 @@ pub struct Prefiltered<T> {
 }
 
 impl<T: Real> Prefilter<T> {
+    /// Whether every constant of the realisation is a finite number (the discretisation of a stable filter,
+    /// exact, is stable when it is finite).
+    pub fn is_finite(&self) -> bool {
+        let rows = self.phi.iter().flatten().chain(&self.gam).chain(&self.accel);
+        rows.chain(core::iter::once(&self.half_feedthrough)).all(|x| x.is_finite())
+    }
+
     /// One sample: the outputs at this sample, then the state advanced to the next.
     #[inline]
     pub fn update(&self, s: &mut PrefilterState<T>, input: T) -> Prefiltered<T> {
