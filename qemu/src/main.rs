@@ -332,7 +332,7 @@ fn main() -> ! {
     let mut changes: [Option<Change<f32>>; 6] = Default::default();
     for (i, (name, line, accepted)) in [
         ("console_tune_initial", "tune initial 5e5 70 6e6", true),
-        ("console_tune_prefilter", "tune prefilter 100 450 0.1", true),
+        ("console_tune_prefilter", "tune prefilter 100 600 0.1", true),
         ("console_tuning_triangle", "tuning triangle", true),
         ("console_excite_prbs", "excite prbs 1", true),
         ("console_limits", "limits -5 5 1000", true),
