@@ -317,6 +317,7 @@ impl WatchdogGate {
 /// so its parameters look steady while nothing is identified.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct EventWatch {
+    /// The counts at the last look (nothing seen: all zero).
     seen: News,
 }
 
@@ -332,11 +333,6 @@ pub struct News {
 }
 
 impl EventWatch {
-    /// Nothing seen yet.
-    pub const fn new() -> Self {
-        EventWatch { seen: News { resets: [0; 4], deadline_misses: 0, adc_overruns: 0 } }
-    }
-
     /// The counts' growth since the last look. A count that went down was restarted (a new tuning restarts the
     /// estimators and their health): all of it is new.
     pub fn look<T>(&mut self, status: &Status<T>) -> News {

@@ -567,7 +567,7 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
 #[test]
 fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let mut lab = Lab::new();
-    let mut watch = EventWatch::new();
+    let mut watch = EventWatch::default();
     let mut look = |lab: &mut Lab, samples: usize| {
         lab.run(samples);
         watch.look(&lab.isr.status())

@@ -7,13 +7,17 @@ fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
 }
 
+/// `run.csv` in `dir`: the paper's PRBS run on the simulated board, `seconds` long.
+fn simulate_prbs(dir: &Path, seconds: &str) {
+    let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", seconds, "--out", "run.csv"], dir);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 #[test]
 fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    assert!(nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "4", "--out", "run.csv"], d)
-        .status
-        .success());
+    simulate_prbs(d, "4");
     let out = nanopos_sim(
         &[
             "identify",
@@ -99,9 +103,7 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
 fn identify_reports_an_estimator_that_keeps_resetting() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    assert!(nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "2", "--out", "run.csv"], d)
-        .status
-        .success());
+    simulate_prbs(d, "2");
     std::fs::write(d.join("small_r.toml"), "[ekf]\nr = 1.5e-12\n").unwrap();
     let args = ["identify", "--input", "run.csv", "--estimators", "ekf,hekf", "--tuning", "small_r.toml"];
     let out = nanopos_sim(&[&args[..], &["--window", "1:2"]].concat(), d);

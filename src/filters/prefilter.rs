@@ -188,8 +188,7 @@ impl<T: Real> Prefilter<T> {
     /// Whether every constant of the realisation is a finite number (the discretisation of a stable filter,
     /// exact, is stable when it is finite).
     pub fn is_finite(&self) -> bool {
-        let rows = self.phi.iter().flatten().chain(&self.gam).chain(&self.accel);
-        rows.chain(core::iter::once(&self.half_feedthrough)).all(|x| x.is_finite())
+        crate::estimators::all_finite(&[self.phi.as_flattened(), &self.gam, &self.accel, &[self.half_feedthrough]])
     }
 
     /// One sample: the outputs at this sample, then the state advanced to the next.

@@ -263,7 +263,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
     let mut gate = WatchdogGate::new(500);
     watchdog.unleash();
     let mut ticker = Ticker::every(Duration::from_millis(100));
-    let mut watch = EventWatch::new();
+    let mut watch = EventWatch::default();
     loop {
         ticker.next().await;
         let Some((s, st)) = with_task(|t| {
