@@ -81,8 +81,41 @@ where
     T: Real,
     E: EstimatorBank<T>,
 {
+    run_sample_with(board, pipeline, cfg, None::<fn(T) -> T>)
+}
+
+/// [`run_sample`] with the excitation added to an external command, V, `command(y_um)` of this sample's reading
+/// ([`Pipeline::step_adding`]): a scan, or a controller built on the estimates.
+#[inline]
+pub fn run_sample_adding<B, T, E>(
+    board: &mut B,
+    pipeline: &mut Pipeline<T, E>,
+    cfg: &PipelineConfig<T>,
+    command: impl FnOnce(T) -> T,
+) -> SampleOutput<T>
+where
+    B: StageBoard + ?Sized,
+    T: Real,
+    E: EstimatorBank<T>,
+{
+    run_sample_with(board, pipeline, cfg, Some(command))
+}
+
+/// [`run_sample`] (`None`) or [`run_sample_adding`].
+#[inline(always)]
+pub(crate) fn run_sample_with<B, T, E>(
+    board: &mut B,
+    pipeline: &mut Pipeline<T, E>,
+    cfg: &PipelineConfig<T>,
+    command: Option<impl FnOnce(T) -> T>,
+) -> SampleOutput<T>
+where
+    B: StageBoard + ?Sized,
+    T: Real,
+    E: EstimatorBank<T>,
+{
     let code = board.read_probe();
-    let mut out = pipeline.step(cfg, code);
+    let mut out = pipeline.step_with(cfg, code, command);
     board.write_amplifier(out.dac_code);
     out.board_faults = board.sample_faults();
     pipeline.count_board_faults(out.board_faults);

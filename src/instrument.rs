@@ -18,7 +18,7 @@
 use crate::control::EstimatorSet;
 use crate::estimator::{Estimator, Health, PeLevel};
 use crate::estimators::{full_bank, FullBank, TuningConfig};
-use crate::hal::{run_sample, StageBoard};
+use crate::hal::{run_sample_with, StageBoard};
 use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOutput};
 use crate::record::RawSample;
 use crate::{Real, StageParams};
@@ -143,10 +143,31 @@ impl<T: Real> Instrument<T> {
     /// One sample: apply a waiting change, run the pipeline on the board, record.
     #[inline]
     pub fn sample<B: StageBoard + ?Sized>(&mut self, board: &mut B) -> SampleOutput<T> {
+        self.sample_with(board, None::<fn(T) -> T>)
+    }
+
+    /// [`Instrument::sample`] with the excitation added to an external command, V, `command(y_um)` of this sample's
+    /// probe reading: a scan, or a controller built on the estimates ([`Pipeline::step_adding`] says what the
+    /// pipeline does with it). The recording stores the sum, as the DAC outputs it.
+    #[inline]
+    pub fn sample_adding<B: StageBoard + ?Sized>(
+        &mut self,
+        board: &mut B,
+        command: impl FnOnce(T) -> T,
+    ) -> SampleOutput<T> {
+        self.sample_with(board, Some(command))
+    }
+
+    #[inline(always)]
+    fn sample_with<B: StageBoard + ?Sized>(
+        &mut self,
+        board: &mut B,
+        command: Option<impl FnOnce(T) -> T>,
+    ) -> SampleOutput<T> {
         if self.pending.is_some() {
             self.apply_pending();
         }
-        let out = run_sample(board, &mut self.pipeline, &self.config);
+        let out = run_sample_with(board, &mut self.pipeline, &self.config, command);
         // The code in effect over this period: the one written now, or, with the board's delay, the last one.
         let in_effect = if self.config.actuation_delay_samples == 0 { out.dac_code } else { self.code_in_effect };
         self.code_in_effect = out.dac_code;

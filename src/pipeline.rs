@@ -7,6 +7,9 @@
 //!                              (u', y') --> pre-filter W_p --> estimators <----+
 //! ```
 //!
+//! The target is the excitation, or with [`Pipeline::step_adding`] the excitation added to an external command (a
+//! scan, a controller's output).
+//!
 //! [`PipelineSettings`] is the physical description (sample rate, excitation, limits, filter designs, analog front
 //! end), validated and designed once into a [`PipelineConfig`] in the working scalar. The configuration is a value
 //! apart from the [`Pipeline`] state: the interrupt owns the state and reads the configuration; a new configuration
@@ -401,7 +404,8 @@ impl Faults {
     pub const PROBE_OVER_RANGE: Faults = Faults(1 << 0);
     /// The probe code did not change for `stuck_samples` while the command moved.
     pub const PROBE_STUCK: Faults = Faults(1 << 1);
-    /// The excitation produced a non-finite value (a configuration error); the output went safe.
+    /// The command (the excitation, plus the external command if any) was not finite: a configuration error, or a
+    /// controller's; the output went safe.
     pub const COMMAND_NOT_FINITE: Faults = Faults(1 << 2);
 
     /// No fault.
@@ -468,6 +472,8 @@ pub struct Pipeline<T, E> {
     sample_filter: SampleFilter<T>,
     last_probe_code: u32,
     same_code_run: u32,
+    /// The last external command ([`Pipeline::step_adding`]), V: whether it moved.
+    external_v: T,
     faults: Faults,
     counters: FaultCounters,
     samples: u64,
@@ -487,6 +493,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             sample_filter: SampleFilter::new(cfg.sample_period_s, cfg.command_lsb_v),
             last_probe_code: u32::MAX,
             same_code_run: 0,
+            external_v: T::zero(),
             faults: Faults::default(),
             counters: FaultCounters::default(),
             samples: 0,
@@ -497,11 +504,62 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     /// One sample: `probe_code` is this sample's conversion; returns the DAC code for the coming period.
     #[inline]
     pub fn step(&mut self, cfg: &PipelineConfig<T>, probe_code: u32) -> SampleOutput<T> {
+        self.step_with(cfg, probe_code, None::<fn(T) -> T>)
+    }
+
+    /// One sample with the excitation added to an external command, V at the amplifier's input: `command(y_um)`,
+    /// given this sample's probe reading, um. A scan trajectory (`|_| scan_v`), or a controller built on the estimates
+    /// (SPEC section 5), which sees the reading with no delay added: its command is written with the excitation's,
+    /// in effect from the next sample instant on the G474 (`actuation_delay_samples`). The sum goes
+    /// through the same limits (clamp, slew), the estimators see it as the stage's input, and while a fault is
+    /// latched the output goes to its safe value, the external command ignored like the excitation. The
+    /// stuck-probe check arms on a sample whose external command changed, as it does while the excitation runs (a
+    /// held command may legitimately give a constant reading).
+    ///
+    /// The estimators take the sum for the stage's input, which is right whatever the command. A command computed
+    /// from the probe (a feedback controller) makes the identification closed-loop: its input is then correlated
+    /// with the probe's noise. `tests/pipeline.rs` measures a scan and a proportional feedback on the simulated
+    /// board; a loop the excitation does not dominate, or that saturates, is not tested.
+    #[inline]
+    pub fn step_adding(
+        &mut self,
+        cfg: &PipelineConfig<T>,
+        probe_code: u32,
+        command: impl FnOnce(T) -> T,
+    ) -> SampleOutput<T> {
+        self.step_with(cfg, probe_code, Some(command))
+    }
+
+    /// [`Pipeline::step`] (`None`) or [`Pipeline::step_adding`].
+    #[inline(always)]
+    pub(crate) fn step_with(
+        &mut self,
+        cfg: &PipelineConfig<T>,
+        probe_code: u32,
+        command: Option<impl FnOnce(T) -> T>,
+    ) -> SampleOutput<T> {
         self.samples = self.samples.wrapping_add(1);
         let y_um = cfg.probe.apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
-        self.check_probe(cfg, probe_code);
+        let external_v = command.map(|f| f(y_um));
+        let external_moved = match external_v {
+            Some(v) => {
+                let moved = v != self.external_v;
+                self.external_v = v;
+                moved
+            }
+            None => false,
+        };
+        self.check_probe(cfg, probe_code, external_moved);
 
-        let mut target = if self.faults.is_empty() { cfg.excitation.next(&mut self.excitation) } else { cfg.safe_v };
+        let mut target = if self.faults.is_empty() {
+            let excitation = cfg.excitation.next(&mut self.excitation);
+            match external_v {
+                Some(v) => v + excitation,
+                None => excitation,
+            }
+        } else {
+            cfg.safe_v
+        };
         if !target.is_finite() {
             self.faults |= Faults::COMMAND_NOT_FINITE;
             self.counters.command_not_finite += 1;
@@ -531,14 +589,14 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         }
     }
 
-    fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32) {
+    fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32, external_moved: bool) {
         if code < cfg.probe_low_code || code > cfg.probe_high_code {
             self.faults |= Faults::PROBE_OVER_RANGE;
             self.counters.probe_over_range += 1;
         }
         // Stuck: the code does not move although the command did (a constant command legitimately gives a
         // constant reading once the noise is below one code).
-        if code == self.last_probe_code && cfg.excitation.is_active() {
+        if code == self.last_probe_code && (external_moved || cfg.excitation.is_active()) {
             self.same_code_run += 1;
             if self.same_code_run + 1 == cfg.stuck_samples {
                 self.faults |= Faults::PROBE_STUCK;

@@ -724,6 +724,49 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
 }
 
 #[test]
+fn the_interrupt_adds_the_excitation_to_a_command_of_its_own_and_records_the_sum() {
+    // The PRBS (1 V) added to a command of 2 V: the output is the sum, clamped as any, and the recording stores it
+    // as the DAC output it. (That the sum is the excitation about an offset, code for code: `tests/pipeline.rs`.)
+    let mut lab = Lab::new();
+    let mut link = lab.send("record burst 2000\n");
+    let mut outputs = Vec::new();
+    for k in 0..3000 {
+        let mut seen = f32::NAN;
+        let out = lab.isr.sample_adding(&mut lab.board, |y_um| {
+            seen = y_um;
+            2.0
+        });
+        assert_eq!(seen, out.y_um, "the command is given this sample's reading");
+        outputs.push(out);
+        if k % 10 == 0 {
+            drain(&mut lab, &mut link, false);
+        }
+    }
+    drain(&mut lab, &mut link, true);
+    let cfg = lab.isr.config();
+    let u: Vec<f32> = link
+        .lines()
+        .filter(|l| l.starts_with('R'))
+        .flat_map(|line| {
+            let mut out = [RawSample::default(); FRAME_SAMPLES];
+            let (_, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
+            out[..n].to_vec()
+        })
+        .map(|s| cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset)
+        .collect();
+    assert_eq!(u.len(), 2000);
+    // Recorded sample k + 1 is the period of output k (the first was the `send`'s sample).
+    for (k, v) in u.iter().enumerate().skip(1) {
+        assert_eq!(*v, outputs[k - 1].u_v, "{k}");
+    }
+    let (lo, hi) = u[10..].iter().fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+    assert!((lo - 1.0).abs() < 0.005 && (hi - 3.0).abs() < 0.005, "{lo} {hi}");
+    assert!(verdict(&lab.send("limits -10 2.5 25000\n")).starts_with("ok limits"));
+    let out = (0..1000).map(|_| lab.isr.sample_adding(&mut lab.board, |_| 2.0)).collect::<Vec<_>>();
+    assert!(out.iter().all(|o| o.u_v <= 2.5 + 0.0025) && out.iter().any(|o| o.u_v > 2.49));
+}
+
+#[test]
 fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     let mut lab = Lab::new();
     lab.send("record on\n");

@@ -3,7 +3,7 @@
 use crate::board::{BoardSettings, SimBoard};
 use nanopos_id::estimator::EstimatorBank;
 use nanopos_id::excitation::ExcitationDesign;
-use nanopos_id::hal::{run_sample, StageBoard};
+use nanopos_id::hal::{run_sample, run_sample_adding, StageBoard};
 use nanopos_id::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
 use nanopos_id::StageParams;
 
@@ -82,9 +82,22 @@ impl<E: EstimatorBank<f64>> Simulation<E> {
 
     /// One sample.
     pub fn step(&mut self) -> (Record, SampleOutput<f64>) {
+        self.step_with(None::<fn(f64) -> f64>)
+    }
+
+    /// One sample, the excitation added to an external command, V, `command(y_um)` of this sample's reading
+    /// ([`nanopos_id::pipeline::Pipeline::step_adding`]).
+    pub fn step_adding(&mut self, command: impl FnOnce(f64) -> f64) -> (Record, SampleOutput<f64>) {
+        self.step_with(Some(command))
+    }
+
+    fn step_with(&mut self, command: Option<impl FnOnce(f64) -> f64>) -> (Record, SampleOutput<f64>) {
         let k = self.board.plant().sample();
         let truth = self.board.plant().params();
-        let out = run_sample(&mut self.board, &mut self.pipeline, &self.config);
+        let out = match command {
+            None => run_sample(&mut self.board, &mut self.pipeline, &self.config),
+            Some(v) => run_sample_adding(&mut self.board, &mut self.pipeline, &self.config, v),
+        };
         let record = Record { t_s: k as f64 * self.config.sample_period_s, u_v: out.u_v, y_um: out.y_um, truth };
         (record, out)
     }

@@ -132,6 +132,8 @@ fn ADC1_2() {
             G474Board::discard_conversion();
             return;
         };
+        // A controller on the estimates goes here: `t.instrument.sample_adding(&mut t.board, |y_um| command_v)`
+        // adds its command to the excitation (README, "A controller on the estimates").
         let out = t.instrument.sample(&mut t.board);
         let cycles = DWT::cycle_count().wrapping_sub(start);
         let s = &mut t.stats;
