@@ -442,6 +442,11 @@ fn excitation(c: ExcitationChoice) -> ExcitationDesign {
             offset_v: offset_v as f64,
             ..ExcitationDesign::sine(frequency_hz as f64, amplitude_v as f64)
         },
+        ExcitationChoice::Multisine { amplitude_v, f_lo_hz, f_hi_hz, offset_v } => ExcitationDesign {
+            waveform: Waveform::Multisine { f_lo_hz: f_lo_hz as f64, f_hi_hz: f_hi_hz as f64 },
+            amplitude_v: amplitude_v as f64,
+            offset_v: offset_v as f64,
+        },
     }
 }
 
@@ -457,6 +462,9 @@ impl fmt::Display for Exc<'_> {
             Waveform::Prbs { .. } => write!(f, "prbs {a} V"),
             Waveform::Triangle { freq_hz, .. } => write!(f, "triangle {a} V {} Hz", Num(freq_hz, 6)),
             Waveform::Sine { freq_hz } => write!(f, "sine {a} V {} Hz", Num(freq_hz, 6)),
+            Waveform::Multisine { f_lo_hz, f_hi_hz } => {
+                write!(f, "multisine {a} V {} to {} Hz", Num(f_lo_hz, 6), Num(f_hi_hz, 6))
+            }
         }?;
         if offset != 0.0 {
             write!(f, " offset {} V", Num(offset, 6))?;

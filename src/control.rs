@@ -7,7 +7,7 @@
 //! | command | meaning |
 //! |---|---|
 //! | `status` | counters, faults, the excitation and the estimates |
-//! | `excite off` / `excite constant V` / `excite prbs AMP_V [OFFSET_V]` / `excite triangle AMP_V HZ [OFFSET_V]` / `excite sine AMP_V HZ [OFFSET_V]` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000], V and OFFSET_V in -10..=10) |
+//! | `excite off` / `excite constant V` / `excite prbs AMP_V [OFFSET_V]` / `excite triangle AMP_V HZ [OFFSET_V]` / `excite sine AMP_V HZ [OFFSET_V]` / `excite multisine AMP_V F_LO F_HI [OFFSET_V]` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000], F_HI above F_LO, V and OFFSET_V in -10..=10) |
 //! | `start` / `stop` | run or stop the excitation (the output ramps to its safe value) |
 //! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
@@ -69,6 +69,17 @@ pub enum ExcitationChoice {
         amplitude_v: f32,
         /// Frequency, Hz.
         frequency_hz: f32,
+        /// Offset, V.
+        offset_v: f32,
+    },
+    /// A multisine (the power of a sine of `amplitude_v`) from `f_lo_hz` to `f_hi_hz`.
+    Multisine {
+        /// Amplitude of the sine of the same power, V.
+        amplitude_v: f32,
+        /// Lowest tone, Hz.
+        f_lo_hz: f32,
+        /// Highest tone, Hz.
+        f_hi_hz: f32,
         /// Offset, V.
         offset_v: f32,
     },
@@ -227,11 +238,12 @@ impl<'a> Words<'a> {
 }
 
 const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
-const EXCITATIONS: &str = "off, constant, prbs, triangle or sine";
+const EXCITATIONS: &str = "off, constant, prbs, triangle, sine or multisine";
 const AMP: &str = "an amplitude in V, 0 to 10";
 const OFFSET: &str = "an offset in V, -10 to 10 (or nothing)";
 const LEVEL: &str = "a level in V, -10 to 10";
 const HZ: &str = "a frequency in Hz, above 0 and at most 1000";
+const HZ_HI: &str = "a frequency in Hz, above the lowest and at most 1000";
 
 fn estimator_set(word: usize, w: &str, allow_none: bool) -> Result<EstimatorSet, ParseError> {
     let invalid = ParseError::Invalid { word, expected: EST_LIST };
@@ -288,6 +300,12 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
                     frequency_hz: words.number(HZ, frequency)?,
                     offset_v: offset(&mut words)?,
                 },
+                "multisine" => {
+                    let amplitude_v = words.number(AMP, amplitude)?;
+                    let f_lo_hz = words.number(HZ, frequency)?;
+                    let f_hi_hz = words.number(HZ_HI, |x| frequency(x) && x > f_lo_hz)?;
+                    ExcitationChoice::Multisine { amplitude_v, f_lo_hz, f_hi_hz, offset_v: offset(&mut words)? }
+                }
                 _ => return Err(ParseError::Invalid { word, expected: EXCITATIONS }),
             })
         }
@@ -421,6 +439,15 @@ mod tests {
             p("excite sine 2 4.2e2"),
             Ok(Command::Excite(ExcitationChoice::Sine { amplitude_v: 2.0, frequency_hz: 420.0, offset_v: 0.0 }))
         );
+        assert_eq!(
+            p("excite multisine 1 200 800 -1"),
+            Ok(Command::Excite(ExcitationChoice::Multisine {
+                amplitude_v: 1.0,
+                f_lo_hz: 200.0,
+                f_hi_hz: 800.0,
+                offset_v: -1.0
+            }))
+        );
         assert_eq!(p("select hekf,arx"), Ok(Command::Select(EstimatorSet(0b1100))));
         assert_eq!(p("select none"), Ok(Command::Select(EstimatorSet(0))));
         assert_eq!(p("reset all"), Ok(Command::Reset(EstimatorSet::ALL)));
@@ -450,7 +477,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 34] = [
+        let cases: [(&[u8], ParseError); 38] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -465,6 +492,10 @@ mod tests {
             (b"excite sine 1 0", Invalid { word: 4, expected: HZ }),
             (b"excite sine 1 1e9", Invalid { word: 4, expected: HZ }),
             (b"excite triangle 1 10 3 4", Extra { word: 6 }),
+            (b"excite multisine 1 200", Missing { word: 5, expected: HZ_HI }),
+            (b"excite multisine 1 800 200", Invalid { word: 5, expected: HZ_HI }),
+            (b"excite multisine 1 200 200", Invalid { word: 5, expected: HZ_HI }),
+            (b"excite multisine 1 200 800 1 2", Extra { word: 7 }),
             (b"excite triangle 1 10 11", Invalid { word: 5, expected: OFFSET }),
             (b"excite prbs 1 nan", Invalid { word: 4, expected: OFFSET }),
             (b"excite constant", Missing { word: 3, expected: LEVEL }),

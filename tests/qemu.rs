@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
-const KERNELS: [&str; 23] = [
+const KERNELS: [&str; 26] = [
     "pipeline_all_f32",
     "pipeline_bare_f32",
     "crls_f32",
@@ -22,6 +22,9 @@ const KERNELS: [&str; 23] = [
     "antialias_replica_f32",
     "lag_replica_f32",
     "excitation_prbs_f32",
+    "excitation_triangle_f32",
+    "excitation_sine_f32",
+    "excitation_multisine_f32",
     "isr_body_all_f32",
     "console_tune_initial",
     "console_tune_prefilter",

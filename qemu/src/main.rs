@@ -23,7 +23,7 @@ use cortex_m::peripheral::SYST;
 use cortex_m_rt::{entry, exception, ExceptionFrame};
 use defmt_semihosting as _;
 use nanopos_id::estimator::{Estimator, FilteredSample};
-use nanopos_id::excitation::ExcitationState;
+use nanopos_id::excitation::{ExcitationDesign, ExcitationState, Waveform};
 use nanopos_id::filters::{BiquadState, PrefilterState};
 use nanopos_id::fixed::Q32;
 use nanopos_id::hal::{BoardDescription, BoardFaults, StageBoard};
@@ -318,6 +318,24 @@ fn main() -> ! {
     table.kernel("excitation_prbs_f32", |c, s| {
         (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1))
     });
+    // The other excitations: what running one instead of the PRBS adds to the interrupt.
+    let others = [
+        ("excitation_triangle_f32", ExcitationDesign::PAPER_TRIANGLE),
+        ("excitation_sine_f32", ExcitationDesign::sine(423.0, 1.0)),
+        (
+            "excitation_multisine_f32",
+            ExcitationDesign {
+                waveform: Waveform::Multisine { f_lo_hz: 200.0, f_hi_hz: 800.0 },
+                amplitude_v: 1.0,
+                offset_v: 0.0,
+            },
+        ),
+    ];
+    for (name, design) in others {
+        let excitation = design.design::<f32>(1.0 / cfg.sample_period_s);
+        let mut ex = ExcitationState::default();
+        table.kernel(name, |c, s| (0..BENCH).for_each(|_| s.add(c.count(|| excitation.next(&mut ex)).1)));
+    }
 
     table.summary("pipeline_run_f32 (all samples)", &pipeline_run);
 
