@@ -18,8 +18,11 @@
 //!   where the user puts it (around the resonance), and every tone counts for the excitation monitor's richness.
 //! - **Sine**, **constant**, **off**.
 //!
-//! Phase is a 64-bit accumulator (`2^64` = one cycle), so periodic signals never drift and need no `fmod`.
-//! Everything adds `offset_v` (a static command the excitation rides on).
+//! Phase is a 64-bit accumulator (`2^64` = one cycle), so periodic signals never drift and need no `fmod`; its sine
+//! and cosine come from [`Real::phase_sin_cos`], which in f32 reduces the phase in integers and stays in f32 (libm's
+//! `sinf` works in f64, in software on the M4F: the triangle took 2 778 instructions a sample with it, 70 times the
+//! PRBS; QEMU's `excitation_*` kernels in BENCHMARKS.md). Everything adds `offset_v` (a static command the
+//! excitation rides on).
 
 use crate::Real;
 
@@ -208,18 +211,17 @@ impl<T: Real> Excitation<T> {
                 }
             }
             Kind::Sine => {
-                let x = T::phase_fraction(s.phase) * T::TAU();
+                let sin = T::phase_sin(s.phase);
                 s.phase = s.phase.wrapping_add(self.phase_step);
-                x.sin()
+                sin
             }
             Kind::Triangle => {
-                let x = T::phase_fraction(s.phase) * T::TAU();
+                let x = T::phase_sin_cos(s.phase);
                 s.phase = s.phase.wrapping_add(self.phase_step);
                 self.odd_sine_series(x)
             }
             Kind::Multisine => {
-                let psi = T::phase_fraction(s.phase) * T::TAU();
-                let theta = T::phase_fraction(s.spacing_phase) * T::TAU();
+                let (psi, theta) = (T::phase_sin_cos(s.phase), T::phase_sin_cos(s.spacing_phase));
                 s.phase = s.phase.wrapping_add(self.phase_step);
                 s.spacing_phase = s.spacing_phase.wrapping_add(self.spacing_step);
                 self.tones(psi, theta)
@@ -228,10 +230,9 @@ impl<T: Real> Excitation<T> {
         self.offset + self.amplitude * unit
     }
 
-    /// `sum_m w_m sin((2m + 1) x)` by the three-term recurrence.
+    /// `sum_m w_m sin((2m + 1) x)` by the three-term recurrence, from `(sin x, cos x)`.
     #[inline]
-    fn odd_sine_series(&self, x: T) -> T {
-        let (s1, c1) = x.sin_cos();
+    fn odd_sine_series(&self, (s1, c1): (T, T)) -> T {
         let two_cos_2x = T::of(2.0) * (c1 * c1 - s1 * s1);
         let (mut prev, mut cur) = (-s1, s1); // sin(-x), sin(x)
         let mut sum = T::zero();
@@ -244,11 +245,10 @@ impl<T: Real> Excitation<T> {
         sum
     }
 
-    /// `sum_j w_2j sin(psi + j theta) + w_2j+1 cos(psi + j theta)`, each tone the last rotated by `theta`.
+    /// `sum_j w_2j sin(psi + j theta) + w_2j+1 cos(psi + j theta)` from `(sin, cos)` of `psi` and `theta`, each
+    /// tone the last rotated by `theta`.
     #[inline]
-    fn tones(&self, psi: T, theta: T) -> T {
-        let (mut s, mut c) = psi.sin_cos();
-        let (st, ct) = theta.sin_cos();
+    fn tones(&self, (mut s, mut c): (T, T), (st, ct): (T, T)) -> T {
         let mut sum = T::zero();
         for w in self.weights.chunks_exact(2) {
             sum += w[0] * s + w[1] * c;
@@ -376,9 +376,10 @@ mod tests {
             // The sum is the tone at `f_lo` times the envelope `|sum_j exp(i (j theta + phi_j))| / sqrt(N)`, whatever the
             // band: with these phases its maximum over `theta` is 1.3545 (computed on 20 000 points of a cycle).
             assert!(peak < 1.3546 * 2.0, "{lo}-{hi} Hz: peak {peak}");
-            // f32: 24-bit phases (6e-8 cycle) put tone j off by up to (1 + j) 3.8e-7 rad; at A / sqrt(N) a tone, all
-            // tones aligned, 3.5e-5 A; the rotations' rounding adds a few ulps a tone.
-            assert!(worst32 < 4e-5 * 2.0, "{lo}-{hi} Hz: f32 off by {worst32}");
+            // f32: the two phases to 2.3e-8 rad and their sines to 1e-7 put tone j off by up to about (1 + j) 1.2e-7;
+            // at A / sqrt(N) a tone, all aligned, 1.1e-5 A; the rotations' rounding adds a few ulps a tone (measured
+            // 3.8e-6 A).
+            assert!(worst32 < 1.2e-5 * 2.0, "{lo}-{hi} Hz: f32 off by {worst32}");
         }
     }
 
