@@ -150,5 +150,59 @@ fn check_ram_code(elf: &Elf) -> u64 {
         assert!(in_ccm(needle), "{needle} is not in .ramtext");
     }
     println!("firmware: .ramtext {size} B of the 32 KiB CCM SRAM at {addr:#x}, loaded from {lma:#x}");
+    check_sample_path_calls(elf, addr, size);
     size
+}
+
+/// What the sample interrupt and the functions it calls in `.ramtext` branch to: the EKFs' RK4 step (which shows
+/// the decoding finds calls), and no software double-precision routine (`__aeabi_d*`, `__aeabi_f2d`) and no libm
+/// function but `sqrtf` (the covariance bounds' repair), directly or through a long-branch veneer. libm's `sinf`
+/// works in f64: the triangle excitation took 2 778 instructions a sample through it (BENCHMARKS.md).
+fn check_sample_path_calls(elf: &Elf, ram_addr: u64, ram_size: u64) {
+    let symtab = elf.section(".symtab").expect("symbols");
+    let strtab = elf.sections().nth(elf.u32_at(symtab + 24) as usize).expect("the symbols' strings");
+    let (sym_off, sym_size) = (elf.u32_at(symtab + 16) as usize, elf.u32_at(symtab + 20) as usize);
+    let strings = elf.u32_at(strtab + 16) as usize;
+    const STT_FUNC: u64 = 2;
+    // (address, size, name) of every function.
+    let functions: Vec<(u64, u64, &str)> = (sym_off..sym_off + sym_size)
+        .step_by(16)
+        .filter(|&s| elf.0[s + 12] as u64 & 0xF == STT_FUNC)
+        .map(|s| (elf.u32_at(s + 4) & !1, elf.u32_at(s + 8), elf.str_at(strings + elf.u32_at(s) as usize)))
+        .collect();
+    let text = elf.section(".ramtext").unwrap();
+    let file_at = |a: u64| (elf.u32_at(text + 16) + a - ram_addr) as usize;
+    // The 32-bit Thumb branches with link (BL, BLX) and wide branches (B.W, tail calls) in a function's bytes.
+    let targets = |start: u64, len: u64| {
+        let mut out = Vec::new();
+        let mut pc = start;
+        while pc + 4 <= start + len {
+            let (h1, h2) = (elf.u16_at(file_at(pc)) as i64, elf.u16_at(file_at(pc) + 2) as i64);
+            if h1 >> 11 == 0b11110 && matches!(h2 & 0xD000, 0xD000 | 0xC000 | 0x9000) {
+                let s = (h1 >> 10) & 1;
+                let (i1, i2) = (1 ^ ((h2 >> 13) & 1) ^ s, 1 ^ ((h2 >> 11) & 1) ^ s);
+                let imm = (s << 24 | i1 << 23 | i2 << 22 | (h1 & 0x3FF) << 12 | (h2 & 0x7FF) << 1) << 39 >> 39;
+                let base = if h2 & 0xD000 == 0xC000 { (pc + 4) & !3 } else { pc + 4 };
+                out.push((base as i64 + imm) as u64);
+                pc += 4;
+            } else {
+                pc += 2;
+            }
+        }
+        out
+    };
+    let name_at = |a: u64| functions.iter().find(|f| f.0 == a).map(|f| f.2);
+    let mut callees = Vec::new();
+    for needle in ["ADC1_2", "EkfCore$LT$T$GT$3rk4", "13apply_pending"] {
+        let &(start, len, _) = functions
+            .iter()
+            .find(|f| f.2.contains(needle) && (ram_addr..ram_addr + ram_size).contains(&f.0))
+            .unwrap_or_else(|| panic!("{needle} in .ramtext"));
+        callees.extend(targets(start, len).into_iter().filter_map(name_at).map(|n| (needle, n)));
+    }
+    assert!(callees.iter().any(|(from, to)| *from == "ADC1_2" && to.contains("EkfCore$LT$T$GT$3rk4")), "{callees:?}");
+    let forbidden =
+        |n: &str| n.contains("aeabi_d") || n.contains("aeabi_f2d") || (n.contains("libm") && !n.contains("sqrtf"));
+    let bad: Vec<_> = callees.iter().filter(|(_, to)| forbidden(to)).collect();
+    assert!(bad.is_empty(), "the sample path calls software double or libm: {bad:?}");
 }
