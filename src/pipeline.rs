@@ -514,7 +514,8 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     /// through the same limits (clamp, slew), the estimators see it as the stage's input, and while a fault is
     /// latched the output goes to its safe value, the external command ignored like the excitation. The
     /// stuck-probe check arms on a sample whose external command changed, as it does while the excitation runs (a
-    /// held command may legitimately give a constant reading).
+    /// held command may legitimately give a constant reading); a controller whose command follows the reading alone
+    /// holds still when the probe sticks, so without the excitation nothing arms it.
     ///
     /// The estimators take the sum for the stage's input, which is right whatever the command. A command computed
     /// from the probe (a feedback controller) makes the identification closed-loop: its input is then correlated
