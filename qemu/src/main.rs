@@ -22,13 +22,13 @@ use cortex_m::peripheral::syst::SystClkSource;
 use cortex_m::peripheral::SYST;
 use cortex_m_rt::{entry, exception, ExceptionFrame};
 use defmt_semihosting as _;
+use nanopos_id::console::{Controller, REPLY_BYTES};
+use nanopos_id::control::parse;
 use nanopos_id::estimator::{Estimator, FilteredSample};
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState, Waveform};
 use nanopos_id::filters::{BiquadState, PrefilterState};
 use nanopos_id::fixed::Q32;
 use nanopos_id::hal::{BoardDescription, BoardFaults, StageBoard};
-use nanopos_id::console::{Controller, REPLY_BYTES};
-use nanopos_id::control::parse;
 use nanopos_id::harness::{Results, Vectors, Workload};
 use nanopos_id::instrument::{Change, Instrument, Status};
 use nanopos_id::pipeline::{Pipeline, PipelineSettings};
@@ -347,13 +347,14 @@ fn main() -> ! {
         .unwrap_or_else(|_| fail("the controller's settings are invalid"));
     //    The last is refused, after the longest design there is: the ARX's zero-order hold of a matrix of norm near
     //    1e296 (about a thousand squarings).
-    let mut changes: [Option<Change<f32>>; 6] = Default::default();
+    let mut changes: [Option<Change<f32>>; 7] = Default::default();
     for (i, (name, line, accepted)) in [
         ("console_tune_initial", "tune initial 5e5 70 6e6", true),
         ("console_tune_prefilter", "tune prefilter 100 600 0.1", true),
         ("console_tuning_triangle", "tuning triangle", true),
         ("console_excite_prbs", "excite prbs 1", true),
         ("console_limits", "limits -5 5 1000", true),
+        ("console_excite_multisine", "excite multisine 1 200 800", true),
         ("console_tune_refused_longest", "tune initial 500000 1e300 6e6", false),
     ]
     .into_iter()
@@ -383,8 +384,10 @@ fn main() -> ! {
     //    arx) selected and recording on (drained outside the timing, as the console task does). Then, in the same
     //    loop, each change the commands above made, applied before a sample: the sample that pays for a command
     //    (`isr_body_applying_change`). One call site, as in the firmware's interrupt: a second one changed how the
-    //    compiler inlined it, and the run's counts by 12 instructions. The interrupt's worst case is the larger of the
-    //    two maxima, less the lock and the cycle statistics around it.
+    //    compiler inlined it, and the run's counts by 12 instructions. The last change starts the multisine, the
+    //    costliest excitation, and the loop runs 900 samples more with it (`isr_body_multisine_f32`; the probe's code
+    //    then stands still, and 1 000 such samples would latch a stuck probe). The interrupt's worst case is the
+    //    largest of the maxima, less the lock and the cycle statistics around it.
     let mut isr = Instrument::new(
         start.cfg,
         &nanopos_id::estimators::Tuning::preset("prbs").map_or_else(|| fail("prbs tuning"), |t| t.design()),
@@ -395,22 +398,32 @@ fn main() -> ! {
     let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board };
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut pending = changes.iter_mut().filter_map(Option::take);
-    let (mut applying, mut ended) = (Stats::default(), None);
+    let (mut applying, mut multisine, mut ended) = (Stats::default(), Stats::default(), None);
+    let mut after_changes = 0;
     table.kernel("isr_body_all_f32", |c, s| {
         for k in 0.. {
+            let mut changing = false;
             if k >= n {
                 ended.get_or_insert_with(|| (isr.estimates().map(|(p, _)| p), isr.record_status().recorded));
-                let Some(change) = pending.next() else { break };
-                if isr.post(change).is_err() {
-                    fail("the mailbox was full");
+                if let Some(change) = pending.next() {
+                    if isr.post(change).is_err() {
+                        fail("the mailbox was full");
+                    }
+                    changing = true;
+                } else if after_changes == 900 {
+                    break;
+                } else {
+                    after_changes += 1;
                 }
             }
             board.k = k.min(n - 1);
             let insns = c.count(|| isr.sample(&mut board)).1;
             if k < n {
                 s.add(insns);
-            } else {
+            } else if changing {
                 applying.add(insns);
+            } else {
+                multisine.add(insns);
             }
             if isr.record_status().buffered >= FRAME_SAMPLES {
                 isr.drain_recorded(&mut frame);
@@ -418,6 +431,10 @@ fn main() -> ! {
         }
     });
     table.kernel("isr_body_applying_change", |_, s| *s = applying);
+    table.kernel("isr_body_multisine_f32", |_, s| *s = multisine);
+    if !isr.status().faults.is_empty() {
+        fail("the multisine's samples latched a fault: their counts are not the excitation's");
+    }
     // The snapshot the telemetry (10 Hz) and `status` take under the lock, with the interrupt held off meanwhile.
     table.kernel("status_snapshot", |c, s| s.add(c.count(|| isr.status()).1));
     let expected = [
