@@ -24,7 +24,7 @@ enum Command {
         /// Length of the run, s.
         #[arg(long, default_value_t = 200.0, allow_negative_numbers = true)]
         duration: f64,
-        /// Noise seed [default: 1 for prbs, 2 for triangle, as in the float64 reference].
+        /// Noise seed [default: 1 for prbs, 2 for triangle, as in the float64 reference; 3 for multisine].
         #[arg(long)]
         seed: Option<u64>,
         /// Output CSV file.
@@ -108,6 +108,8 @@ enum ScenarioArg {
     Prbs,
     /// Smoothed triangle, 10 Hz, 1 V.
     Triangle,
+    /// Multisine, 32 tones from 200 to 800 Hz, the power of a 1 V sine (the board's `excite multisine 1 200 800`).
+    Multisine,
 }
 
 impl From<ScenarioArg> for Scenario {
@@ -115,6 +117,7 @@ impl From<ScenarioArg> for Scenario {
         match s {
             ScenarioArg::Prbs => Scenario::Prbs,
             ScenarioArg::Triangle => Scenario::Triangle,
+            ScenarioArg::Multisine => Scenario::Multisine,
         }
     }
 }

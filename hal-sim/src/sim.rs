@@ -2,7 +2,7 @@
 
 use crate::board::{BoardSettings, SimBoard};
 use nanopos_id::estimator::EstimatorBank;
-use nanopos_id::excitation::ExcitationDesign;
+use nanopos_id::excitation::{ExcitationDesign, Waveform};
 use nanopos_id::hal::{run_sample, run_sample_adding, StageBoard};
 use nanopos_id::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
 use nanopos_id::StageParams;
@@ -14,6 +14,8 @@ pub enum Scenario {
     Prbs,
     /// Smoothed triangle, 10 Hz, 1 V.
     Triangle,
+    /// Multisine, 200-800 Hz, the power of a 1 V sine (not in the paper: the firmware's `excite multisine 1 200 800`).
+    Multisine,
 }
 
 impl Scenario {
@@ -22,14 +24,20 @@ impl Scenario {
         match self {
             Scenario::Prbs => ExcitationDesign::PAPER_PRBS,
             Scenario::Triangle => ExcitationDesign::PAPER_TRIANGLE,
+            Scenario::Multisine => ExcitationDesign {
+                waveform: Waveform::Multisine { f_lo_hz: 200.0, f_hi_hz: 800.0 },
+                amplitude_v: 1.0,
+                offset_v: 0.0,
+            },
         }
     }
 
-    /// The float64 reference's noise seed for this input.
+    /// The float64 reference's noise seed for this input (the multisine, which it did not run: the next).
     pub fn default_seed(self) -> u64 {
         match self {
             Scenario::Prbs => 1,
             Scenario::Triangle => 2,
+            Scenario::Multisine => 3,
         }
     }
 

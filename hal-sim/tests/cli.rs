@@ -44,6 +44,24 @@ fn simulate_writes_the_documented_columns_with_the_truth() {
 }
 
 #[test]
+fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = nanopos_sim(&["simulate", "--scenario", "multisine", "--duration", "4", "--out", "m.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(dir.path().join("m.csv")).unwrap();
+    let u: Vec<f64> = text.lines().skip(2).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
+    // The power of a 1 V sine (over whole periods of the 19.35 Hz spacing), the peak under 1.36 V, in DAC steps.
+    let rms = (u[..31_000].iter().map(|v| v * v).sum::<f64>() / 31_000.0).sqrt();
+    let peak = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!((rms - 0.5f64.sqrt()).abs() < 0.003 && peak < 1.36, "RMS {rms}, peak {peak}");
+    let args = ["identify", "--input", "m.csv", "--estimators", "ekf,hekf", "--window", "1:2"];
+    let out = nanopos_sim(&args, dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(json.matches("\"starved\": 0.0").count(), 2, "{json}");
+}
+
+#[test]
 fn same_seed_gives_the_same_file_and_another_seed_does_not() {
     let dir = tempfile::tempdir().unwrap();
     for (name, seed) in [("a.csv", "5"), ("b.csv", "5"), ("c.csv", "6")] {
