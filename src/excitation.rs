@@ -115,12 +115,14 @@ impl ExcitationDesign {
             Waveform::Off => (Kind::Off, 0, 0),
             Waveform::Multisine { f_lo_hz, f_hi_hz } => {
                 let n = MAX_TONES as f64;
-                let pi = core::f64::consts::PI;
+                let a = T::of(1.0 / libm::sqrt(n));
                 for (j, w) in weights.chunks_exact_mut(2).enumerate() {
-                    let phi = -pi * (j * (j + 1)) as f64 / n;
-                    let a = 1.0 / libm::sqrt(n);
-                    w[0] = T::of(a * libm::cos(phi));
-                    w[1] = T::of(a * libm::sin(phi));
+                    // `phi_j = -pi j (j + 1) / N` as a phase: `-j (j + 1) / (2 N)` of a cycle, exact in integers, its
+                    // sine in the working scalar (in f32 on the board, not libm's f64 in software).
+                    let phi = ((j * (j + 1)) as u64).wrapping_mul((1 << 63) / MAX_TONES as u64).wrapping_neg();
+                    let (sin, cos) = T::phase_sin_cos(phi);
+                    w[0] = a * cos;
+                    w[1] = a * sin;
                 }
                 spacing_step = phase_step(libm::fmax(f_hi_hz - f_lo_hz, 0.0) / (n - 1.0));
                 (Kind::Multisine, phase_step(f_lo_hz), MAX_TONES)
@@ -378,7 +380,7 @@ mod tests {
             assert!(peak < 1.3546 * 2.0, "{lo}-{hi} Hz: peak {peak}");
             // f32: the two phases to 2.3e-8 rad and their sines to 1e-7 put tone j off by up to about (1 + j) 1.2e-7;
             // at A / sqrt(N) a tone, all aligned, 1.1e-5 A; the rotations' rounding adds a few ulps a tone (measured
-            // 3.8e-6 A).
+            // 3.2e-6 A).
             assert!(worst32 < 1.2e-5 * 2.0, "{lo}-{hi} Hz: f32 off by {worst32}");
         }
     }
