@@ -484,7 +484,9 @@ fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
 fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
     let mut lab = Lab::new();
     lab.run(100);
-    for cmd in ["excite triangle 9.87654321 987.654321\n", "tune ekf r 1.23456789e-7\n", "select all\n"] {
+    // The widest excitation: two frequencies and an offset, every number at full width.
+    let excite = "excite multisine 9.87654321 987.654321 999.987654 -9.87654321\n";
+    for cmd in [excite, "tune ekf r 1.23456789e-7\n", "select all\n"] {
         assert!(verdict(&lab.send(cmd)).starts_with("ok"), "{cmd}");
     }
     let mut st = lab.isr.status();
