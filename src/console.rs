@@ -444,9 +444,8 @@ fn excitation(c: ExcitationChoice) -> ExcitationDesign {
             ..ExcitationDesign::sine(frequency_hz as f64, amplitude_v as f64)
         },
         ExcitationChoice::Multisine { amplitude_v, f_lo_hz, f_hi_hz, offset_v } => ExcitationDesign {
-            waveform: Waveform::Multisine { f_lo_hz: f_lo_hz as f64, f_hi_hz: f_hi_hz as f64 },
-            amplitude_v: amplitude_v as f64,
             offset_v: offset_v as f64,
+            ..ExcitationDesign::multisine(f_lo_hz as f64, f_hi_hz as f64, amplitude_v as f64)
         },
     }
 }

@@ -96,6 +96,11 @@ impl ExcitationDesign {
         ExcitationDesign { waveform: Waveform::Sine { freq_hz }, amplitude_v, offset_v: 0.0 }
     }
 
+    /// A multisine from `f_lo_hz` to `f_hi_hz` with the power of a sine of `amplitude_v`.
+    pub fn multisine(f_lo_hz: f64, f_hi_hz: f64, amplitude_v: f64) -> Self {
+        ExcitationDesign { waveform: Waveform::Multisine { f_lo_hz, f_hi_hz }, amplitude_v, offset_v: 0.0 }
+    }
+
     /// A constant `v`.
     pub fn constant(v: f64) -> Self {
         ExcitationDesign { waveform: Waveform::Off, amplitude_v: 0.0, offset_v: v }
@@ -345,11 +350,7 @@ mod tests {
         let pi = core::f64::consts::PI;
         let n = MAX_TONES as f64;
         for (lo, hi) in [(200.0, 800.0), (300.0, 600.0), (10.0, 1000.0), (400.0, 410.0), (423.0, 483.0)] {
-            let design = ExcitationDesign {
-                waveform: Waveform::Multisine { f_lo_hz: lo, f_hi_hz: hi },
-                amplitude_v: 2.0,
-                offset_v: 0.5,
-            };
+            let design = ExcitationDesign { offset_v: 0.5, ..ExcitationDesign::multisine(lo, hi, 2.0) };
             let gen = design.design::<f64>(fs);
             let g32 = design.design::<f32>(fs);
             let (mut s, mut s32) = (ExcitationState::default(), ExcitationState::default());

@@ -2,7 +2,7 @@
 
 use crate::board::{BoardSettings, SimBoard};
 use nanopos_id::estimator::EstimatorBank;
-use nanopos_id::excitation::{ExcitationDesign, Waveform};
+use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::hal::{run_sample, run_sample_adding, StageBoard};
 use nanopos_id::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
 use nanopos_id::StageParams;
@@ -24,11 +24,7 @@ impl Scenario {
         match self {
             Scenario::Prbs => ExcitationDesign::PAPER_PRBS,
             Scenario::Triangle => ExcitationDesign::PAPER_TRIANGLE,
-            Scenario::Multisine => ExcitationDesign {
-                waveform: Waveform::Multisine { f_lo_hz: 200.0, f_hi_hz: 800.0 },
-                amplitude_v: 1.0,
-                offset_v: 0.0,
-            },
+            Scenario::Multisine => ExcitationDesign::multisine(200.0, 800.0, 1.0),
         }
     }
 

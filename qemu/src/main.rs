@@ -25,7 +25,7 @@ use defmt_semihosting as _;
 use nanopos_id::console::{Controller, REPLY_BYTES};
 use nanopos_id::control::parse;
 use nanopos_id::estimator::{Estimator, FilteredSample};
-use nanopos_id::excitation::{ExcitationDesign, ExcitationState, Waveform};
+use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
 use nanopos_id::filters::{BiquadState, PrefilterState};
 use nanopos_id::fixed::Q32;
 use nanopos_id::hal::{BoardDescription, BoardFaults, StageBoard};
@@ -322,14 +322,7 @@ fn main() -> ! {
     let others = [
         ("excitation_triangle_f32", ExcitationDesign::PAPER_TRIANGLE),
         ("excitation_sine_f32", ExcitationDesign::sine(423.0, 1.0)),
-        (
-            "excitation_multisine_f32",
-            ExcitationDesign {
-                waveform: Waveform::Multisine { f_lo_hz: 200.0, f_hi_hz: 800.0 },
-                amplitude_v: 1.0,
-                offset_v: 0.0,
-            },
-        ),
+        ("excitation_multisine_f32", ExcitationDesign::multisine(200.0, 800.0, 1.0)),
     ];
     for (name, design) in others {
         let excitation = design.design::<f32>(1.0 / cfg.sample_period_s);
