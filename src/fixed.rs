@@ -269,13 +269,7 @@ mod tests {
             check(a, d);
         }
         // Magnitudes over the whole range: a random value shifted right by a random amount, for both operands.
-        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = crate::xorshift64(0x9E37_79B9_7F4A_7C15);
         for _ in 0..1_000_000 {
             let (ra, rd, sa, sd) = (next(), next(), next() % 64, next() % 64);
             check((ra as i64) >> sa, (rd as i64) >> sd);

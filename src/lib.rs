@@ -32,3 +32,14 @@ pub mod text;
 
 pub use params::StageParams;
 pub use scalar::{Real, Scalar};
+
+/// A xorshift64 stream from `seed` for the unit tests' random operands: fast, deterministic, no dependency.
+#[cfg(test)]
+pub(crate) fn xorshift64(mut seed: u64) -> impl FnMut() -> u64 {
+    move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    }
+}

@@ -146,15 +146,10 @@ mod tests {
     fn f32_sine_and_cosine_of_a_phase_are_within_a_few_ulps_of_the_exact_ones() {
         let exact = |p: u64| libm::sincos(core::f64::consts::TAU * (p as f64 / 18_446_744_073_709_551_616.0));
         let mut worst = 0.0f64;
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = crate::xorshift64(0x9E37_79B9_7F4A_7C15);
         // Random phases, and every octant's edges with their neighbours.
         let edges = (0..8u64).flat_map(|k| [0u64, 1, u64::MAX].map(move |d| (k << 61).wrapping_add(d)));
-        let random = (0..1_000_000).map(|_| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        });
+        let random = (0..1_000_000).map(|_| next());
         for p in edges.chain(random) {
             let (s, c) = f32::phase_sin_cos(p);
             let (es, ec) = exact(p);

@@ -84,6 +84,24 @@ impl Lab {
         (0..n).map(|_| self.sample()).collect()
     }
 
+    /// 20 s on the paper's stage with the payload on; over the last 10 s, every 10 ms, each estimator's samples
+    /// starved (of 1 000) and the relative errors `(a0, a1, b0)` of its mean parameters against the truth.
+    fn run_measuring(&mut self) -> ([usize; 4], [[f64; 3]; 4]) {
+        let truth = StageParams::PAYLOAD;
+        let (mut starved, mut sums) = ([0usize; 4], [[0.0f64; 3]; 4]);
+        for k in 0..200_000 {
+            self.sample();
+            if k >= 100_000 && k % 100 == 0 {
+                for (i, (p, h)) in self.isr.estimates().iter().enumerate() {
+                    starved[i] += (h.adaptation == Adaptation::Starved) as usize;
+                    sums[i] = [sums[i][0] + p.a0 as f64, sums[i][1] + p.a1 as f64, sums[i][2] + p.b0 as f64];
+                }
+            }
+        }
+        let rel = sums.map(|s| [s[0] / 1e3 / truth.a0 - 1.0, s[1] / 1e3 / truth.a1 - 1.0, s[2] / 1e3 / truth.b0 - 1.0]);
+        (starved, rel)
+    }
+
     fn params(&self, i: usize) -> StageParams<f32> {
         self.isr.estimates()[i].0
     }
@@ -634,21 +652,10 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
 #[test]
 fn a_multisine_about_the_resonance_identifies_the_stage_like_the_prbs() {
     // Both from the start, the payload on; means over 10-20 s of each estimator, against the truth.
-    let truth = StageParams::PAYLOAD;
     let run = |command: &str| {
         let mut lab = Lab::new();
         let reply = lab.send(command);
-        let mut sums = [[0.0f64; 3]; 4];
-        for k in 0..200_000 {
-            lab.sample();
-            if k >= 100_000 && k % 100 == 0 {
-                for (s, (p, _)) in sums.iter_mut().zip(lab.isr.estimates()) {
-                    *s = [s[0] + p.a0 as f64, s[1] + p.a1 as f64, s[2] + p.b0 as f64];
-                }
-            }
-        }
-        let rel = sums
-            .map(|s| [s[0] / 1000.0 / truth.a0 - 1.0, s[1] / 1000.0 / truth.a1 - 1.0, s[2] / 1000.0 / truth.b0 - 1.0]);
+        let (_, rel) = lab.run_measuring();
         (lab, reply, rel)
     };
     let (_, _, prbs) = run("excite prbs 1\n");
@@ -893,7 +900,6 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
 /// identifies the stage: the EKFs within 0.01 % on a0 and 0.3 % on b0 (measured -0.008 % and -0.26 %).
 #[test]
 fn a_multisine_passes_the_excitation_monitor_only_wide_and_low_enough() {
-    let truth = StageParams::PAYLOAD;
     let run = |band: &str, monitor: bool| {
         let mut lab = Lab::new();
         if !monitor {
@@ -902,17 +908,7 @@ fn a_multisine_passes_the_excitation_monitor_only_wide_and_low_enough() {
             }
         }
         assert!(verdict(&lab.send(&format!("excite multisine {band}\n"))).starts_with("ok"));
-        let (mut starved, mut sums) = ([0usize; 4], [[0.0f64; 3]; 4]);
-        for k in 0..200_000 {
-            lab.sample();
-            if k >= 100_000 && k % 100 == 0 {
-                for (i, (p, h)) in lab.isr.estimates().iter().enumerate() {
-                    starved[i] += (h.adaptation == Adaptation::Starved) as usize;
-                    sums[i] = [sums[i][0] + p.a0 as f64, sums[i][1] + p.a1 as f64, sums[i][2] + p.b0 as f64];
-                }
-            }
-        }
-        let rel = sums.map(|s| [s[0] / 1e3 / truth.a0 - 1.0, s[1] / 1e3 / truth.a1 - 1.0, s[2] / 1e3 / truth.b0 - 1.0]);
+        let (starved, rel) = lab.run_measuring();
         println!(
             "multisine {band} V/Hz, monitor {monitor}: starved {starved:?} of 1000 over 10-20 s, errors % {:+.3?}",
             rel.map(|e| e.map(|x| x * 100.0))
