@@ -339,7 +339,7 @@ impl Controller {
         writeln!(
             w,
             "ok status samples={} excitation={} {} faults={} over_range={} stuck={} not_finite={} deadline_misses={} \
-             adc_overruns={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} record={}",
+             adc_overruns={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} record={}",
             s.samples,
             Exc(&self.chosen),
             if self.running { "running" } else { "stopped" },
@@ -349,6 +349,7 @@ impl Controller {
             c.command_not_finite,
             c.deadline_misses,
             c.adc_overruns,
+            c.limited,
             Num(s.command_v.to_f64().unwrap_or(f64::NAN), 6),
             Num(s.excitation_level.power.to_f64().unwrap_or(f64::NAN), 3),
             if s.excitation_level.single { "yes" } else { "no" },

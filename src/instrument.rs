@@ -351,6 +351,8 @@ pub struct News {
     pub deadline_misses: u32,
     /// ADC overruns.
     pub adc_overruns: u32,
+    /// Samples whose command the output limits changed ([`crate::pipeline::FaultCounters::limited`]).
+    pub limited: u32,
 }
 
 impl EventWatch {
@@ -361,12 +363,14 @@ impl EventWatch {
             resets: core::array::from_fn(|i| status.estimates[i].1.numeric_resets),
             deadline_misses: status.counters.deadline_misses,
             adc_overruns: status.counters.adc_overruns,
+            limited: status.counters.limited,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let news = News {
             resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
+            limited: grown(now.limited, self.seen.limited),
         };
         self.seen = now;
         news

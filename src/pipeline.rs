@@ -438,6 +438,14 @@ pub struct FaultCounters {
     pub deadline_misses: u32,
     /// Lost probe conversions (board-reported).
     pub adc_overruns: u32,
+    /// Samples whose command the output limits changed while the estimators were fed: the excitation (with the
+    /// external command) clamped to `min_v..max_v` or slew-limited, so that the stage runs on a distorted input.
+    /// The estimators see the command as written and stay consistent, but the distortion's sharp corners put the
+    /// input's power where the stage model fits least: on the simulated board (its second mode) a sine clipped by
+    /// the clamp moved the hybrid filter by about 3 % (1 % or less with the second mode switched off).
+    /// A step of the command (`excite constant 5` from rest) counts a sample or two; a count that keeps climbing
+    /// means the excitation does not fit the limits. Saturates at `u32::MAX`.
+    pub limited: u32,
 }
 
 /// What one sample produced.
@@ -567,7 +575,10 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             target = cfg.safe_v;
         }
         let clamped = fmin(fmax(target, cfg.min_v), cfg.max_v);
-        let step = fmin(fmax(clamped - self.command_v, -cfg.max_step_v), cfg.max_step_v);
+        let wanted_step = clamped - self.command_v;
+        let step = fmin(fmax(wanted_step, -cfg.max_step_v), cfg.max_step_v);
+        let limited = clamped != target || step != wanted_step;
+        self.counters.limited = self.counters.limited.saturating_add(u32::from(limited && self.faults.is_empty()));
         let (dac_code, written_v) = encode(cfg, self.command_v + step);
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;

@@ -517,6 +517,7 @@ fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
         command_not_finite: u32::MAX,
         deadline_misses: u32::MAX,
         adc_overruns: u32::MAX,
+        limited: u32::MAX,
     };
     (st.command_v, st.excitation_level.power, st.excitation_level.single) = (long, long, true);
     st.record =
@@ -585,7 +586,8 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
 /// The telemetry's warnings: looked at every 0.1 s, the watch says how many numeric resets each estimator had
 /// since the last look (the continuous EKF's, with `R` a million below the paper's, in nearly every look; nobody
 /// else's), a new tuning (which restarts the estimators and their counts) is not taken for billions of resets, and
-/// a deadline miss or an ADC overrun is told once.
+/// a deadline miss or an ADC overrun is told once, and an excitation the output limits clip at every look while it
+/// lasts.
 #[test]
 fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let mut lab = Lab::new();
@@ -611,6 +613,18 @@ fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let news = look(&mut lab, 10);
     assert_eq!((news.deadline_misses, news.adc_overruns, news.resets), (1, 1, [0; 4]));
     assert_eq!(look(&mut lab, 10), News::default());
+    // An excitation the clamp clips (8 V + 3 V sin, above 10 V 27 % of the time), told at every look while it
+    // lasts; back within the limits, nothing more.
+    lab.board.inject_faults = None;
+    assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
+    let clipped: Vec<u32> = (0..5).map(|_| look(&mut lab, 1000).limited).collect();
+    assert!(clipped.iter().all(|&n| (250..=290).contains(&n)), "{clipped:?}");
+    assert!(verdict(&lab.send("excite sine 3 100 6\n")).starts_with("ok"));
+    lab.run(100);
+    look(&mut lab, 0);
+    assert_eq!(look(&mut lab, 1000), News::default());
+    let status = lab.send("status\n");
+    assert!(verdict(&status).contains(&format!(" limited={} ", lab.isr.status().counters.limited)), "{status}");
 }
 
 /// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they

@@ -129,6 +129,49 @@ fn the_command_is_clamped_and_slew_limited() {
     for (got, want) in u.iter().zip([0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 3.0]) {
         assert!((got - want).abs() < 0.0025, "{u:?}");
     }
+    // The excitation asks 15 V on every sample and never gets it: every sample counts as limited.
+    assert_eq!(sim.pipeline.fault_counters().limited, 7);
+}
+
+/// `limited` counts the samples whose command the clamp or the slew limit changed, while the estimators are fed:
+/// none for a sine within the limits, the share of the period above the clamp for a clipped one, about the share
+/// of the period where it is steeper than the slew limit for a fast one, and not the return to the safe value
+/// after a fault (the limit doing its job, with the estimators stopped).
+#[test]
+fn the_samples_the_limits_change_are_counted() {
+    let limited = |excitation: ExcitationDesign, samples: u32| {
+        let (board, mut settings) = Scenario::Prbs.settings(2.0, 1);
+        settings.excitation = excitation;
+        let mut sim = Simulation::new(board, &settings, ()).unwrap();
+        for _ in 0..samples {
+            sim.step();
+        }
+        (sim.pipeline.fault_counters().limited as f64 / samples as f64, sim)
+    };
+    let n = 20_000;
+    assert_eq!(limited(ExcitationDesign::sine(100.0, 3.0), n).0, 0.0);
+    // About 6.9 V: only the start from rest, 2.5 V a sample to the offset, counts (two samples).
+    let (_, sim) = limited(ExcitationDesign { offset_v: 6.9, ..ExcitationDesign::sine(100.0, 3.0) }, n);
+    assert_eq!(sim.pipeline.fault_counters().limited, 2);
+    // 8 V + 3 V sin: above the 10 V clamp while sin > 2/3.
+    let share = limited(ExcitationDesign { offset_v: 8.0, ..ExcitationDesign::sine(100.0, 3.0) }, n).0;
+    let above = (2.0f64 / 3.0).acos() / std::f64::consts::PI;
+    assert!((share - above).abs() < 0.005, "{share} against {above}");
+    // 2 V at 3 kHz: slopes up to 37 700 V/s against the 25 000 V/s limit, steeper than it over 54 % of the period;
+    // sampled at 10 kHz its steps are smaller than its steepest slope, and the pattern repeats every 10 samples,
+    // 4 of them slewed.
+    let share = limited(ExcitationDesign::sine(3000.0, 2.0), n).0;
+    let steeper = 2.0 * (25_000.0f64 / (2.0 * std::f64::consts::PI * 3000.0 * 2.0)).acos() / std::f64::consts::PI;
+    assert!((share - 0.4).abs() < 1e-3 && share < steeper, "{share} against {steeper}");
+    // A latched fault ramps the output to the safe value through the slew limit: not counted.
+    let (_, mut sim) = limited(ExcitationDesign::constant(5.0), 10);
+    assert_eq!(sim.pipeline.fault_counters().limited, 1, "0 -> 2.5 V limited, 2.5 -> 5 V not");
+    sim.board.forced_probe_code = Some(0xFFFF);
+    for _ in 0..5 {
+        sim.step();
+    }
+    assert!(sim.pipeline.command_v().abs() < 0.0025);
+    assert_eq!(sim.pipeline.fault_counters().limited, 1);
 }
 
 #[test]

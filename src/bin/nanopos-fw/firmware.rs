@@ -328,6 +328,13 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         if news.deadline_misses + news.adc_overruns > 0 {
             defmt::warn!("deadline misses={=u32} adc overruns={=u32}", c.deadline_misses, c.adc_overruns);
         }
+        if news.limited > 0 {
+            defmt::warn!(
+                "output limits changed {=u32} commands in the last 0.1 s (limited={=u32}): the excitation is clipped or slew-limited, a distorted input that can bias the estimates by a few %",
+                news.limited,
+                c.limited
+            );
+        }
     }
 }
 
