@@ -442,7 +442,8 @@ pub struct FaultCounters {
     /// external command) clamped to `min_v..max_v` or slew-limited, so that the stage runs on a distorted input.
     /// The estimators see the command as written and stay consistent, but the distortion's sharp corners put the
     /// input's power where the stage model fits least: on the simulated board (its second mode) a sine clipped by
-    /// the clamp moved the hybrid filter by about 3 % (1 % or less with the second mode switched off).
+    /// the clamp moved the hybrid filter by 1.7 % in half a second and 1.6 % more by 10 s (0.06 % and 0.3 % with the
+    /// second mode switched off; `hal-sim/tests/ekf_health.rs`).
     /// A step of the command (`excite constant 5` from rest) counts a sample or two; a count that keeps climbing
     /// means the excitation does not fit the limits. Saturates at `u32::MAX`.
     pub limited: u32,
