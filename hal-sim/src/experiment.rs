@@ -2,6 +2,14 @@
 //! driven by the f64 pipeline and the f32 pipeline reads the very same probe codes (its DAC codes are checked to
 //! agree), so the two precisions see identical data. Estimates are sampled at 100 Hz for window means, errors
 //! against the truth and relock times.
+//!
+//! The two pipelines compute the excitation in their own precision, so where it falls on a DAC code's rounding
+//! boundary their codes can differ by one (the excitation's sines in f32 are within 1e-7 of the exact values; a
+//! code is 4.9 mV): on the paper's PRBS and triangle never, on a multisine now and then (7 of 100 000 samples from
+//! 420 to 480 Hz, `f32_and_f64_pipelines_one_code_apart_on_a_multisine` in `tests/ekf.rs`).
+//! Such a sample is counted ([`Histories::code_mismatches`]); the f32 pipeline then takes its own code for the input
+//! of that one sample, one code away from what the stage got. A difference of more than one code is a bug and
+//! panics.
 
 use crate::board::BoardSettings;
 use crate::sim::{Scenario, Simulation};
@@ -27,6 +35,8 @@ pub struct Histories {
     pub f64: Vec<Sample>,
     /// f32 pipeline on the same readings.
     pub f32: Vec<Sample>,
+    /// Samples where the f32 pipeline's DAC code was one away from the f64's, which drove the board.
+    pub code_mismatches: u64,
 }
 
 /// Called before each sample `k` with the pipeline settings in force; returning new settings swaps both
@@ -71,7 +81,7 @@ where
     let mut p32 = Pipeline::new(&cfg32, (make32(),));
     let samples = (duration_s / sim.config.sample_period_s).round() as u64;
     let every = (0.01 / sim.config.sample_period_s).round() as u64;
-    let mut h = Histories { f64: Vec::new(), f32: Vec::new() };
+    let mut h = Histories { f64: Vec::new(), f32: Vec::new(), code_mismatches: 0 };
     for k in 0..samples {
         if let Some(new) = schedule(k) {
             sim.config = new.design(&sim.board.description()).expect("valid settings");
@@ -81,7 +91,14 @@ where
         let code = sim.board.read_probe();
         let out64 = sim.pipeline.step(&sim.config, code);
         let out32 = p32.step(&cfg32, code);
-        assert_eq!(out64.dac_code, out32.dac_code, "f32 and f64 pipelines must command the same codes");
+        let apart = out64.dac_code.abs_diff(out32.dac_code);
+        assert!(
+            apart <= 1,
+            "sample {k}: the f64 pipeline commands code {}, the f32 one {}",
+            out64.dac_code,
+            out32.dac_code
+        );
+        h.code_mismatches += u64::from(apart);
         sim.board.write_amplifier(out64.dac_code);
         if (k + 1) % every == 0 {
             let t_s = (k + 1) as f64 * sim.config.sample_period_s;

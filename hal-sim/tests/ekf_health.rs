@@ -301,6 +301,7 @@ where
     let new64 = || Ekf::<f64, K>::new(d.design());
     let new32 = || Ekf::<f32, K>::new(d.design());
     let h = run(Scenario::Triangle, 200.0, seed, new64, new32, |_, _| {});
+    assert_eq!(h.code_mismatches, 0, "the paper's triangle: f32 and f64 command the same codes");
     [&h.f64, &h.f32].map(|h| settle_time(h, 100.0, (175.0, 200.0), 0.03))
 }
 
