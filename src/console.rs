@@ -502,12 +502,7 @@ struct FaultNames(Faults);
 
 impl fmt::Display for FaultNames {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let names = [
-            (Faults::PROBE_OVER_RANGE, "over_range"),
-            (Faults::PROBE_STUCK, "stuck"),
-            (Faults::COMMAND_NOT_FINITE, "not_finite"),
-        ];
-        list(f, names.iter().filter(|(bit, _)| self.0.contains(*bit)).map(|(_, n)| *n))
+        list(f, self.0.names())
     }
 }
 

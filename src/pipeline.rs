@@ -394,9 +394,9 @@ impl<T: Real> PipelineConfig<T> {
     }
 }
 
-/// Fault bits. A latched fault stops the excitation until cleared.
+/// Fault bits. A latched fault stops the excitation until cleared. In the defmt log by name, as `status` prints them:
+/// `none`, or the names of [`Faults::NAMES`] that are set, comma-separated.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct Faults(pub u8);
 
 impl Faults {
@@ -415,6 +415,34 @@ impl Faults {
     /// All of `other`'s bits are set.
     pub const fn contains(self, other: Faults) -> bool {
         self.0 & other.0 == other.0
+    }
+
+    /// Each fault with its name in `status` and in the log.
+    pub const NAMES: [(Faults, &'static str); 3] = [
+        (Faults::PROBE_OVER_RANGE, "over_range"),
+        (Faults::PROBE_STUCK, "stuck"),
+        (Faults::COMMAND_NOT_FINITE, "not_finite"),
+    ];
+
+    /// The names of the faults set, in [`Faults::NAMES`]' order.
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        Faults::NAMES.into_iter().filter(move |&(bit, _)| self.contains(bit)).map(|(_, name)| name)
+    }
+}
+
+#[cfg(target_os = "none")]
+impl defmt::Format for Faults {
+    fn format(&self, f: defmt::Formatter) {
+        let mut names = self.names();
+        match names.next() {
+            None => defmt::write!(f, "none"),
+            Some(first) => {
+                defmt::write!(f, "{=str}", first);
+                for name in names {
+                    defmt::write!(f, ",{=str}", name);
+                }
+            }
+        }
     }
 }
 

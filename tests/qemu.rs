@@ -50,6 +50,9 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     assert!(stdout.lines().any(|l| l.ends_with("PASS")), "no verdict in the log:\n{stdout}");
     let warnings: Vec<&str> = stderr.lines().filter(|l| l.starts_with("warning")).collect();
     assert!(warnings.is_empty(), "the harness build warns:\n{stderr}");
+    // The latched faults in the log by name, as in `status`, not as a bit mask to look up in the source.
+    let faults = "faults as logged: none=none one=stuck all=over_range,stuck,not_finite";
+    assert!(stdout.lines().any(|l| l.ends_with(faults)), "no line ending in `{faults}`:\n{stdout}");
 
     let json = std::fs::read_to_string(&json_path).expect("target/qemu-bench.json");
     for k in KERNELS {

@@ -31,7 +31,7 @@ use nanopos_id::fixed::Q32;
 use nanopos_id::hal::{BoardDescription, BoardFaults, StageBoard};
 use nanopos_id::harness::{Results, Vectors, Workload};
 use nanopos_id::instrument::{Change, Instrument, Status};
-use nanopos_id::pipeline::{Pipeline, PipelineSettings};
+use nanopos_id::pipeline::{Faults, Pipeline, PipelineSettings};
 use nanopos_id::record::{RawSample, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::Scalar;
@@ -443,6 +443,13 @@ fn main() -> ! {
         fail("could not write target/qemu-bench.json on the host");
     }
     defmt::info!("wrote target/qemu-bench.json");
+    // The telemetry's fault word, as the firmware's defmt encoding and `defmt-print` show it (tests/qemu.rs).
+    defmt::info!(
+        "faults as logged: none={} one={} all={}",
+        Faults::default(),
+        Faults::PROBE_STUCK,
+        Faults(Faults::PROBE_OVER_RANGE.0 | Faults::PROBE_STUCK.0 | Faults::COMMAND_NOT_FINITE.0)
+    );
 
     if !bench_ok {
         fail("a benchmark replay did not end where the run ended");

@@ -281,7 +281,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
         let c = &st.counters;
         defmt::info!(
-            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={=u8:#04x} over_range={=u32} stuck={=u32}",
+            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
             st.samples,
             mean,
             s.window_max_cycles,
@@ -290,9 +290,10 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
             s.u_v,
             st.excitation_level.power,
             st.excitation_level.single,
-            st.faults.0,
+            st.faults,
             c.probe_over_range,
-            c.probe_stuck
+            c.probe_stuck,
+            c.command_not_finite
         );
         for (i, (p, h)) in st.estimates.iter().enumerate() {
             if !st.selected.contains(i) {
