@@ -14,7 +14,12 @@
 //! velocity kick (the disturbance bump of taking the payload off by hand).
 //!
 //! Optional piezo hysteresis acts on the held drive level: a Prandtl-Ishlinskii sum of play operators mixed with
-//! the linear path. Being applied per sample to a held level, it keeps the sampling exact.
+//! the linear path. Being applied per sample to a held level, it keeps the sampling exact. Optional creep follows
+//! it: the drive plus a share of its slow first-order lags, one per decade of time ([`Creep`]), so that after a step
+//! the displacement keeps growing by about the same share per decade of time, as a piezo's does (the log law of
+//! the datasheets). Each lag is advanced exactly over the sample and enters the held drive with its value at the
+//! sample's start: over one sample it closes at most `T / first_tau_s` (1e-3 by default) of its distance to the
+//! drive, so the step response is the lags' law delayed by about half a sample (within 1e-6 of it, `tests/plant.rs`).
 
 use nanopos_id::linalg::{mat_vec, zoh, Mat};
 use nanopos_id::StageParams;
@@ -60,8 +65,32 @@ impl Default for Hysteresis {
 
 const PLAYS: usize = 8;
 
+/// Piezo creep: `v_out = v + per_decade * sum_i lag_i(v)`, `lag_i` the first-order lag of `v` with the time constant
+/// `first_tau_s * 10^i`, `i = 0..CREEP_LAGS`. After a step of the drive the output grows by about `per_decade` of
+/// the step per decade of time from `first_tau_s` to `first_tau_s * 10^(CREEP_LAGS - 1)`, and in all by
+/// `CREEP_LAGS * per_decade`; at the stage's resonance the lags pass `per_decade / (2 pi f first_tau_s)`, below
+/// 1e-4 of the drive by default.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Creep {
+    /// Growth per decade of time, as a share of the step (0-1).
+    pub per_decade: f64,
+    /// The fastest lag's time constant, s.
+    pub first_tau_s: f64,
+}
+
+impl Default for Creep {
+    /// 1 % per decade from 0.1 s to 100 s: a piezo actuator's creep is typically 1 to 2 % of a step per decade of
+    /// time.
+    fn default() -> Self {
+        Creep { per_decade: 0.01, first_tau_s: 0.1 }
+    }
+}
+
+/// Lags of [`Creep`], one per decade.
+pub const CREEP_LAGS: usize = 4;
+
 /// Everything the simulated stage is made of. `Default` is the paper's stage, with every effect on except
-/// hysteresis.
+/// hysteresis and creep.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PlantSettings {
     /// Stage parameters before the payload change (paper Table I, with payload).
@@ -84,6 +113,8 @@ pub struct PlantSettings {
     pub antialias_hz: Option<f64>,
     /// Hysteresis; `None`: off.
     pub hysteresis: Option<Hysteresis>,
+    /// Creep; `None`: off.
+    pub creep: Option<Creep>,
     /// Sample period, s.
     pub sample_period_s: f64,
 }
@@ -101,13 +132,15 @@ impl Default for PlantSettings {
             sensor_hz: Some(100_000.0),
             antialias_hz: Some(1000.0),
             hysteresis: None,
+            creep: None,
             sample_period_s: 1e-4,
         }
     }
 }
 
 impl PlantSettings {
-    /// Only the stage model (1): no filters, no second mode, no bump, no hysteresis. The float64 reference's plant.
+    /// Only the stage model (1): no filters, no second mode, no bump, no hysteresis, no creep. The float64
+    /// reference's plant.
     pub fn ideal(before: StageParams<f64>, after: StageParams<f64>, change_at_sample: u64) -> Self {
         PlantSettings {
             before,
@@ -120,6 +153,7 @@ impl PlantSettings {
             sensor_hz: None,
             antialias_hz: None,
             hysteresis: None,
+            creep: None,
             sample_period_s: 1e-4,
         }
     }
@@ -213,6 +247,9 @@ pub struct Plant {
     x: [f64; STATES],
     sample: u64,
     plays: [f64; PLAYS],
+    /// The creep's lags, and the share of the way each moves to the drive in one sample (`1 - exp(-T / tau_i)`).
+    lags: [f64; CREEP_LAGS],
+    lag_steps: [f64; CREEP_LAGS],
 }
 
 impl Plant {
@@ -225,6 +262,13 @@ impl Plant {
             x: [0.0; STATES],
             sample: 0,
             plays: [0.0; PLAYS],
+            lags: [0.0; CREEP_LAGS],
+            lag_steps: match settings.creep {
+                Some(c) => core::array::from_fn(|i| {
+                    -(-settings.sample_period_s / (c.first_tau_s * 10f64.powi(i as i32))).exp_m1()
+                }),
+                None => [0.0; CREEP_LAGS],
+            },
         }
     }
 
@@ -263,10 +307,13 @@ impl Plant {
 
     /// Hold `u_v` over the current sample period and advance to the next sample.
     pub fn advance(&mut self, u_v: f64) {
-        let drive = match self.settings.hysteresis {
+        let mut drive = match self.settings.hysteresis {
             Some(h) => self.hysteresis(h, u_v),
             None => u_v,
         };
+        if let Some(c) = self.settings.creep {
+            drive = self.creep(c, drive);
+        }
         let m = self.current();
         let mut next = mat_vec(&m.phi, &self.x);
         for (xi, gi) in next.iter_mut().zip(m.gam.iter()) {
@@ -277,6 +324,15 @@ impl Plant {
         if self.sample == self.settings.change_at_sample {
             self.x[X2] += self.settings.bump_um_per_s;
         }
+    }
+
+    /// The drive with the creep's lags as they are at the sample's start; then the lags advanced over the sample.
+    fn creep(&mut self, c: Creep, v: f64) -> f64 {
+        let out = v + c.per_decade * self.lags.iter().sum::<f64>();
+        for (lag, step) in self.lags.iter_mut().zip(self.lag_steps) {
+            *lag += step * (v - *lag);
+        }
+        out
     }
 
     fn hysteresis(&mut self, h: Hysteresis, v: f64) -> f64 {

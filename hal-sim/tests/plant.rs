@@ -209,6 +209,38 @@ fn payload_change_switches_parameters_and_kicks_the_stage() {
     assert!((dx - 0.03).abs() < 0.001, "{dx}");
 }
 
+/// Creep: after a step of the drive the displacement keeps growing, about 1 % of the step per decade of time from
+/// 0.1 s to 100 s (the default), by the lags' sum `1 + 0.01 * sum_i (1 - exp(-t / tau_i))` exactly; without creep it
+/// holds.
+#[test]
+fn creep_grows_the_step_response_by_a_share_per_decade() {
+    let ideal = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::PAYLOAD, u64::MAX);
+    let creeping = PlantSettings { creep: Some(hal_sim::plant::Creep::default()), ..ideal };
+    let static_um = StageParams::PAYLOAD.dc_gain();
+    let at_times = |settings: PlantSettings| {
+        let mut plant = Plant::new(settings);
+        let mut out = Vec::new();
+        for k in 1..=1_000_000u64 {
+            plant.advance(1.0);
+            if [10_000, 100_000, 1_000_000].contains(&k) {
+                out.push(plant.output_um() / static_um);
+            }
+        }
+        out
+    };
+    let (with, without) = (at_times(creeping), at_times(ideal));
+    let law = |t: f64| 1.0 + 0.01 * (0..4).map(|i| 1.0 - (-t / (0.1 * 10f64.powi(i))).exp()).sum::<f64>();
+    eprintln!("step response over its static value at 1, 10, 100 s: with creep {with:?}, without {without:?}");
+    for (got, t) in with.iter().zip([1.0, 10.0, 100.0]) {
+        // The lags enter with their value at each sample's start: a delay of half a sample, 5e-5 s.
+        assert!((got - law(t)).abs() < 1e-6, "{t} s: {got} against {}", law(t));
+    }
+    for decade in [with[1] - with[0], with[2] - with[1]] {
+        assert!((0.008..0.011).contains(&decade), "{decade}");
+    }
+    assert!(without.iter().all(|r| (r - 1.0).abs() < 1e-9), "{without:?}");
+}
+
 #[test]
 fn hysteresis_makes_the_static_response_depend_on_the_path() {
     let settings = PlantSettings {
