@@ -27,6 +27,12 @@ enum Command {
         /// Noise seed [default: 1 for prbs, 2 for triangle, as in the float64 reference; 3 for multisine].
         #[arg(long)]
         seed: Option<u64>,
+        /// Add piezo hysteresis (10 % of the drive through play operators up to 0.5 V wide).
+        #[arg(long)]
+        hysteresis: bool,
+        /// Add piezo creep (1 % of a step per decade of time, from 0.1 s to 100 s).
+        #[arg(long)]
+        creep: bool,
         /// Output CSV file.
         #[arg(long)]
         out: PathBuf,
@@ -124,8 +130,15 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate { scenario, duration, seed, out } => {
-            let args = simulate::SimulateArgs { scenario: scenario.into(), duration_s: duration, seed, out: &out };
+        Command::Simulate { scenario, duration, seed, hysteresis, creep, out } => {
+            let args = simulate::SimulateArgs {
+                scenario: scenario.into(),
+                duration_s: duration,
+                seed,
+                hysteresis,
+                creep,
+                out: &out,
+            };
             simulate::run(&args).map(|_| ())
         }
         Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step } => {

@@ -43,6 +43,31 @@ fn simulate_writes_the_documented_columns_with_the_truth() {
     }
 }
 
+/// `--hysteresis` and `--creep` change the stage, not the command: the same `t` and `u` columns, another `y`.
+#[test]
+fn simulate_adds_the_piezos_hysteresis_and_creep_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let columns = |extra: &[&str], name: &str| {
+        let mut args = vec!["simulate", "--scenario", "prbs", "--duration", "0.5", "--out", name];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let text = std::fs::read_to_string(dir.path().join(name)).unwrap();
+        let rows: Vec<Vec<f64>> =
+            text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect();
+        let column = |i: usize| rows.iter().map(|r| r[i]).collect::<Vec<f64>>();
+        (column(1), column(2))
+    };
+    let (u, y) = columns(&[], "plain.csv");
+    for (flag, name) in [("--hysteresis", "h.csv"), ("--creep", "c.csv")] {
+        let (u_with, y_with) = columns(&[flag], name);
+        assert_eq!(u_with, u, "{flag}: the command is the same");
+        let most = y.iter().zip(&y_with).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        println!("{flag}: the reading differs by up to {:.2} nm over 0.5 s of PRBS", most * 1e3);
+        assert!(most > 1e-4, "{flag}: {most} um");
+    }
+}
+
 #[test]
 fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
     let dir = tempfile::tempdir().unwrap();

@@ -775,8 +775,14 @@ mod tests {
     fn a_file_read_in_blocks_identifies_as_the_record_in_memory() {
         let dir = tempfile::tempdir().unwrap();
         let input = dir.path().join("run.csv");
-        let sim =
-            crate::cmd::simulate::SimulateArgs { scenario: Scenario::Prbs, duration_s: 16.0, seed: None, out: &input };
+        let sim = crate::cmd::simulate::SimulateArgs {
+            scenario: Scenario::Prbs,
+            duration_s: 16.0,
+            seed: None,
+            hysteresis: false,
+            creep: false,
+            out: &input,
+        };
         crate::cmd::simulate::run(&sim).unwrap();
         assert!(std::fs::metadata(&input).unwrap().len() > 8 << 20, "more than one block");
         let tuning = Tuning::preset("prbs").unwrap();

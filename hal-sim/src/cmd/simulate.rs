@@ -1,7 +1,8 @@
-//! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] --out FILE.csv`
+//! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] --out FILE.csv`
 //!
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
-//! duration. Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
+//! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
+//! [`crate::plant::Creep`]). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
 //! reading (um), and the true stage parameters at that sample.
 
 use super::{fail, show, CliError, OutputFile, Progress};
@@ -21,6 +22,10 @@ pub struct SimulateArgs<'a> {
     pub duration_s: f64,
     /// Noise seed (default: the reference's, 1 for PRBS and 2 for the triangle).
     pub seed: Option<u64>,
+    /// With the default piezo hysteresis.
+    pub hysteresis: bool,
+    /// With the default piezo creep.
+    pub creep: bool,
     /// Where to write.
     pub out: &'a Path,
 }
@@ -34,7 +39,9 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
         return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", show(args.duration_s)));
     }
     let seed = args.seed.unwrap_or(args.scenario.default_seed());
-    let (board, pipeline) = args.scenario.settings(args.duration_s, seed);
+    let (mut board, pipeline) = args.scenario.settings(args.duration_s, seed);
+    board.plant.hysteresis = args.hysteresis.then(crate::plant::Hysteresis::default);
+    board.plant.creep = args.creep.then(crate::plant::Creep::default);
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
