@@ -340,6 +340,8 @@ impl WatchdogGate {
 pub struct EventWatch {
     /// The counts at the last look (nothing seen: all zero).
     seen: News,
+    /// Whether the output limits changed commands between the two looks before this one.
+    limited_before: bool,
 }
 
 /// Events since the last look ([`EventWatch::look`]).
@@ -353,6 +355,9 @@ pub struct News {
     pub adc_overruns: u32,
     /// Samples whose command the output limits changed ([`crate::pipeline::FaultCounters::limited`]).
     pub limited: u32,
+    /// The limits changed commands since this look's predecessor and the one before it: the excitation does not fit
+    /// them. A single step of the command (a start about an offset: a sample or two, once) does not count.
+    pub limiting: bool,
 }
 
 impl EventWatch {
@@ -364,6 +369,7 @@ impl EventWatch {
             deadline_misses: status.counters.deadline_misses,
             adc_overruns: status.counters.adc_overruns,
             limited: status.counters.limited,
+            limiting: false,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let news = News {
@@ -371,7 +377,10 @@ impl EventWatch {
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
             limited: grown(now.limited, self.seen.limited),
+            limiting: false,
         };
+        let news = News { limiting: news.limited > 0 && self.limited_before, ..news };
+        self.limited_before = news.limited > 0;
         self.seen = now;
         news
     }

@@ -613,16 +613,24 @@ fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let news = look(&mut lab, 10);
     assert_eq!((news.deadline_misses, news.adc_overruns, news.resets), (1, 1, [0; 4]));
     assert_eq!(look(&mut lab, 10), News::default());
-    // An excitation the clamp clips (8 V + 3 V sin, above 10 V 27 % of the time), told at every look while it
-    // lasts; back within the limits, nothing more.
+    // An excitation the clamp clips (8 V + 3 V sin, above 10 V 27 % of the time): counted at every look, and told
+    // from the second on; back within the limits, nothing more.
     lab.board.inject_faults = None;
     assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
-    let clipped: Vec<u32> = (0..5).map(|_| look(&mut lab, 1000).limited).collect();
-    assert!(clipped.iter().all(|&n| (250..=290).contains(&n)), "{clipped:?}");
+    let clipped: Vec<News> = (0..5).map(|_| look(&mut lab, 1000)).collect();
+    assert!(clipped.iter().all(|n| (250..=290).contains(&n.limited)), "{clipped:?}");
+    assert_eq!(clipped.iter().map(|n| n.limiting).collect::<Vec<_>>(), [false, true, true, true, true]);
     assert!(verdict(&lab.send("excite sine 3 100 6\n")).starts_with("ok"));
     lab.run(100);
     look(&mut lab, 0);
     assert_eq!(look(&mut lab, 1000), News::default());
+    // A step of the command: `excite constant 5` from 0 V, 2.5 V a sample, counted once and not told.
+    assert!(verdict(&lab.send("excite constant 0\n")).starts_with("ok"));
+    look(&mut lab, 1000);
+    look(&mut lab, 1000);
+    assert!(verdict(&lab.send("excite constant 5\n")).starts_with("ok"));
+    let step = [look(&mut lab, 1000), look(&mut lab, 1000)];
+    assert_eq!(step.map(|n| (n.limited, n.limiting)), [(1, false), (0, false)]);
     let status = lab.send("status\n");
     assert!(verdict(&status).contains(&format!(" limited={} ", lab.isr.status().counters.limited)), "{status}");
 }

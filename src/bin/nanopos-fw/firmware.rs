@@ -329,9 +329,9 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         if news.deadline_misses + news.adc_overruns > 0 {
             defmt::warn!("deadline misses={=u32} adc overruns={=u32}", c.deadline_misses, c.adc_overruns);
         }
-        if news.limited > 0 {
+        if news.limiting {
             defmt::warn!(
-                "output limits changed {=u32} commands in the last 0.1 s (limited={=u32}): the excitation is clipped or slew-limited, a distorted input that can bias the estimates by a few %",
+                "output limits changed {=u32} commands in the last 0.1 s, and in the 0.1 s before (limited={=u32}): the excitation is clipped or slew-limited, a distorted input that can bias the estimates by a few %",
                 news.limited,
                 c.limited
             );
