@@ -142,6 +142,35 @@ impl Controller {
         }
     }
 
+    /// Before the verdict of `excite`, `start` and `limits`: a line for each way the chosen excitation does not fit
+    /// the output limits ([`ExcitationDesign::reach`]): beyond the clamp, or steeper than the slew limit. The limits
+    /// then distort it, which `status` counts as `limited=` and the log warns about; a distorted excitation can bias
+    /// the estimates (see [`crate::pipeline::FaultCounters::limited`]).
+    fn fit_note(&self, reply: &mut impl Write) -> fmt::Result {
+        let (l, fs) = (&self.settings.limits, self.settings.sample_rate_hz);
+        let r = self.chosen.reach(fs);
+        if r.low_v < l.min_v || r.high_v > l.max_v {
+            writeln!(
+                reply,
+                "note: the excitation spans {} V to {} V, beyond the limits' {} V to {} V: the clamp will clip it",
+                Num(r.low_v, 6),
+                Num(r.high_v, 6),
+                Num(l.min_v, 6),
+                Num(l.max_v, 6)
+            )?;
+        }
+        let max_step = l.max_slew_v_per_s / fs;
+        if let Some(step) = r.step_v.filter(|&s| s > max_step) {
+            writeln!(
+                reply,
+                "note: the excitation steps by up to {} V a sample, beyond the slew limit's {} V: it will be ramped",
+                Num(step, 6),
+                Num(max_step, 6)
+            )?;
+        }
+        Ok(())
+    }
+
     /// Answer a line that did not parse.
     pub fn refuse(&self, e: ParseError, reply: &mut impl Write) {
         let _ = writeln!(reply, "error: {e}");
@@ -182,6 +211,7 @@ impl Controller {
                 change.config = Some(self.design(&s, self.running)?);
                 self.settings = s;
                 self.chosen = design;
+                self.fit_note(reply)?;
                 let state = if self.running { "running" } else { "stopped, send start" };
                 writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
             }
@@ -194,6 +224,7 @@ impl Controller {
                 self.running = running;
                 if running {
                     change.clear_faults = true;
+                    self.fit_note(reply)?;
                     writeln!(reply, "ok start {} (latched faults cleared)", Exc(&self.chosen))?;
                 } else {
                     writeln!(reply, "ok stop (output to {} V at the slew limit)", Num(s.limits.safe_v, 6))?;
@@ -270,6 +301,7 @@ impl Controller {
                 s.limits.max_slew_v_per_s = slew_v_per_s as f64;
                 change.config = Some(self.design(&s, self.running)?);
                 self.settings = s;
+                self.fit_note(reply)?;
                 let l = &s.limits;
                 writeln!(
                     reply,

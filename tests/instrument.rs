@@ -958,3 +958,56 @@ fn a_multisine_passes_the_excitation_monitor_only_wide_and_low_enough() {
         assert!(rel[ekf][2].abs() > 0.1, "{}: {:?}", ESTIMATOR_NAMES[ekf], rel[ekf]);
     }
 }
+
+/// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
+/// limits: beyond the clamp (the sine's and PRBS's extent exact, the multisine's from its 1.36 `A` bound), or with
+/// steps steeper than the slew limit (the PRBS's and the sine's). Where the note says so, the limits then change
+/// commands (`limited=` grows over the next 0.2 s); where it is silent, they do not.
+#[test]
+fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
+    let mut lab = Lab::new();
+    lab.run(100);
+    let notes = |reply: &str| reply.lines().filter(|l| l.starts_with("note: ")).map(String::from).collect::<Vec<_>>();
+    let cases: [(&str, &[&str]); 9] = [
+        ("excite prbs 1\n", &[]),
+        (
+            "excite sine 3 100 8\n",
+            &["note: the excitation spans 5 V to 11 V, beyond the limits' -10 V to 10 V: the clamp will clip it"],
+        ),
+        ("excite sine 3 100 6\n", &[]),
+        (
+            "excite prbs 1.5\n",
+            &["note: the excitation steps by up to 3 V a sample, beyond the slew limit's 2.5 V: it will be ramped"],
+        ),
+        ("excite multisine 1 200 800 8\n", &[]),
+        (
+            "excite multisine 2 200 800 8\n",
+            &["note: the excitation spans 5.28 V to 10.72 V, beyond the limits' -10 V to 10 V: the clamp will clip it"],
+        ),
+        ("excite prbs 1\n", &[]),
+        (
+            "limits -0.5 0.5 1000\n",
+            &[
+                "note: the excitation spans -1 V to 1 V, beyond the limits' -0.5 V to 0.5 V: the clamp will clip it",
+                "note: the excitation steps by up to 2 V a sample, beyond the slew limit's 0.1 V: it will be ramped",
+            ],
+        ),
+        ("limits -10 10 25000\n", &[]),
+    ];
+    for (cmd, want) in cases {
+        let reply = lab.send(cmd);
+        assert!(verdict(&reply).starts_with("ok"), "{cmd}: {reply}");
+        assert_eq!(notes(&reply), want.to_vec(), "{cmd}");
+        // The sample applying the change ramps from the last command (a step the excitation did not make): after it,
+        // the count grows where the note said it would, and only there.
+        lab.run(100);
+        let before = lab.isr.status().counters.limited;
+        lab.run(2000);
+        let grew = lab.isr.status().counters.limited > before;
+        assert_eq!(grew, !want.is_empty(), "{cmd}: limited grew {grew}");
+    }
+    // `start` says it again for the excitation it starts.
+    assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
+    assert!(verdict(&lab.send("stop\n")).starts_with("ok"));
+    assert_eq!(notes(&lab.send("start\n")).len(), 1);
+}
