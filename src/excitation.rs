@@ -138,7 +138,7 @@ impl ExcitationDesign {
                 let count = triangle_harmonics(freq_hz, max_hz);
                 for (k, w) in weights[..count].iter_mut().enumerate() {
                     let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
-                    *w = T::of(sign * triangle_weight(k));
+                    *w = T::of(sign * triangle_weight::<f64>(k));
                 }
                 (Kind::Triangle, phase_step(freq_hz), count)
             }
@@ -169,10 +169,10 @@ fn triangle_harmonics(freq_hz: f64, max_hz: f64) -> usize {
     }
 }
 
-/// The magnitude of the triangle's harmonic `2 k + 1`, for a unit amplitude: `8 / (pi^2 (2 k + 1)^2)`.
-fn triangle_weight(k: usize) -> f64 {
-    let (n, pi) = ((2 * k + 1) as f64, core::f64::consts::PI);
-    8.0 / (pi * pi) / (n * n)
+/// The magnitude of the triangle's harmonic `2 k + 1`, for a unit amplitude: `8 / (pi^2 (2 k + 1)^2)`, in `T`.
+fn triangle_weight<T: Real>(k: usize) -> T {
+    let (n, pi) = (T::of((2 * k + 1) as f64), core::f64::consts::PI);
+    T::of(8.0 / (pi * pi)) / (n * n)
 }
 
 /// How far an excitation takes the command ([`ExcitationDesign::reach`]), V.
@@ -205,12 +205,7 @@ impl ExcitationDesign {
             }
             Waveform::Triangle { freq_hz, max_hz } => {
                 // Summed in f32, to 1e-7: on the board a loop of soft-double calls took 1.2 KiB of flash.
-                let sum: f32 = (0..triangle_harmonics(freq_hz, max_hz))
-                    .map(|k| {
-                        let n = (2 * k + 1) as f32;
-                        8.0 / (core::f32::consts::PI * core::f32::consts::PI) / (n * n)
-                    })
-                    .sum();
+                let sum: f32 = (0..triangle_harmonics(freq_hz, max_hz)).map(triangle_weight::<f32>).sum();
                 (a * sum as f64, None)
             }
             Waveform::Multisine { .. } => (MULTISINE_PEAK * a, None),
