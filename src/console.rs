@@ -212,6 +212,16 @@ impl Controller {
                 self.settings = s;
                 self.chosen = design;
                 self.fit_note(reply)?;
+                if matches!(design.waveform, Waveform::Sine { .. }) {
+                    let t = &self.tuning;
+                    let off = [t.rls.pe_floor_v2, t.ekf.health.pe_floor_v2, t.arx.pe_floor_v2].contains(&0.0);
+                    writeln!(
+                        reply,
+                        "note: a sine alone identifies a gain and a phase, not the three parameters: the excitation \
+                         monitor holds the estimators (starved){}",
+                        if off { "; one whose pe_floor_v2 is 0 drifts" } else { "" }
+                    )?;
+                }
                 let state = if self.running { "running" } else { "stopped, send start" };
                 writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
             }

@@ -962,7 +962,8 @@ fn a_multisine_passes_the_excitation_monitor_only_wide_and_low_enough() {
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
 /// limits: beyond the clamp (the sine's and PRBS's extent exact, the multisine's from its 1.36 `A` bound), or with
 /// steps steeper than the slew limit (the PRBS's and the sine's). Where the note says so, the limits then change
-/// commands (`limited=` grows over the next 0.2 s); where it is silent, they do not.
+/// commands (`limited=` grows over the next 0.2 s); where it is silent, they do not. `excite sine` also says that a
+/// sine cannot identify the stage.
 #[test]
 fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
     let mut lab = Lab::new();
@@ -972,9 +973,9 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         ("excite prbs 1\n", &[]),
         (
             "excite sine 3 100 8\n",
-            &["note: the excitation spans 5 V to 11 V, beyond the limits' -10 V to 10 V: the clamp will clip it"],
+            &["note: the excitation spans 5 V to 11 V, beyond the limits' -10 V to 10 V: the clamp will clip it", SINE],
         ),
-        ("excite sine 3 100 6\n", &[]),
+        ("excite sine 3 100 6\n", &[SINE]),
         (
             "excite prbs 1.5\n",
             &["note: the excitation steps by up to 3 V a sample, beyond the slew limit's 2.5 V: it will be ramped"],
@@ -999,15 +1000,24 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         assert!(verdict(&reply).starts_with("ok"), "{cmd}: {reply}");
         assert_eq!(notes(&reply), want.to_vec(), "{cmd}");
         // The sample applying the change ramps from the last command (a step the excitation did not make): after it,
-        // the count grows where the note said it would, and only there.
+        // the count grows where a note said it would, and only there.
         lab.run(100);
         let before = lab.isr.status().counters.limited;
         lab.run(2000);
         let grew = lab.isr.status().counters.limited > before;
-        assert_eq!(grew, !want.is_empty(), "{cmd}: limited grew {grew}");
+        assert_eq!(grew, want.iter().any(|n| *n != SINE), "{cmd}: limited grew {grew}");
     }
     // `start` says it again for the excitation it starts.
     assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
     assert!(verdict(&lab.send("stop\n")).starts_with("ok"));
     assert_eq!(notes(&lab.send("start\n")).len(), 1);
+    // A sine with an estimator's monitor off: it says that one drifts.
+    assert!(verdict(&lab.send("tune arx pe_floor_v2 0\n")).starts_with("ok"));
+    let reply = lab.send("excite sine 1 450\n");
+    assert_eq!(notes(&reply), [format!("{SINE}; one whose pe_floor_v2 is 0 drifts")], "{reply}");
 }
+
+/// What `excite sine` says of a sine.
+const SINE: &str =
+    "note: a sine alone identifies a gain and a phase, not the three parameters: the excitation monitor \
+                    holds the estimators (starved)";
