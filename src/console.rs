@@ -212,6 +212,21 @@ impl Controller {
                 self.settings = s;
                 self.chosen = design;
                 self.fit_note(reply)?;
+                if let Waveform::Multisine { f_lo_hz, f_hi_hz } = design.waveform {
+                    // The resonance the user told the estimators (`tune initial`): a band that misses it does not
+                    // identify the stage (tests/instrument.rs: 600-1000 Hz and 50-150 Hz about 423 Hz).
+                    let f0 = self.tuning.ekf.initial.f0_hz();
+                    if !(f_lo_hz..=f_hi_hz).contains(&f0) {
+                        writeln!(
+                            reply,
+                            "note: {} to {} Hz misses the resonance ({} Hz from tune initial): such a band does not \
+                             identify the stage",
+                            Num(f_lo_hz, 6),
+                            Num(f_hi_hz, 6),
+                            Num(f0, 4)
+                        )?;
+                    }
+                }
                 if matches!(design.waveform, Waveform::Sine { .. }) {
                     let t = &self.tuning;
                     let off = [t.rls.pe_floor_v2, t.ekf.health.pe_floor_v2, t.arx.pe_floor_v2].contains(&0.0);
