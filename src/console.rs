@@ -171,6 +171,37 @@ impl Controller {
         Ok(())
     }
 
+    /// After `excite`: a line when the chosen excitation cannot identify the stage: a sine (which the monitor holds),
+    /// or a multisine whose band misses the resonance the estimators start from (which the monitor may pass).
+    fn identify_note(&self, reply: &mut impl Write) -> fmt::Result {
+        if let Waveform::Multisine { f_lo_hz, f_hi_hz } = self.chosen.waveform {
+            // The resonance the user told the estimators (`tune initial`): a band that misses it does not
+            // identify the stage (tests/instrument.rs: 600-1000 Hz and 50-150 Hz about 423 Hz).
+            let f0 = self.tuning.ekf.initial.f0_hz();
+            if !(f_lo_hz..=f_hi_hz).contains(&f0) {
+                writeln!(
+                    reply,
+                    "note: {} to {} Hz misses the resonance ({} Hz from tune initial): such a band does not \
+                     identify the stage",
+                    Num(f_lo_hz, 6),
+                    Num(f_hi_hz, 6),
+                    Num(f0, 4)
+                )?;
+            }
+        }
+        if matches!(self.chosen.waveform, Waveform::Sine { .. }) {
+            let t = &self.tuning;
+            let off = [t.rls.pe_floor_v2, t.ekf.health.pe_floor_v2, t.arx.pe_floor_v2].contains(&0.0);
+            writeln!(
+                reply,
+                "note: a sine alone identifies a gain and a phase, not the three parameters: the excitation \
+                 monitor holds the estimators (starved){}",
+                if off { "; one whose pe_floor_v2 is 0 drifts" } else { "" }
+            )?;
+        }
+        Ok(())
+    }
+
     /// Answer a line that did not parse.
     pub fn refuse(&self, e: ParseError, reply: &mut impl Write) {
         let _ = writeln!(reply, "error: {e}");
@@ -212,31 +243,7 @@ impl Controller {
                 self.settings = s;
                 self.chosen = design;
                 self.fit_note(reply)?;
-                if let Waveform::Multisine { f_lo_hz, f_hi_hz } = design.waveform {
-                    // The resonance the user told the estimators (`tune initial`): a band that misses it does not
-                    // identify the stage (tests/instrument.rs: 600-1000 Hz and 50-150 Hz about 423 Hz).
-                    let f0 = self.tuning.ekf.initial.f0_hz();
-                    if !(f_lo_hz..=f_hi_hz).contains(&f0) {
-                        writeln!(
-                            reply,
-                            "note: {} to {} Hz misses the resonance ({} Hz from tune initial): such a band does not \
-                             identify the stage",
-                            Num(f_lo_hz, 6),
-                            Num(f_hi_hz, 6),
-                            Num(f0, 4)
-                        )?;
-                    }
-                }
-                if matches!(design.waveform, Waveform::Sine { .. }) {
-                    let t = &self.tuning;
-                    let off = [t.rls.pe_floor_v2, t.ekf.health.pe_floor_v2, t.arx.pe_floor_v2].contains(&0.0);
-                    writeln!(
-                        reply,
-                        "note: a sine alone identifies a gain and a phase, not the three parameters: the excitation \
-                         monitor holds the estimators (starved){}",
-                        if off { "; one whose pe_floor_v2 is 0 drifts" } else { "" }
-                    )?;
-                }
+                self.identify_note(reply)?;
                 let state = if self.running { "running" } else { "stopped, send start" };
                 writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
             }
