@@ -340,7 +340,7 @@ impl WatchdogGate {
 pub struct EventWatch {
     /// The counts at the last look (nothing seen: all zero).
     seen: News,
-    /// Whether the output limits changed commands between the two looks before this one.
+    /// Whether the output limits changed commands in the interval the last look covered.
     limited_before: bool,
 }
 
@@ -355,8 +355,8 @@ pub struct News {
     pub adc_overruns: u32,
     /// Samples whose command the output limits changed ([`crate::pipeline::FaultCounters::limited`]).
     pub limited: u32,
-    /// The limits changed commands since this look's predecessor and the one before it: the excitation does not fit
-    /// them. A single step of the command (a start about an offset: a sample or two, once) does not count.
+    /// The limits changed commands both since the last look and in the interval before it: the excitation does not
+    /// fit them. A single step of the command (a start about an offset: a sample or two, once) does not count.
     pub limiting: bool,
 }
 
