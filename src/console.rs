@@ -172,17 +172,19 @@ impl Controller {
     }
 
     /// After `excite`: a line when the chosen excitation cannot identify the stage: a sine (which the monitor holds),
-    /// or a multisine whose band misses the resonance the estimators start from (which the monitor may pass).
-    fn identify_note(&self, reply: &mut impl Write) -> fmt::Result {
+    /// or a multisine whose band misses the stage's resonance (which the monitor may pass), as `resonance` has it (Hz,
+    /// and the estimator whose estimate it is), else as `tune initial` gives it.
+    fn identify_note(&self, resonance: Option<(f64, &'static str)>, reply: &mut impl Write) -> fmt::Result {
         if let Waveform::Multisine { f_lo_hz, f_hi_hz } = self.chosen.waveform {
-            // The resonance the user told the estimators (`tune initial`): a band that misses it does not
-            // identify the stage (tests/instrument.rs: 600-1000 Hz and 50-150 Hz about 423 Hz).
-            let f0 = self.tuning.ekf.initial.f0_hz();
+            // A band that misses the resonance does not identify the stage (tests/instrument.rs: 600-1000 Hz and
+            // 50-150 Hz about 423 Hz).
+            let (f0, from) = resonance.unwrap_or((self.tuning.ekf.initial.f0_hz(), "tune initial"));
             if !(f_lo_hz..=f_hi_hz).contains(&f0) {
+                let whose = if resonance.is_some() { "'s estimate" } else { "" };
                 writeln!(
                     reply,
-                    "note: {} to {} Hz misses the resonance ({} Hz from tune initial): such a band does not \
-                     identify the stage",
+                    "note: {} to {} Hz misses the resonance ({} Hz, {from}{whose}): such a band does not identify \
+                     the stage",
                     Num(f_lo_hz, 6),
                     Num(f_hi_hz, 6),
                     Num(f0, 4)
@@ -221,7 +223,11 @@ impl Controller {
         if matches!(cmd, Command::Status) {
             return (None, Rest { status: Some(status()), next: 0 });
         }
-        match self.try_execute(cmd, reply) {
+        // For `excite multisine`'s note: the resonance as the interrupt estimates it now.
+        let resonance = matches!(cmd, Command::Excite(ExcitationChoice::Multisine { .. }))
+            .then(|| estimated_resonance(&status()))
+            .flatten();
+        match self.try_execute(cmd, resonance, reply) {
             Ok(change) => (change, Rest::none()),
             Err(e) => {
                 let _ = writeln!(reply, "error: {e}");
@@ -230,7 +236,14 @@ impl Controller {
         }
     }
 
-    fn try_execute<T: Real>(&mut self, cmd: Command, reply: &mut impl Write) -> Result<Option<Change<T>>, Refusal> {
+    // Not inlined into `execute`: inlined, its callees were inlined differently, for 1.9 KiB more flash.
+    #[inline(never)]
+    fn try_execute<T: Real>(
+        &mut self,
+        cmd: Command,
+        resonance: Option<(f64, &'static str)>,
+        reply: &mut impl Write,
+    ) -> Result<Option<Change<T>>, Refusal> {
         let mut change = Change::default();
         match cmd {
             // Answered by `execute` from the snapshot, a line at a time.
@@ -243,7 +256,7 @@ impl Controller {
                 self.settings = s;
                 self.chosen = design;
                 self.fit_note(reply)?;
-                self.identify_note(reply)?;
+                self.identify_note(resonance, reply)?;
                 let state = if self.running { "running" } else { "stopped, send start" };
                 writeln!(reply, "ok excite {} ({state})", Exc(&self.chosen))?;
             }
@@ -559,6 +572,15 @@ fn list<'a>(f: &mut fmt::Formatter<'_>, names: impl Iterator<Item = &'a str>) ->
         f.write_str("none")?;
     }
     Ok(())
+}
+
+/// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is: the hybrid EKF's if it
+/// runs, else the first running estimator's; `None` if none runs or its estimate has no resonance (`a0 <= 0`).
+fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str)> {
+    let running = |i: usize| status.selected.contains(i);
+    let i = if running(2) { 2 } else { (0..4).find(|&i| running(i))? };
+    let f0 = status.estimates[i].0.f0_hz().to_f64()?;
+    (f0.is_finite() && f0 > 0.0).then_some((f0, ESTIMATOR_NAMES[i]))
 }
 
 /// Latched faults by name (`none` if none).
