@@ -372,15 +372,15 @@ impl EventWatch {
             limiting: false,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
+        let limited = grown(now.limited, self.seen.limited);
         let news = News {
             resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
-            limited: grown(now.limited, self.seen.limited),
-            limiting: false,
+            limited,
+            limiting: limited > 0 && self.limited_before,
         };
-        let news = News { limiting: news.limited > 0 && self.limited_before, ..news };
-        self.limited_before = news.limited > 0;
+        self.limited_before = limited > 0;
         self.seen = now;
         news
     }
