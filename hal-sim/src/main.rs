@@ -1,5 +1,6 @@
 //! `nanopos-sim`: the simulated nanopositioning stage and the host tools around the nanopos-id pipeline.
-//! Bad input: one line on standard error naming what was wrong and where, exit code 2, no partial output file.
+//! Bad input: one line on standard error naming what was wrong and where, exit code 2, no partial output file, and
+//! no output written over an input or another output.
 
 use clap::{Parser, Subcommand, ValueEnum};
 use hal_sim::cmd::{simulate, CliError};

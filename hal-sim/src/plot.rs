@@ -4,7 +4,6 @@
 use crate::cmd::identify::Identified;
 use crate::cmd::CliError;
 use plotters::prelude::*;
-use std::path::Path;
 
 /// Reads one parameter.
 type Getter = fn(&nanopos_id::StageParams<f64>) -> f64;
@@ -96,9 +95,8 @@ pub fn svg(r: &Identified) -> Result<String, String> {
 }
 
 /// Write the plot through an [`crate::cmd::OutputFile`] (prepared, not yet committed).
-pub fn write(path: &Path, r: &Identified) -> Result<crate::cmd::OutputFile, CliError> {
-    let text = svg(r).map_err(|e| CliError(format!("{}: cannot draw: {e}", path.display())))?;
-    let mut f = crate::cmd::OutputFile::create(path)?;
+pub fn write(mut f: crate::cmd::OutputFile, r: &Identified) -> Result<crate::cmd::OutputFile, CliError> {
+    let text = svg(r).map_err(|e| CliError(format!("{}: cannot draw: {e}", f.path().display())))?;
     std::io::Write::write_all(f.writer(), text.as_bytes()).map_err(|e| f.write_error(e))?;
     Ok(f)
 }

@@ -85,6 +85,8 @@ struct Arx {
 pub struct TuningArg {
     /// The file, or `--tuning NAME` for a preset (for messages).
     pub name: String,
+    /// The file read, if any (no output may replace it).
+    pub file: Option<std::path::PathBuf>,
     base: Tuning,
     /// The file's values, in its section order.
     values: Vec<(TuningKey, Vec<f64>)>,
@@ -93,7 +95,7 @@ pub struct TuningArg {
 impl From<Tuning> for TuningArg {
     /// A tuning already made (its sample period is replaced by the record's).
     fn from(base: Tuning) -> Self {
-        TuningArg { name: "the tuning".into(), base, values: Vec::new() }
+        TuningArg { name: "the tuning".into(), file: None, base, values: Vec::new() }
     }
 }
 
@@ -114,7 +116,7 @@ impl TuningArg {
 /// Resolve `--tuning`: a preset name, or a TOML file.
 pub fn resolve(arg: &str) -> Result<TuningArg, CliError> {
     if let Some(base) = Tuning::preset(arg) {
-        return Ok(TuningArg { name: format!("--tuning {arg}"), base, values: Vec::new() });
+        return Ok(TuningArg { name: format!("--tuning {arg}"), file: None, base, values: Vec::new() });
     }
     let path = Path::new(arg);
     if !path.exists() && !arg.ends_with(".toml") {
@@ -122,7 +124,7 @@ pub fn resolve(arg: &str) -> Result<TuningArg, CliError> {
     }
     let text = std::fs::read_to_string(path)
         .map_err(|e| CliError(format!("{arg}: cannot read: {}", crate::cmd::io_reason(&e))))?;
-    parse(arg, &text)
+    Ok(TuningArg { file: Some(path.to_path_buf()), ..parse(arg, &text)? })
 }
 
 /// Parse a tuning file's text (`name` for messages): its syntax, keys, types and preset now, its values at
@@ -160,7 +162,7 @@ pub fn parse(name: &str, text: &str) -> Result<TuningArg, CliError> {
         (TuningKey::ArxPeFloor, one(a.pe_floor_v2)),
     ];
     let values = values.into_iter().filter_map(|(key, v)| Some((key, v?))).collect();
-    Ok(TuningArg { name: name.to_string(), base, values })
+    Ok(TuningArg { name: name.to_string(), file: None, base, values })
 }
 
 #[cfg(test)]

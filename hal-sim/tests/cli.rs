@@ -192,6 +192,25 @@ fn decode_turns_a_capture_into_the_csv_identify_reads() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// `decode` does not write over its capture: not as `--out`, not as one of the segments' files.
+#[test]
+fn decode_never_replaces_its_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = capture(1000, 0);
+    for (name, args) in
+        [("cap.txt", &["--out", "cap.txt"][..]), ("run-1.csv", &["--out", "./run.csv", "--segments"][..])]
+    {
+        std::fs::write(dir.path().join(name), &text).unwrap();
+        let mut all = vec!["decode", "--input", name];
+        all.extend_from_slice(args);
+        let out = nanopos_sim(&all, dir.path());
+        assert_clean_failure(&out, "writing it would replace the input; choose another name");
+        assert_eq!(std::fs::read_to_string(dir.path().join(name)).unwrap(), text);
+        std::fs::remove_file(dir.path().join(name)).unwrap();
+        no_stray_files(dir.path());
+    }
+}
+
 #[test]
 fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
     // Ten frames of 48 samples from line 4 on. Frame 2 is lost (frame 3 on line 6), frame 6 damaged (line 9),

@@ -285,6 +285,74 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     }
 }
 
+/// No output replaces an input (the record, the tuning file), however the path is spelled (another directory's `..`,
+/// a hard or a symbolic link), nor another output: refused before anything is read, the files as they were. An output
+/// that cannot be made is said before the record is read (not after the run).
+#[test]
+fn an_output_never_replaces_an_input_or_another_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "0.5");
+    std::fs::rename(d.join("run.csv"), d.join("prbs.csv")).unwrap();
+    let record = std::fs::read(d.join("prbs.csv")).unwrap();
+    std::fs::write(d.join("t.toml"), "[ekf]\nr = 1.5e-6\n").unwrap();
+    std::fs::create_dir(d.join("sub")).unwrap();
+    std::fs::hard_link(d.join("prbs.csv"), d.join("hard.csv")).unwrap();
+    #[cfg(unix)]
+    std::os::unix::fs::symlink("prbs.csv", d.join("soft.csv")).unwrap();
+    let same = "writing it would replace the input; choose another name";
+    let own = "each output needs a file of its own";
+    let mut cases: Vec<(&[&str], String)> = vec![
+        (&["--out", "prbs.csv"], format!("--out prbs.csv: the same file as --input prbs.csv: {same}")),
+        (
+            &["--summary", "sub/../prbs.csv"],
+            format!("--summary sub/../prbs.csv: the same file as --input prbs.csv: {same}"),
+        ),
+        (&["--plot", "hard.csv"], format!("--plot hard.csv: the same file as --input prbs.csv: {same}")),
+        (
+            &["--tuning", "t.toml", "--summary", "./t.toml"],
+            format!("--summary ./t.toml: the same file as --tuning t.toml: {same}"),
+        ),
+        (&["--out", "e.csv", "--summary", "e.csv"], format!("--summary e.csv: the same file as --out e.csv: {own}")),
+        (
+            &["--out", "e.csv", "--summary", "s.json", "--plot", "sub/../e.csv"],
+            format!("--plot sub/../e.csv: the same file as --out e.csv: {own}"),
+        ),
+    ];
+    #[cfg(unix)]
+    cases.push((&["--out", "soft.csv"], format!("--out soft.csv: the same file as --input prbs.csv: {same}")));
+    for (extra, mention) in &cases {
+        let mut args = vec!["identify", "--input", "prbs.csv"];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, d);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!((out.status.code(), stderr.trim_end()), (Some(2), format!("nanopos-sim: {mention}").as_str()));
+        assert_eq!(std::fs::read(d.join("prbs.csv")).unwrap(), record, "{args:?}");
+        assert_eq!(std::fs::read_to_string(d.join("t.toml")).unwrap(), "[ekf]\nr = 1.5e-6\n");
+        for name in ["e.csv", "s.json"] {
+            assert!(!d.join(name).exists(), "{args:?}: {name}");
+        }
+    }
+    // The output's directory is missing and the record is bad at its end: the output is what is said.
+    let mut bad = record.clone();
+    bad.extend_from_slice(b"x,0,0\n");
+    std::fs::write(d.join("bad.csv"), bad).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "bad.csv", "--out", "none/e.csv"], d);
+    assert_eq!(
+        String::from_utf8_lossy(&out.stderr).trim_end(),
+        "nanopos-sim: none/e.csv: cannot create: No such file or directory"
+    );
+    let mut names: Vec<_> =
+        std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+    names.sort();
+    let mut want = vec!["bad.csv", "hard.csv", "prbs.csv", "sub", "t.toml"];
+    if cfg!(unix) {
+        want.push("soft.csv");
+    }
+    want.sort();
+    assert_eq!(names, want, "no partial file left");
+}
+
 #[test]
 fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
     let dir = tempfile::tempdir().unwrap();

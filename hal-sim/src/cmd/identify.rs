@@ -524,6 +524,15 @@ impl std::str::FromStr for DacStep {
 /// Run the command: the input is read a block at a time ([`Reader`]); what is held is what the report needs (the
 /// 100 Hz rows and the windows' samples), not the record.
 pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
+    let tuning = args.tuning.file.as_deref().map(|f| ("--tuning", f));
+    let inputs: Vec<_> = [Some(("--input", args.input)), tuning].into_iter().flatten().collect();
+    let outputs = [("--out", args.out), ("--summary", args.summary), ("--plot", args.plot)];
+    let outputs: Vec<_> = outputs.into_iter().filter_map(|(option, p)| Some((option, p?))).collect();
+    super::check_distinct(&inputs, &outputs)?;
+    // The outputs are opened (under their temporary names) before the run, so that a directory that is not there
+    // or not writable is said at once, not after the whole record.
+    let open = |p: Option<&Path>| p.map(OutputFile::create).transpose();
+    let (est, sum, fig) = (open(args.out)?, open(args.summary)?, open(args.plot)?);
     let source = args.input.display().to_string();
     let mut reader = Reader::open(args.input, &["u", "y"], &["a0", "a1", "b0"], Time::Required)?;
     let record = Stream {
@@ -539,10 +548,10 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
         Err(e) => Some(Err(e)),
     });
     let result = identify_blocks::<f64>(&record, &args.estimators, &args.tuning, &args.windows, blocks)?;
-    // Both files are prepared before either is moved into place.
-    let est = args.out.map(|p| write_estimates(p, &result)).transpose()?;
-    let sum = args.summary.map(|p| write_summary(p, &result)).transpose()?;
-    let fig = args.plot.map(|p| crate::plot::write(p, &result)).transpose()?;
+    // Every file is written before any is moved into place.
+    let est = est.map(|f| write_estimates(f, &result)).transpose()?;
+    let sum = sum.map(|f| write_summary(f, &result)).transpose()?;
+    let fig = fig.map(|f| crate::plot::write(f, &result)).transpose()?;
     for f in est.into_iter().chain(sum).chain(fig) {
         f.commit()?;
     }
@@ -577,8 +586,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
     notes
 }
 
-fn write_estimates(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
-    let mut f = OutputFile::create(path)?;
+fn write_estimates(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
     let res = (|| -> std::io::Result<()> {
         let w = f.writer();
         w.write_all(b"t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain\n")?;
@@ -646,8 +654,7 @@ pub fn summary_json(r: &Identified) -> String {
     format!("{{\"windows\": [{}]}}\n", windows.join(", "))
 }
 
-fn write_summary(path: &Path, r: &Identified) -> Result<OutputFile, CliError> {
-    let mut f = OutputFile::create(path)?;
+fn write_summary(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
     let text = summary_json(r);
     f.writer().write_all(text.as_bytes()).map_err(|e| f.write_error(e))?;
     Ok(f)

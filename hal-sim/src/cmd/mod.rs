@@ -69,6 +69,11 @@ impl OutputFile {
         Ok(OutputFile { path: path.to_path_buf(), temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
     }
 
+    /// The path it will have.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
     /// The buffered writer.
     pub fn writer(&mut self) -> &mut BufWriter<File> {
         self.writer.as_mut().expect("writer present until commit")
@@ -96,6 +101,59 @@ impl Drop for OutputFile {
             let _ = std::fs::remove_file(&self.temp);
         }
     }
+}
+
+/// What a path names, to tell whether two paths are one file however they are spelled: an existing file by its device
+/// and inode (the same through `..`, symbolic links and hard links), a file yet to be made by its directory's
+/// canonical path and its name.
+#[derive(Debug, PartialEq)]
+enum FileId {
+    Existing(u64, u64),
+    New(PathBuf),
+}
+
+/// `None` when it cannot be told (its directory does not exist: creating the file will fail and say so).
+fn file_id(path: &Path) -> Option<FileId> {
+    match std::fs::metadata(path) {
+        #[cfg(unix)]
+        Ok(m) => {
+            use std::os::unix::fs::MetadataExt;
+            Some(FileId::Existing(m.dev(), m.ino()))
+        }
+        #[cfg(not(unix))]
+        Ok(_) => std::fs::canonicalize(path).ok().map(FileId::New),
+        Err(_) => {
+            let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            Some(FileId::New(std::fs::canonicalize(dir).ok()?.join(path.file_name()?)))
+        }
+    }
+}
+
+/// Refuse, before anything is read or written, outputs that would replace an input (the file a user recorded on the
+/// board, the tuning they wrote) or each other (two outputs under one name: one of them lost). Each file is given
+/// with the option that named it, for the message.
+pub fn check_distinct(inputs: &[(&str, &Path)], outputs: &[(&str, &Path)]) -> Result<(), CliError> {
+    let ids: Vec<_> = outputs.iter().map(|(_, p)| file_id(p)).collect();
+    for (k, ((option, path), id)) in outputs.iter().zip(&ids).enumerate() {
+        let Some(id) = id else { continue };
+        if let Some((input_option, input)) = inputs.iter().find(|(_, p)| file_id(p).as_ref() == Some(id)) {
+            return fail(format!(
+                "{option} {}: the same file as {input_option} {}: writing it would replace the input; choose \
+                 another name",
+                path.display(),
+                input.display()
+            ));
+        }
+        if let Some(j) = ids[..k].iter().position(|other| other.as_ref() == Some(id)) {
+            return fail(format!(
+                "{option} {}: the same file as {} {}: each output needs a file of its own",
+                path.display(),
+                outputs[j].0,
+                outputs[j].1.display()
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// An I/O error's reason without Rust's " (os error N)" suffix.

@@ -55,7 +55,7 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
             let mut f = OutputFile::create(&d.join(format!("{input}-summary.json")))?;
             f.writer().write_all(summary_json(&r64).as_bytes()).map_err(|e| f.write_error(e))?;
             f.commit()?;
-            crate::plot::write(&d.join(format!("{input}.svg")), &r64)?.commit()?;
+            crate::plot::write(OutputFile::create(&d.join(format!("{input}.svg")))?, &r64)?.commit()?;
         }
         runs.push(PaperRun { input, f64: r64, f32: r32, t_change: duration_s / 2.0 });
     }
