@@ -13,7 +13,7 @@
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
 //! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
-//! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0) |
+//! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0 here; the design refuses one under [`crate::pipeline::OutputLimits::min_slew_v_per_s`]) |
 //! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
 
 use crate::estimators::TuningKey;

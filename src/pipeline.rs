@@ -76,7 +76,8 @@ pub struct OutputLimits {
     /// Highest command, V.
     pub max_v: f64,
     /// Largest change per second, V/s. The default (25 000 V/s, 2.5 V per sample at 10 kHz) passes the paper's
-    /// 2 V PRBS steps and turns a full-scale jump into an 8-sample ramp.
+    /// 2 V PRBS steps and turns a full-scale jump into an 8-sample ramp. At least [`OutputLimits::min_slew_v_per_s`]:
+    /// a fault's ramp to the safe value goes through it too.
     pub max_slew_v_per_s: f64,
     /// Where the output goes on a fault, V.
     pub safe_v: f64,
@@ -85,6 +86,19 @@ pub struct OutputLimits {
 impl Default for OutputLimits {
     fn default() -> Self {
         OutputLimits { min_v: -10.0, max_v: 10.0, max_slew_v_per_s: 25_000.0, safe_v: 0.0 }
+    }
+}
+
+impl OutputLimits {
+    /// The longest a fault's (or `stop`'s) ramp to the safe value may take, s: from anywhere in the clamp's range,
+    /// the output is safe within this time. Without a bound a slew limit of 1e-30 V/s was accepted, and after a fault
+    /// the output stayed where it was.
+    pub const MAX_RAMP_TO_SAFE_S: f64 = 0.1;
+
+    /// The slowest slew limit these bounds allow: the clamp's end farthest from the safe value, reached back in
+    /// [`Self::MAX_RAMP_TO_SAFE_S`] (100 V/s for +-10 V about 0 V).
+    pub fn min_slew_v_per_s(&self) -> f64 {
+        (self.max_v - self.safe_v).max(self.safe_v - self.min_v) / Self::MAX_RAMP_TO_SAFE_S
     }
 }
 
@@ -160,6 +174,9 @@ pub enum SettingsError {
     PrefilterDamping,
     /// `min_v < max_v`, `safe_v` inside, slew positive: one of these fails.
     Limits,
+    /// A slew limit so slow that a fault's ramp to the safe value would outlast
+    /// [`OutputLimits::MAX_RAMP_TO_SAFE_S`]; carries the slowest allowed, V/s.
+    SlowSlew(f64),
     /// A front-end gain is zero or not finite; names the side.
     FrontEnd(&'static str),
     /// A converter format with 0 or more than 24 bits, or a non-positive full scale.
@@ -186,6 +203,13 @@ impl core::fmt::Display for SettingsError {
             SettingsError::Limits => {
                 write!(f, "output limits need min_v < max_v, safe_v between them, and a positive slew limit")
             }
+            SettingsError::SlowSlew(min) => write!(
+                f,
+                "slew limit: at least {} V/s, so that after a fault the output reaches its safe value within {} s \
+                 from anywhere in the limits",
+                crate::text::Num(*min, 6),
+                crate::text::Num(OutputLimits::MAX_RAMP_TO_SAFE_S, 3)
+            ),
             SettingsError::FrontEnd(which) => {
                 write!(f, "{which} front end: gains must be finite and non-zero")
             }
@@ -311,6 +335,10 @@ impl PipelineSettings {
         let finite = [l.min_v, l.max_v, l.max_slew_v_per_s, l.safe_v].iter().all(|x| x.is_finite());
         if !(finite && l.min_v < l.max_v && l.safe_v >= l.min_v && l.safe_v <= l.max_v && l.max_slew_v_per_s > 0.0) {
             return Err(SettingsError::Limits);
+        }
+        // The floor as the message prints it (6 digits) is accepted.
+        if l.max_slew_v_per_s < l.min_slew_v_per_s() * (1.0 - 1e-6) {
+            return Err(SettingsError::SlowSlew(l.min_slew_v_per_s()));
         }
         let nonzero = |x: f64| x.is_finite() && x != 0.0;
         let (p, a) = (&self.probe, &self.amplifier);
@@ -500,9 +528,13 @@ pub struct SampleOutput<T> {
 #[derive(Clone, Debug)]
 pub struct Pipeline<T, E> {
     excitation: ExcitationState,
-    /// The last command written, V: what the slew limit starts from, and with an actuation delay of one sample, the
-    /// command in effect over the current period.
+    /// The last command written (as the DAC outputs it), V: with an actuation delay of one sample, the command in
+    /// effect over the current period.
     command_v: T,
+    /// The slew limiter's last output before the DAC's rounding, V: what the next step starts from. From the rounded
+    /// command, a step under half a DAC code (a slew limit under 24 V/s on the board) rounded back to the same code
+    /// every sample, and the output never moved, not even to its safe value after a fault.
+    slewed_v: T,
     reconstruction: BiquadState<T>,
     antialias: BiquadState<T>,
     lags: BiquadState<T>,
@@ -524,6 +556,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         Pipeline {
             excitation: ExcitationState::default(),
             command_v: cfg.safe_v,
+            slewed_v: cfg.safe_v,
             reconstruction: BiquadState::default(),
             antialias: BiquadState::default(),
             lags: BiquadState::default(),
@@ -604,11 +637,13 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             target = cfg.safe_v;
         }
         let clamped = fmin(fmax(target, cfg.min_v), cfg.max_v);
-        let wanted_step = clamped - self.command_v;
+        let wanted_step = clamped - self.slewed_v;
         let step = fmin(fmax(wanted_step, -cfg.max_step_v), cfg.max_step_v);
-        let limited = clamped != target || step != wanted_step;
+        let slew_limited = step != wanted_step;
+        let limited = clamped != target || slew_limited;
         self.counters.limited = self.counters.limited.saturating_add(u32::from(limited && self.faults.is_empty()));
-        let (dac_code, written_v) = encode(cfg, self.command_v + step);
+        self.slewed_v = if slew_limited { self.slewed_v + step } else { clamped };
+        let (dac_code, written_v) = encode(cfg, self.slewed_v);
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;
 

@@ -133,6 +133,29 @@ fn the_command_is_clamped_and_slew_limited() {
     assert_eq!(sim.pipeline.fault_counters().limited, 7);
 }
 
+/// A slew limit under half a DAC code per sample still moves the output, and brings it back to the safe value after
+/// a fault within [`OutputLimits::MAX_RAMP_TO_SAFE_S`]: the limiter steps from its own unrounded output, not from
+/// the DAC's code (from which such a step rounded back to the same code on every sample: the output never moved).
+#[test]
+fn a_slew_under_one_dac_code_per_sample_still_ramps() {
+    let (board, _) = Scenario::Prbs.settings(1.0, 1);
+    let settings = PipelineSettings {
+        excitation: ExcitationDesign::constant(0.1),
+        // 1e-4 V a sample, a fiftieth of the DAC's 4.9 mV code; the slowest these limits allow.
+        limits: OutputLimits { min_v: -0.1, max_v: 0.1, max_slew_v_per_s: 1.0, safe_v: 0.0 },
+        ..PipelineSettings::default()
+    };
+    let mut sim = Simulation::new(board, &settings, ()).unwrap();
+    let lsb = 20.0 / 4096.0;
+    let u: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
+    // Up the code staircase at 1 V/s: one code per 49 samples, at 0.1 V after 0.1 s.
+    assert!((u[500] - 0.05).abs() <= lsb && (u[1001] - 0.1).abs() <= lsb / 2.0 + 1e-9, "{} {}", u[500], u[1001]);
+    sim.board.forced_probe_code = Some(0xFFFF);
+    let back: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
+    let safe_at = back.iter().position(|v| v.abs() < lsb / 2.0);
+    assert!(safe_at.is_some_and(|k| k <= 1002), "{safe_at:?}");
+}
+
 /// `limited` counts the samples whose command the clamp or the slew limit changed, while the estimators are fed:
 /// none for a sine within the limits, the share of the period above the clamp for a clipped one, about the share
 /// of the period where it is steeper than the slew limit for a fast one, and not the return to the safe value
@@ -190,6 +213,12 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     let mut s = ok;
     s.limits.safe_v = 11.0;
     check(s, SettingsError::Limits);
+    // A fault ramps the output to its safe value through the slew limit: within 0.1 s from the clamp's far end.
+    let mut s = ok;
+    (s.limits.min_v, s.limits.max_v, s.limits.safe_v, s.limits.max_slew_v_per_s) = (-2.0, 2.0, 1.0, 29.9);
+    check(s, SettingsError::SlowSlew(30.0));
+    s.limits.max_slew_v_per_s = 30.0;
+    assert!(s.design::<f32>(&desc).is_ok());
     let mut s = ok;
     s.probe.um_per_v = 0.0;
     check(s, SettingsError::FrontEnd("probe"));
