@@ -76,8 +76,8 @@ pub struct OutputLimits {
     /// Highest command, V.
     pub max_v: f64,
     /// Largest change per second, V/s. The default (25 000 V/s, 2.5 V per sample at 10 kHz) passes the paper's
-    /// 2 V PRBS steps and turns a full-scale jump into an 8-sample ramp. At least [`OutputLimits::min_slew_v_per_s`]:
-    /// a fault's ramp to the safe value goes through it too.
+    /// 2 V PRBS steps and turns a full-scale jump into an 8-sample ramp. At least [`OutputLimits::min_slew_v_per_s`]
+    /// of the DAC's range: a fault's ramp to the safe value goes through it too.
     pub max_slew_v_per_s: f64,
     /// Where the output goes on a fault, V.
     pub safe_v: f64,
@@ -90,15 +90,18 @@ impl Default for OutputLimits {
 }
 
 impl OutputLimits {
-    /// The longest a fault's (or `stop`'s) ramp to the safe value may take, s: from anywhere in the clamp's range,
-    /// the output is safe within this time. Without a bound a slew limit of 1e-30 V/s was accepted, and after a fault
+    /// The longest a fault's (or `stop`'s) ramp to the safe value may take, s: from wherever the output is, the
+    /// output is safe within this time. Without a bound a slew limit of 1e-30 V/s was accepted, and after a fault
     /// the output stayed where it was.
     pub const MAX_RAMP_TO_SAFE_S: f64 = 0.1;
 
-    /// The slowest slew limit these bounds allow: the clamp's end farthest from the safe value, reached back in
-    /// [`Self::MAX_RAMP_TO_SAFE_S`] (100 V/s for +-10 V about 0 V).
-    pub fn min_slew_v_per_s(&self) -> f64 {
-        (self.max_v - self.safe_v).max(self.safe_v - self.min_v) / Self::MAX_RAMP_TO_SAFE_S
+    /// The slowest slew limit allowed with a DAC whose output spans `dac_span_v` (the commands of its first and last
+    /// codes, V): its end farthest from the safe value, reached back in [`Self::MAX_RAMP_TO_SAFE_S`] (100 V/s on the
+    /// board, -10 to 10 V about 0 V). The DAC's ends, not the clamp's: after the clamp is narrowed, the output ramps
+    /// into it from wherever it was.
+    pub fn min_slew_v_per_s(&self, dac_span_v: [f64; 2]) -> f64 {
+        let [a, b] = dac_span_v.map(|v| libm::fabs(v - self.safe_v));
+        a.max(b) / Self::MAX_RAMP_TO_SAFE_S
     }
 }
 
@@ -206,7 +209,7 @@ impl core::fmt::Display for SettingsError {
             SettingsError::SlowSlew(min) => write!(
                 f,
                 "slew limit: at least {} V/s, so that after a fault the output reaches its safe value within {} s \
-                 from anywhere in the limits",
+                 from anywhere in the DAC's range",
                 crate::text::Num(*min, 6),
                 crate::text::Num(OutputLimits::MAX_RAMP_TO_SAFE_S, 3)
             ),
@@ -336,10 +339,6 @@ impl PipelineSettings {
         if !(finite && l.min_v < l.max_v && l.safe_v >= l.min_v && l.safe_v <= l.max_v && l.max_slew_v_per_s > 0.0) {
             return Err(SettingsError::Limits);
         }
-        // The floor as the message prints it (6 digits) is accepted.
-        if l.max_slew_v_per_s < l.min_slew_v_per_s() * (1.0 - 1e-6) {
-            return Err(SettingsError::SlowSlew(l.min_slew_v_per_s()));
-        }
         let nonzero = |x: f64| x.is_finite() && x != 0.0;
         let (p, a) = (&self.probe, &self.amplifier);
         if !(nonzero(p.um_per_v) && nonzero(p.adc_v_per_sensor_v) && p.adc_offset_v.is_finite()) {
@@ -352,6 +351,13 @@ impl PipelineSettings {
             if c.bits == 0 || c.bits > 24 || !(c.full_scale_v.is_finite() && c.full_scale_v > 0.0) {
                 return Err(SettingsError::Converter);
             }
+        }
+        let command_at =
+            |code: u32| (code as f64 * amplifier_dac.volts_per_code() - a.dac_offset_v) / a.dac_v_per_command_v;
+        let min_slew = l.min_slew_v_per_s([command_at(0), command_at(amplifier_dac.max_code())]);
+        // The floor as the message prints it (6 digits) is accepted.
+        if l.max_slew_v_per_s < min_slew * (1.0 - 1e-6) {
+            return Err(SettingsError::SlowSlew(min_slew));
         }
         let e = &self.excitation;
         let freq_ok = match e.waveform {

@@ -133,22 +133,21 @@ fn the_command_is_clamped_and_slew_limited() {
     assert_eq!(sim.pipeline.fault_counters().limited, 7);
 }
 
-/// A slew limit under half a DAC code per sample still moves the output, and brings it back to the safe value after
-/// a fault within [`OutputLimits::MAX_RAMP_TO_SAFE_S`]: the limiter steps from its own unrounded output, not from
-/// the DAC's code (from which such a step rounded back to the same code on every sample: the output never moved).
+/// A slew limit under half a DAC code per sample still moves the output: the limiter steps from its own unrounded
+/// output, not from the DAC's code (from which such a step rounded back to the same code on every sample: the output
+/// never moved, not even to its safe value after a fault). The design no longer allows such a slew at 10 kHz with a
+/// 12-bit DAC (see [`OutputLimits::MAX_RAMP_TO_SAFE_S`]: its floor is two codes a sample), so the limit is set in
+/// the configuration directly; a faster sample clock would reach it.
 #[test]
 fn a_slew_under_one_dac_code_per_sample_still_ramps() {
     let (board, _) = Scenario::Prbs.settings(1.0, 1);
-    let settings = PipelineSettings {
-        excitation: ExcitationDesign::constant(0.1),
-        // 1e-4 V a sample, a fiftieth of the DAC's 4.9 mV code; the slowest these limits allow.
-        limits: OutputLimits { min_v: -0.1, max_v: 0.1, max_slew_v_per_s: 1.0, safe_v: 0.0 },
-        ..PipelineSettings::default()
-    };
+    let settings = PipelineSettings { excitation: ExcitationDesign::constant(0.1), ..PipelineSettings::default() };
     let mut sim = Simulation::new(board, &settings, ()).unwrap();
+    // 1 V/s: 1e-4 V a sample, a fiftieth of the DAC's 4.9 mV code.
+    sim.config.max_step_v = 1e-4;
     let lsb = 20.0 / 4096.0;
     let u: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
-    // Up the code staircase at 1 V/s: one code per 49 samples, at 0.1 V after 0.1 s.
+    // Up the code staircase: one code per 49 samples, at 0.1 V after 0.1 s.
     assert!((u[500] - 0.05).abs() <= lsb && (u[1001] - 0.1).abs() <= lsb / 2.0 + 1e-9, "{} {}", u[500], u[1001]);
     sim.board.forced_probe_code = Some(0xFFFF);
     let back: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
@@ -213,11 +212,12 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     let mut s = ok;
     s.limits.safe_v = 11.0;
     check(s, SettingsError::Limits);
-    // A fault ramps the output to its safe value through the slew limit: within 0.1 s from the clamp's far end.
+    // A fault ramps the output to its safe value through the slew limit: within 0.1 s from the far end of the DAC's
+    // range (-10 to 10 V; the clamp's own does not count: narrowed, the output ramps into it from where it was).
     let mut s = ok;
-    (s.limits.min_v, s.limits.max_v, s.limits.safe_v, s.limits.max_slew_v_per_s) = (-2.0, 2.0, 1.0, 29.9);
-    check(s, SettingsError::SlowSlew(30.0));
-    s.limits.max_slew_v_per_s = 30.0;
+    (s.limits.min_v, s.limits.max_v, s.limits.safe_v, s.limits.max_slew_v_per_s) = (-2.0, 2.0, 1.0, 109.9);
+    check(s, SettingsError::SlowSlew(110.0));
+    s.limits.max_slew_v_per_s = 110.0;
     assert!(s.design::<f32>(&desc).is_ok());
     let mut s = ok;
     s.probe.um_per_v = 0.0;
