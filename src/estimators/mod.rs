@@ -152,8 +152,16 @@ pub fn full_bank<T: Real>(cfg: &TuningConfig<T>) -> FullBank<T> {
 /// and a fit settles where that matches the data, on `a0 (1 + (w step)^4 / 60)` (+1.4e-4 at 483 Hz and 10 kHz).
 /// Undone here: `a0` and `b0` scaled by `1 - (a0 step^2)^2 / 60` (RK4 keeps a fixed point where it is, so the DC
 /// gain `b0 / a0` was right). For reporting, not the sample path.
+///
+/// Only where the series holds, a resonance well below the sample rate (`a0 step^2` 0.07 for the paper's stage):
+/// from `a0 step^2 = 1` (`f0 = fs / 2 pi`) on the estimate is reported as it is. Applied to an estimate gone wild
+/// (a0 near 1e15 on a pre-filter tuned to ring for ever, in a random console session), the correction overflowed and
+/// reported a finite state as `a0 = -inf`.
 pub(crate) fn undo_rk4_dispersion<T: Real>(p: StageParams<T>, step: T) -> StageParams<T> {
     let turn = p.a0 * step * step;
+    if !(turn < T::one() && -turn < T::one()) {
+        return p;
+    }
     let back = T::one() - turn * turn / T::of(60.0);
     StageParams { a0: p.a0 * back, b0: p.b0 * back, ..p }
 }
@@ -217,6 +225,20 @@ impl<T: Scalar> PeFloor<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The RK4 dispersion is undone for a resonance well below the sample rate, and an estimate beyond it is
+    /// reported as it is: finite in, finite out (a wild `a0` of 1e20 came out as `-inf`).
+    #[test]
+    fn the_dispersion_is_undone_only_where_its_series_holds() {
+        let t = 1e-4f32;
+        let stage = StageParams { a0: 9.21e6f32, a1: 86.8, b0: 1.07e6 };
+        let back = 1.0 - (9.21e6f32 * t * t).powi(2) / 60.0;
+        assert_eq!(undo_rk4_dispersion(stage, t), StageParams { a0: stage.a0 * back, b0: stage.b0 * back, ..stage });
+        for a0 in [1e8f32, 1e20, -1e20, f32::MAX] {
+            let wild = StageParams { a0, a1: -3e8, b0: 1e30 };
+            assert_eq!(undo_rk4_dispersion(wild, t), wild);
+        }
+    }
 
     /// A floor above zero starves on too little power or a single sinusoid, and reports it only while the user lets
     /// the estimator adapt; a floor of 0 turns both tests off.
