@@ -1,7 +1,9 @@
 //! Reading recorded runs: a CSV file with a header line naming at least the columns asked for (others ignored),
 //! uniformly sampled in `t`. Every problem is reported as `FILE:LINE: what` and nothing is guessed: a missing
-//! column, a field that is not a number, NaN or infinity, a row with the wrong number of fields, time that does
-//! not advance uniformly.
+//! column, one named twice, part of a group of columns that go together, a field that is not a number, NaN or
+//! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
+//! other tools write is read: a UTF-8 byte-order mark before the header, and fields in double quotes (`"t"`,
+//! `"0.5"`; a field never holds a comma here).
 
 use crate::cmd::{show, CliError};
 use std::io::Read;
@@ -168,19 +170,37 @@ impl Reader {
         }
         let header = std::str::from_utf8(&r.carry[..header_end])
             .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
-        let fields: Vec<String> = header.split(',').map(|f| f.trim().to_string()).collect();
+        // A spreadsheet's UTF-8 export starts with a byte-order mark, which would otherwise be part of the first name.
+        let header = header.strip_prefix('\u{feff}').unwrap_or(header);
+        let fields: Vec<String> = header.split(',').map(|f| unquote(f.trim()).to_string()).collect();
         let has = |name: &str| fields.iter().any(|f| f == name);
         let mut wanted: Vec<&str> = names.to_vec();
         if !wanted.contains(&"t") && (time == Time::Required || has("t")) {
             wanted.push("t");
         }
         r.required = wanted.len();
-        r.with_optional = !optional.is_empty() && optional.iter().all(|o| has(o));
+        let present: Vec<&str> = optional.iter().copied().filter(|o| has(o)).collect();
+        if !present.is_empty() && present.len() < optional.len() {
+            return Err(CliError(format!(
+                "{}:1: columns {} go together, the header has only {}",
+                r.shown,
+                optional.join(", "),
+                present.join(", ")
+            )));
+        }
+        r.with_optional = !optional.is_empty() && present.len() == optional.len();
         if r.with_optional {
             wanted.extend_from_slice(optional);
         }
         r.slot = vec![None; fields.len()];
         for (c, name) in wanted.iter().enumerate() {
+            let mut at = fields.iter().enumerate().filter(|(_, f)| f == name).map(|(i, _)| i + 1);
+            if let (Some(first), Some(second)) = (at.next(), at.next()) {
+                return Err(CliError(format!(
+                    "{}:1: column '{name}' named twice in the header (fields {first} and {second}): which one is meant?",
+                    r.shown
+                )));
+            }
             match fields.iter().position(|f| f == name) {
                 Some(i) => {
                     r.slot[i] = Some(c);
@@ -262,7 +282,10 @@ impl Reader {
         if lines.next().is_none() && (tail as usize) < len as usize {
             return None;
         }
-        std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim().parse().ok().filter(|t: &f64| t.is_finite())
+        unquote(std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim())
+            .parse()
+            .ok()
+            .filter(|t: &f64| t.is_finite())
     }
 
     /// The next block of rows, one vector per column (`None` at the end of the file).
@@ -406,7 +429,7 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
         let (mut count, mut start) = (0, 0);
         for end in ends {
             if let Some(c) = slot.get(count).copied().flatten() {
-                let text = line[start..end].trim_ascii();
+                let text = unquote(line[start..end].trim_ascii());
                 let v: f64 =
                     text.parse().map_err(|_| (line_no, format!("column '{}': '{text}' is not a number", names[c])))?;
                 if !v.is_finite() {
@@ -422,6 +445,11 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
         }
     }
     Ok(data)
+}
+
+/// A field without the double quotes around it, if it has them.
+fn unquote(field: &str) -> &str {
+    field.strip_prefix('"').and_then(|f| f.strip_suffix('"')).unwrap_or(field)
 }
 
 /// The line of `body` (counted from 1) that holds data row `row` (counted from 0; blank lines hold none).
@@ -534,5 +562,39 @@ mod tests {
         assert_eq!(read("t,u\n"), None, "no rows");
         let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
         assert!(e.0.ends_with("blank.csv: empty file (a header line naming u is needed)"), "{}", e.0);
+        assert_eq!(read("t,u\n\"0\",\"1\"\n\"0.5\",\"2\"\n"), Some(0.5), "quoted");
+    }
+
+    /// What a spreadsheet writes reads as the plain file does: a byte-order mark before the header, quoted names and
+    /// numbers, CRLF line ends.
+    #[test]
+    fn a_spreadsheets_export_reads_as_the_plain_file() {
+        let plain = read_columns(&file("plain.csv", "t,u,y\n0,1,2\n0.5,3,4\n"), &["u", "y"], Time::Required).unwrap();
+        for (name, text) in [
+            ("bom.csv", "\u{feff}t,u,y\n0,1,2\n0.5,3,4\n"),
+            ("quoted.csv", "\u{feff}\"t\",\"u\",\"y\"\r\n\"0\",\"1\",\"2\"\r\n\"0.5\",\"3\",\"4\"\r\n"),
+        ] {
+            let got = read_columns(&file(name, text), &["u", "y"], Time::Required).unwrap();
+            assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{name}");
+        }
+    }
+
+    /// A column named twice, or part of a group of columns that go together (the truth's `a0, a1, b0`), is refused,
+    /// not resolved by a guess.
+    #[test]
+    fn an_ambiguous_header_is_refused() {
+        let e = read_columns(&file("twice.csv", "t,u,y,u\n0,1,2,3\n"), &["u", "y"], Time::Required).unwrap_err();
+        assert!(
+            e.0.ends_with("twice.csv:1: column 'u' named twice in the header (fields 2 and 4): which one is meant?"),
+            "{}",
+            e.0
+        );
+        let part = |header: &str| {
+            let text = format!("{header}\n{}\n", vec!["1"; header.split(',').count()].join(","));
+            read_columns_optional(&file("part.csv", &text), &["u"], &["a0", "a1", "b0"], Time::IfPresent)
+        };
+        let e = part("u,a0,b0").unwrap_err();
+        assert!(e.0.ends_with("part.csv:1: columns a0, a1, b0 go together, the header has only a0, b0"), "{}", e.0);
+        assert!(part("u,b0,a1,a0").is_ok() && part("u").is_ok() && part("u,x").is_ok());
     }
 }
