@@ -1,6 +1,6 @@
 //! The run-time control protocol: one command per text line, parsed without allocation.
 //!
-//! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n` (a `\r` before it is ignored); words are separated by
+//! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n`, `\r` or `\r\n` (what a terminal's Enter sends); words are separated by
 //! spaces or tabs; numbers are decimal (`1`, `0.5`, `-2.5e-1`). Every line gets one answer: `ok ...` or
 //! `error: ...` naming what was wrong and where.
 //!
@@ -153,6 +153,8 @@ pub enum ParseError {
     Empty,
     /// Longer than [`MAX_LINE`] (the rest of the line was discarded).
     TooLong,
+    /// Bytes of the line were lost on the link (a receive error): refused whole, whatever arrived of it.
+    Damaged,
     /// A byte outside printable ASCII.
     NotAscii {
         /// Byte offset in the line.
@@ -186,6 +188,7 @@ impl core::fmt::Display for ParseError {
         match self {
             ParseError::Empty => write!(f, "empty line"),
             ParseError::TooLong => write!(f, "line longer than {MAX_LINE} bytes"),
+            ParseError::Damaged => write!(f, "bytes of this line were lost on the link: send it again"),
             ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
             ParseError::UnknownCommand => write!(
                 f,
@@ -377,28 +380,42 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
     Ok(parsed)
 }
 
-/// Collects bytes from a serial port into lines, without allocation. A line longer than [`MAX_LINE`] is reported
-/// once, as [`ParseError::TooLong`], and its rest discarded up to the next `\n`.
+/// Collects bytes from a serial port into lines, without allocation. A line ends at `\n`, at `\r` (a terminal's
+/// Enter: picocom, screen, PuTTY send it alone), or at both (`\r\n`, one line end). A line longer than [`MAX_LINE`]
+/// is reported once, as [`ParseError::TooLong`], and its rest discarded up to its end; a line that lost bytes on
+/// the link ([`LineBuffer::lost_bytes`]) is refused whole at its end, as [`ParseError::Damaged`].
 #[derive(Clone, Debug)]
 pub struct LineBuffer {
     buf: [u8; MAX_LINE],
     len: usize,
     overflowed: bool,
+    damaged: bool,
+    /// The last byte ended a line with `\r`: a `\n` right after it belongs to that line end.
+    after_cr: bool,
 }
 
 impl Default for LineBuffer {
     fn default() -> Self {
-        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false }
+        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false, damaged: false, after_cr: false }
     }
 }
 
 impl LineBuffer {
     /// Feed one byte; at the end of a line, the parsed command (or why not).
     pub fn push(&mut self, byte: u8) -> Option<Result<Command, ParseError>> {
-        if byte == b'\n' {
-            let result = if self.overflowed { Err(ParseError::TooLong) } else { parse(&self.buf[..self.len]) };
-            self.len = 0;
-            self.overflowed = false;
+        let after_cr = core::mem::replace(&mut self.after_cr, byte == b'\r');
+        if byte == b'\n' && after_cr {
+            return None;
+        }
+        if byte == b'\n' || byte == b'\r' {
+            let result = if self.overflowed {
+                Err(ParseError::TooLong)
+            } else if self.damaged {
+                Err(ParseError::Damaged)
+            } else {
+                parse(&self.buf[..self.len])
+            };
+            (self.len, self.overflowed, self.damaged) = (0, false, false);
             return Some(result);
         }
         if self.len < MAX_LINE {
@@ -408,6 +425,14 @@ impl LineBuffer {
             self.overflowed = true;
         }
         None
+    }
+
+    /// The link lost bytes (a receive error: overrun, framing, noise): the line in progress, whatever else of it
+    /// arrives, is refused at its end. Executing what arrived could run another command than was sent (`excite prbs
+    /// 1.5` without its `.5`).
+    pub fn lost_bytes(&mut self) {
+        self.damaged = true;
+        self.after_cr = false;
     }
 }
 
@@ -545,5 +570,36 @@ mod tests {
         feed(&[b'x'; 300]);
         feed(b"\nstop\n");
         assert_eq!(out, [Ok(Command::Start), Ok(Command::Status), Err(ParseError::TooLong), Ok(Command::Stop)]);
+    }
+
+    /// A terminal's Enter sends `\r` alone (picocom, screen, PuTTY), `\r\n`, or `\n`: each ends one line, also
+    /// when the `\r\n` arrives split across two reads. `\n\r` is two line ends (the second an empty line).
+    #[test]
+    fn every_terminals_line_end_ends_one_line() {
+        let mut lb = LineBuffer::default();
+        let mut out = std::vec::Vec::new();
+        for piece in [&b"start\rstop\r\nstatus\n"[..], b"stop\r", b"\nstart\n\r"] {
+            out.extend(piece.iter().filter_map(|&b| lb.push(b)));
+        }
+        use Command::{Start, Status, Stop};
+        assert_eq!(out, [Ok(Start), Ok(Stop), Ok(Status), Ok(Stop), Ok(Start), Err(ParseError::Empty)]);
+    }
+
+    /// Bytes lost on the link: the line they belonged to is refused whole at its end, not executed as what
+    /// arrived of it; the next line is read as usual.
+    #[test]
+    fn a_line_that_lost_bytes_is_refused_whole() {
+        let mut lb = LineBuffer::default();
+        fn feed(lb: &mut LineBuffer, bytes: &[u8]) -> std::vec::Vec<Result<Command, ParseError>> {
+            bytes.iter().filter_map(|&b| lb.push(b)).collect()
+        }
+        assert!(feed(&mut lb, b"excite prbs 1").is_empty());
+        lb.lost_bytes();
+        assert_eq!(feed(&mut lb, b"\n"), [Err(ParseError::Damaged)]);
+        assert_eq!(feed(&mut lb, b"status\n"), [Ok(Command::Status)]);
+        // Lost between lines: the next one is the damaged one.
+        lb.lost_bytes();
+        assert_eq!(feed(&mut lb, b"atus\r\nstop\r\n"), [Err(ParseError::Damaged), Ok(Command::Stop)]);
+        assert_eq!(std::format!("{}", ParseError::Damaged), "bytes of this line were lost on the link: send it again");
     }
 }

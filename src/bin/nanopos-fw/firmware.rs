@@ -161,7 +161,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
             embassy_futures::select::Either::First(Ok(n)) => n,
             embassy_futures::select::Either::First(Err(e)) => {
                 defmt::warn!("console: receive error {} (bytes lost; the line in progress is refused)", e);
-                line.push(b'\n');
+                line.lost_bytes();
                 0
             }
             embassy_futures::select::Either::Second(()) => 0,
