@@ -1,8 +1,8 @@
 //! The run-time control protocol: one command per text line, parsed without allocation.
 //!
-//! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n`, `\r` or `\r\n` (what a terminal's Enter sends); words are separated by
-//! spaces or tabs; numbers are decimal (`1`, `0.5`, `-2.5e-1`). Every line gets one answer: `ok ...` or
-//! `error: ...` naming what was wrong and where.
+//! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n`, `\r` or `\r\n` (what a terminal's Enter sends);
+//! words are separated by spaces or tabs; numbers are decimal (`1`, `0.5`, `-2.5e-1`). Every line gets one answer:
+//! `ok ...` or `error: ...` naming what was wrong and where.
 //!
 //! | command | meaning |
 //! |---|---|
