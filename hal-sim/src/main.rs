@@ -171,6 +171,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Decode { input, out, recording, segments } => {
             use hal_sim::cmd::decode::{self, Damage};
+            use hal_sim::cmd::{identify, show};
             let damage = if segments { Damage::Skip } else { Damage::Refuse };
             let (rec, files) = decode::run(&input, &out, recording, damage)?;
             let rate = rec.header.rate_hz;
@@ -194,6 +195,18 @@ fn run(cli: Cli) -> Result<(), CliError> {
                         seg.first_index
                     ),
                 }
+            }
+            // `identify` discounts the input's DAC steps; a board whose front end differs from the firmware's default
+            // has steps of another size, which the header says and the CSV does not carry.
+            let (step, assumed) = (rec.header.u_v_per_code.abs(), identify::default_dac_step_v());
+            if (step / assumed - 1.0).abs() > 1e-9 {
+                eprintln!(
+                    "nanopos-sim: note: this board's DAC steps by {} V, not the {} V identify assumes: give it \
+                     --dac-step {}",
+                    show(step),
+                    show(assumed),
+                    show(step)
+                );
             }
             match rec.ended {
                 Some(true) => eprintln!(

@@ -192,6 +192,23 @@ fn decode_turns_a_capture_into_the_csv_identify_reads() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// A board whose DAC steps by another size than the firmware's default (its front end changed in `board.rs`): `decode`
+/// says what `--dac-step` to give `identify`, which cannot tell from the CSV; with the default it says nothing.
+#[test]
+fn decode_says_when_identify_needs_the_boards_dac_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let default = capture(100, 0);
+    let other = default.replacen("u_v_per_code=0.0048828125", "u_v_per_code=0.009765625", 1);
+    assert_ne!(default, other);
+    for (text, note) in [(default, None), (other, Some("note: this board's DAC steps by 0.009765625 V, not the 0.0048828125 V identify assumes: give it --dac-step 0.009765625"))] {
+        std::fs::write(dir.path().join("cap.txt"), text).unwrap();
+        let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{stderr}");
+        assert_eq!(stderr.lines().find(|l| l.contains("DAC steps")).map(|l| l.trim_start_matches("nanopos-sim: ")), note, "{stderr}");
+    }
+}
+
 /// `decode` does not write over its capture: not as `--out`, not as one of the segments' files.
 #[test]
 fn decode_never_replaces_its_capture() {

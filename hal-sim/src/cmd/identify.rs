@@ -98,6 +98,13 @@ pub struct Identified {
     pub windows: Vec<(Window, Vec<WindowFigures>, Option<WindowFigures>)>,
 }
 
+/// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
+/// the firmware's (3.3 V / 4096 / 0.165, 4.88 mV).
+pub fn default_dac_step_v() -> f64 {
+    let board = SimBoard::new(Default::default());
+    PipelineSettings::default().design::<f64>(&board.description()).map_or(f64::NAN, |c| c.command_lsb_v)
+}
+
 /// Parse `--estimators`.
 pub fn parse_estimators(list: &str) -> Result<Vec<&'static str>, CliError> {
     let mut out = Vec::new();
