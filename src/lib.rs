@@ -33,9 +33,10 @@ pub mod text;
 pub use params::StageParams;
 pub use scalar::{Real, Scalar};
 
-/// A xorshift64 stream from `seed` for the unit tests' random operands: fast, deterministic, no dependency.
-#[cfg(test)]
-pub(crate) fn xorshift64(mut seed: u64) -> impl FnMut() -> u64 {
+/// A xorshift64 stream from `seed` (not zero): the tests' random operands, inputs and command lines, fast,
+/// deterministic, no dependency. Not for anything that needs statistical quality (the simulated board's noise is
+/// `hal_sim::noise`).
+pub fn xorshift64(mut seed: u64) -> impl FnMut() -> u64 {
     move || {
         seed ^= seed << 13;
         seed ^= seed >> 7;

@@ -107,16 +107,6 @@ impl Lab {
     }
 }
 
-/// A xorshift64 stream from `seed`: the random lines of the tests, deterministic.
-fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
-    move || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        seed
-    }
-}
-
 /// The last line of a reply.
 fn verdict(reply: &str) -> &str {
     reply.lines().last().unwrap_or("")
@@ -402,7 +392,7 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     assert!(r.starts_with("error: line longer than 96 bytes"), "{r}");
 
     // Noise on the line: every line gets exactly one final answer, nothing panics.
-    let mut next = xorshift(0x2545_F491_4F6C_DD1D);
+    let mut next = nanopos_id::xorshift64(0x2545_F491_4F6C_DD1D);
     let words = [
         "status", "excite", "prbs", "sine", "1", "-3", "1e3", "x", "select", "all", "hekf,rls", "limits", "record",
         "burst", "0.5", ",", "\t", "\u{1}",
@@ -1087,7 +1077,7 @@ const SINE: &str =
 #[test]
 fn a_random_session_of_commands_keeps_every_promise() {
     let mut lab = Lab::new();
-    let mut next = xorshift(0x9E37_79B9_7F4A_7C15);
+    let mut next = nanopos_id::xorshift64(0x9E37_79B9_7F4A_7C15);
     let nums = [
         "1", "0", "-0", "-1", "2", "10", "-10", "11", "0.5", "1e3", "1e-3", "450", "100", "1000", "5000", "1e6", "5e5",
         "70", "6e6", "nan", "inf", "-inf", "1e39", "1e-45", "1e-30", "3.4e38", "0.1", "0.9999", "1.5e-6", "1e-12",

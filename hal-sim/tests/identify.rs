@@ -182,12 +182,10 @@ fn a_tuning_is_checked_at_its_records_sample_rate() {
 fn a_diverged_estimate_is_null_in_the_summary() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = nanopos_id::xorshift64(0x9E37_79B9_7F4A_7C15);
     let mut csv = String::from("t,u,y\n");
     for k in 0..20_000 {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
+        let seed = next();
         csv += &format!("{},{},1e30\n", k as f64 * 1e-4, if seed & 1 == 0 { 1 } else { -1 });
     }
     std::fs::write(d.join("pinned.csv"), csv).unwrap();

@@ -193,11 +193,9 @@ mod tests {
         let path = dir.path().join("arx.csv");
         let (mut u, mut y) = (Vec::new(), Vec::new());
         let mut text = String::from("t,u,y\n");
-        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = nanopos_id::xorshift64(0x9E37_79B9_7F4A_7C15);
         for k in 0..400_000usize {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
+            let seed = next();
             let uk = if seed & 1 == 0 { 1.0 } else { -1.0 };
             let noise = ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 1e-3;
             let yk =
