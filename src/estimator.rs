@@ -234,7 +234,7 @@ impl Adaptation {
     }
 }
 
-/// An estimator's health report.
+/// An estimator's health report. The counts saturate at `u32::MAX` (a count a sample reaches it after five days).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct Health {

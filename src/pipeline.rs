@@ -486,7 +486,7 @@ impl core::ops::BitOrAssign for Faults {
     }
 }
 
-/// Counts of fault events since start.
+/// Counts of fault events since start. Each saturates at `u32::MAX` (a count a sample reaches it after five days).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct FaultCounters {
@@ -507,7 +507,7 @@ pub struct FaultCounters {
     /// the clamp moved the hybrid filter by 1.7 % in half a second and 1.6 % more by 10 s (0.06 % and 0.3 % with the
     /// second mode switched off; `hal-sim/tests/ekf_health.rs`).
     /// A step of the command (`excite constant 5` from rest) counts a sample or two; a count that keeps climbing
-    /// means the excitation does not fit the limits. Saturates at `u32::MAX`.
+    /// means the excitation does not fit the limits.
     pub limited: u32,
 }
 
@@ -639,7 +639,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         };
         if !target.is_finite() {
             self.faults |= Faults::COMMAND_NOT_FINITE;
-            self.counters.command_not_finite += 1;
+            self.counters.command_not_finite = self.counters.command_not_finite.saturating_add(1);
             target = cfg.safe_v;
         }
         let clamped = fmin(fmax(target, cfg.min_v), cfg.max_v);
@@ -674,15 +674,15 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     fn check_probe(&mut self, cfg: &PipelineConfig<T>, code: u32, external_moved: bool) {
         if code < cfg.probe_low_code || code > cfg.probe_high_code {
             self.faults |= Faults::PROBE_OVER_RANGE;
-            self.counters.probe_over_range += 1;
+            self.counters.probe_over_range = self.counters.probe_over_range.saturating_add(1);
         }
         // Stuck: the code does not move although the command did (a constant command legitimately gives a
         // constant reading once the noise is below one code).
         if code == self.last_probe_code && (external_moved || cfg.excitation.is_active()) {
-            self.same_code_run += 1;
-            if self.same_code_run + 1 == cfg.stuck_samples {
+            self.same_code_run = self.same_code_run.saturating_add(1);
+            if self.same_code_run.saturating_add(1) == cfg.stuck_samples {
                 self.faults |= Faults::PROBE_STUCK;
-                self.counters.probe_stuck += 1;
+                self.counters.probe_stuck = self.counters.probe_stuck.saturating_add(1);
             }
         } else {
             self.same_code_run = 0;
@@ -712,8 +712,8 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
 
     /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
     pub fn count_board_faults(&mut self, f: BoardFaults) {
-        self.counters.deadline_misses += f.deadline_missed as u32;
-        self.counters.adc_overruns += f.adc_overrun as u32;
+        self.counters.deadline_misses = self.counters.deadline_misses.saturating_add(f.deadline_missed as u32);
+        self.counters.adc_overruns = self.counters.adc_overruns.saturating_add(f.adc_overrun as u32);
     }
 
     /// Latched faults.

@@ -259,7 +259,7 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
             && rls.trace().is_finite();
         if !ok {
             self.reset();
-            self.health.numeric_resets += 1;
+            self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);
         }
     }
 

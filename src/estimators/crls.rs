@@ -301,7 +301,7 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();
-            self.health.numeric_resets += 1;
+            self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);
         }
     }
 

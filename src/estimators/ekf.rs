@@ -811,7 +811,7 @@ impl<T: Real> EkfCore<T> {
                     self.p[idx(i, j)] = T::zero();
                 }
                 self.p[idx(i, i)] = self.cfg.p_floor[i];
-                *repairs += 1;
+                *repairs = repairs.saturating_add(1);
             }
         }
         for i in 2..5 {
@@ -854,7 +854,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
         if !(u.is_finite() && s.y_f.value.is_finite()) {
             // Caught at the door: nothing non-finite reaches the state or the stored previous sample.
             self.reset_state();
-            self.health.numeric_resets += 1;
+            self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);
             return;
         }
         let adapt = self.core.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
@@ -883,7 +883,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             }
         } else {
             self.gated_run += 1;
-            self.health.rejected_samples += 1;
+            self.health.rejected_samples = self.health.rejected_samples.saturating_add(1);
             // Not an outlier: the plant changed.
             (self.gated_run >= change_samples).then_some(false)
         };
@@ -899,7 +899,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
                 self.ramp = 0;
                 self.core.reopen_states();
             }
-            self.health.changes_detected += 1;
+            self.health.changes_detected = self.health.changes_detected.saturating_add(1);
             self.gated_run = 0;
             self.holdoff = holdoff_samples;
             self.drift_wait = drift_wait_samples;
@@ -911,7 +911,7 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
         self.core.bound_covariance(&mut self.health.covariance_repairs);
         if !self.core.healthy() {
             self.reset_state();
-            self.health.numeric_resets += 1;
+            self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);
         }
         self.u_prev = u;
         self.y_prev = s.y_f.value;

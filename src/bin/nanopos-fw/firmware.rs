@@ -326,7 +326,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 );
             }
         }
-        if news.deadline_misses + news.adc_overruns > 0 {
+        if news.deadline_misses > 0 || news.adc_overruns > 0 {
             defmt::warn!("deadline misses={=u32} adc overruns={=u32}", c.deadline_misses, c.adc_overruns);
         }
         if news.limiting {
