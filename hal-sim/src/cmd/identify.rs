@@ -150,14 +150,25 @@ pub fn identify_in<T: Real>(
     tuning: &Tuning,
     windows: &[Window],
 ) -> Result<Identified, CliError> {
-    let record = Stream {
-        source: rec.source,
-        last_t: rec.t.last().copied(),
-        has_truth: rec.truth.is_some(),
-        progress_total: rec.t.len() as u64,
-        dac_step_v: None,
-    };
-    identify_blocks::<T>(&record, names, &TuningArg::from(*tuning), windows, rec.blocks(1 << 16))
+    let (rows, last_t, has_truth) = (rec.t.len() as u64, rec.t.last().copied(), rec.truth.is_some());
+    identify_streamed::<T>(rec.source, rows, last_t, has_truth, names, tuning, windows, rec.blocks(1 << 16))
+}
+
+/// Identify on a record that arrives in blocks (the columns `u`, `y`, `t`, then the truth's `a0`, `a1`, `b0` if
+/// `has_truth`; each block with the row it reaches), `rows` in all, the last at `last_t`: the record is never held.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn identify_streamed<T: Real>(
+    source: &str,
+    rows: u64,
+    last_t: Option<f64>,
+    has_truth: bool,
+    names: &[&'static str],
+    tuning: &Tuning,
+    windows: &[Window],
+    blocks: impl Iterator<Item = Result<(Vec<Vec<f64>>, u64), CliError>>,
+) -> Result<Identified, CliError> {
+    let record = Stream { source, last_t, has_truth, progress_total: rows, dac_step_v: None };
+    identify_blocks::<T>(&record, names, &TuningArg::from(*tuning), windows, blocks)
 }
 
 impl<'a> Recording<'a> {

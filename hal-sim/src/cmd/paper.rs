@@ -7,15 +7,19 @@
 //! payload change (a0 and b0 back within 1 % of the truth, for good) and the settling time (a0 and b0 within 3 %
 //! of their own means over the last window, for good: what can be measured without the truth, and what shows the
 //! relock where the model cannot reach the truth, as on the triangle, whose b0 the board's second mode biases by
-//! +2.9 %; 3 % because the triangle's estimates wander up to 1.4 % about their mean). Writes each run's `simulate` CSV, `EST.csv` and `SUMMARY.json`
-//! into `DIR` (default `paper-out`).
+//! +2.9 %; 3 % because the triangle's estimates wander up to 1.4 % about their mean). Writes each input's
+//! `SUMMARY.json` and plot into `DIR` (default `paper-out`): `prbs-summary.json`, `prbs.svg`, and the triangle's.
+//!
+//! The simulation is not held: it runs a block of rows at a time, each fed to both precisions' identifications at
+//! once (the one-hour run peaked at 4.6 GB when the records were held whole).
 
-use super::identify::{identify_in, summary_json, Identified, Recording};
+use super::identify::{identify_streamed, summary_json, Identified};
 use super::{fail, CliError, OutputFile};
 use crate::bank::{Tuning, NAMES};
 use crate::sim::{Scenario, Simulation};
 use std::io::Write;
 use std::path::Path;
+use std::sync::{mpsc, Arc};
 
 /// One input's runs.
 pub struct PaperRun {
@@ -62,20 +66,52 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
     Ok(runs)
 }
 
-/// `scenario` simulated and identified in f64 and f32 with the tuning preset `input`.
+/// Rows of the simulated record per block (as `identify` reads a file's).
+const BLOCK_ROWS: usize = 1 << 16;
+
+/// A block of the simulated record (the columns of [`block`]) and the row it reaches.
+type Block = Arc<(Vec<Vec<f64>>, u64)>;
+
+/// `scenario` simulated and identified in f64 and f32 with the tuning preset `input`: the simulation a block at a
+/// time, on a thread of its own, each block to both identifications.
 fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(Identified, Identified), CliError> {
-    let Simulated { t, u, y, truth } = simulate(scenario, duration_s)?;
+    let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
+    let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+    let n = (duration_s * 1e4).round() as usize;
+    // The last row's time as the simulation stamps it, known before the rows (the default windows need it).
+    let last_t = n.checked_sub(1).map(|k| k as f64 * sim.config.sample_period_s);
     let source = format!("paper/{input}");
-    let rec = Recording { source: &source, t: &t, u: &u, y: &y, truth: Some(&truth) };
     let tuning = Tuning::preset(input).expect("preset exists");
+    let (to64, from64) = mpsc::sync_channel::<Block>(2);
+    let (to32, from32) = mpsc::sync_channel::<Block>(2);
+    let identify = |from: mpsc::Receiver<Block>, f32: bool| {
+        let blocks = from.into_iter().map(|b| Ok(b.as_ref().clone()));
+        let (rows, names) = (n as u64, &NAMES[..]);
+        if f32 {
+            identify_streamed::<f32>(&source, rows, last_t, true, names, &tuning, &[], blocks)
+        } else {
+            identify_streamed::<f64>(&source, rows, last_t, true, names, &tuning, &[], blocks)
+        }
+    };
     std::thread::scope(|s| {
-        let r32 = s.spawn(|| identify_in::<f32>(&rec, &NAMES, &tuning, &[]));
-        let r64 = identify_in::<f64>(&rec, &NAMES, &tuning, &[]);
+        s.spawn(move || {
+            for start in (0..n).step_by(BLOCK_ROWS) {
+                let end = (start + BLOCK_ROWS).min(n);
+                let b: Block = Arc::new((block(&mut sim, end - start), end as u64));
+                // An identification that stopped (an error) closed its end: so does the simulation.
+                if to64.send(b.clone()).is_err() || to32.send(b).is_err() {
+                    break;
+                }
+            }
+        });
+        let r32 = s.spawn(move || identify(from32, true));
+        let r64 = identify(from64, false);
         Ok((r64?, r32.join().expect("an identification does not panic")?))
     })
 }
 
-/// One simulated run: time, command, reading, and the truth's `a0`, `a1`, `b0` (the columns `identify` reads).
+/// One simulated run, held (for tests): time, command, reading, and the truth's `a0`, `a1`, `b0`.
+#[cfg(test)]
 pub(crate) struct Simulated {
     pub(crate) t: Vec<f64>,
     pub(crate) u: Vec<f64>,
@@ -83,27 +119,25 @@ pub(crate) struct Simulated {
     pub(crate) truth: Vec<Vec<f64>>,
 }
 
-/// The stage under `scenario` for `duration_s`, payload removed at half time.
-fn simulate(scenario: Scenario, duration_s: f64) -> Result<Simulated, CliError> {
-    let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
-    let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
-    Ok(record(&mut sim, (duration_s * 1e4).round() as usize))
+/// `n` samples of `sim`, recorded.
+#[cfg(test)]
+pub(crate) fn record(sim: &mut Simulation<()>, n: usize) -> Simulated {
+    let mut c = block(sim, n).into_iter();
+    let mut next = || c.next().expect("six columns");
+    let (u, y, t) = (next(), next(), next());
+    Simulated { t, u, y, truth: vec![next(), next(), next()] }
 }
 
-/// `n` samples of `sim`, recorded.
-pub(crate) fn record(sim: &mut Simulation<()>, n: usize) -> Simulated {
-    let (mut t, mut u, mut y) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-    let mut truth: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
+/// The next `n` samples of `sim` as the columns `identify` reads: `u`, `y`, `t`, and the truth's `a0`, `a1`, `b0`.
+fn block(sim: &mut Simulation<()>, n: usize) -> Vec<Vec<f64>> {
+    let mut c: Vec<Vec<f64>> = (0..6).map(|_| Vec::with_capacity(n)).collect();
     for _ in 0..n {
         let (r, _) = sim.step();
-        t.push(r.t_s);
-        u.push(r.u_v);
-        y.push(r.y_um);
-        truth[0].push(r.truth.a0);
-        truth[1].push(r.truth.a1);
-        truth[2].push(r.truth.b0);
+        for (col, x) in c.iter_mut().zip([r.u_v, r.y_um, r.t_s, r.truth.a0, r.truth.a1, r.truth.b0]) {
+            col.push(x);
+        }
     }
-    Simulated { t, u, y, truth }
+    c
 }
 
 /// The table.
