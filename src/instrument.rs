@@ -184,13 +184,14 @@ impl<T: Real> Instrument<T> {
     // `isr_body_applying_change`), at 2.5 cycles each from the flash.
     #[cfg_attr(target_os = "none", link_section = ".ramtext.apply_pending")]
     fn apply_pending(&mut self) {
-        let Some(c) = self.pending.take() else { return };
-        if let Some(cfg) = c.config {
-            self.config = cfg;
+        // Read in place, not taken out of the mailbox: `take` copied the whole change (1 KiB) first.
+        let Some(c) = &self.pending else { return };
+        if let Some(cfg) = &c.config {
+            self.config = *cfg;
         }
         let bank = &mut self.pipeline.estimators;
-        if let Some(t) = c.tuning {
-            *bank = full_bank(&t);
+        if let Some(t) = &c.tuning {
+            *bank = full_bank(t);
         }
         control(bank, c.reset, Op::Reset);
         control(bank, c.freeze, Op::Freeze);
@@ -207,6 +208,7 @@ impl<T: Real> Instrument<T> {
                 self.record = RecordStatus { active: true, remaining: burst, ..RecordStatus::default() };
             }
         }
+        self.pending = None;
     }
 
     fn record_sample(&mut self, s: RawSample) {
