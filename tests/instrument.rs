@@ -1066,14 +1066,15 @@ const SINE: &str =
 
 /// A long random session at the console, as a user in a hurry (or a noisy link) would type it: commands of every
 /// verb with numbers from everyday to absurd (`nan`, `inf`, `1e39`, `1e-45`, huge counts), interleaved with runs of
-/// samples, and now and then a probe fault. What must hold throughout: every line gets exactly one final `ok` or
-/// `error:`; every DAC code is in range and every command finite within -10 to 10 V; every estimate finite; after
-/// `stop` or a fault the output is at its safe value within 0.1 s; once a change has had 0.2 s to ramp in, the output
-/// is inside the clamp in force. Found so far: a slew
+/// samples, now and then with an external command added (steady, following the probe, huge or not finite), and now
+/// and then a probe fault. What must hold throughout: every line gets exactly one final `ok` or `error:`; every DAC
+/// code is in range and every command finite within -10 to 10 V; every estimate finite; after `stop` (without an
+/// external command, which `stop` does not stop) or a fault the output is at its safe value within 0.1 s; once a
+/// change has had 0.2 s to ramp in, the output is inside the clamp in force. Found so far: a slew
 /// limit of 1e-30 V/s accepted (the output then never went safe), and, 22 000 lines into a longer run, the continuous
 /// EKF's `a0 = -inf` from a finite state (its RK4 dispersion correction, applied to an estimate gone wild on a
 /// pre-filter tuned to ring for ever, `tune prefilter 25 0.5 1e-45`). 1.2 million lines over four seeds then held,
-/// and 0.9 million with the probe faults, over three.
+/// and 0.9 million with the probe faults and the external commands, over three.
 #[test]
 fn a_random_session_of_commands_keeps_every_promise() {
     let mut lab = Lab::new();
@@ -1170,8 +1171,23 @@ fn a_random_session_of_commands_keeps_every_promise() {
         }
         let samples = if last.starts_with("ok stop") { 1002 } else { (next() % 300) as usize };
         session.push(format!("{line:?} -> {last}, {samples} samples"));
+        // Now and then a run with an external command added (a controller's or a scan's; `sample_adding`): a
+        // steady one, one that follows the probe, or one that is not finite (a fault: the output goes safe).
+        let external = match next() % 8 {
+            0 => Some((next() % 4, [0.5f32, -3.0, 1e30, f32::NAN][(next() % 4) as usize])),
+            _ => None,
+        };
+        if let Some((kind, level)) = external {
+            session.push(format!("external command kind {kind} level {level}"));
+        }
         for _ in 0..samples {
-            let o = lab.sample();
+            let o = match external {
+                Some((0, level)) => lab.isr.sample_adding(&mut lab.board, |_| level),
+                Some((1, level)) => lab.isr.sample_adding(&mut lab.board, |y_um| -0.05 * y_um + level.min(1.0)),
+                Some((2, _)) => lab.isr.sample_adding(&mut lab.board, |y_um| 1e3 * y_um),
+                Some(_) => lab.isr.sample_adding(&mut lab.board, |_| f32::INFINITY),
+                None => lab.sample(),
+            };
             since_change += 1;
             assert!(
                 o.dac_code <= 4095 && o.u_v.is_finite() && o.u_v.abs() <= 10.0 + lsb,
@@ -1188,7 +1204,8 @@ fn a_random_session_of_commands_keeps_every_promise() {
                 );
             }
         }
-        if last.starts_with("ok stop") {
+        // `stop` stops the excitation, not an external command: with one, the output follows it.
+        if last.starts_with("ok stop") && external.is_none() {
             assert!(lab.isr.status().command_v.abs() <= lsb / 2.0, "not safe 0.1 s after stop\n{}", recent(&session));
         }
         // Now and then the probe goes over range: the fault latches, and 0.1 s later the output is safe whatever the
