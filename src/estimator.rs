@@ -284,7 +284,11 @@ pub trait Estimator<T: Real> {
     fn update(&mut self, sample: &FilteredSample<T>);
     /// The current estimate.
     fn params(&self) -> StageParams<T>;
-    /// Covariance of the estimate, rows and columns in the order `(a0, a1, b0)`.
+    /// Covariance of the estimate, rows and columns in the order `(a0, a1, b0)`. The filter's own, not an error
+    /// bar: for the EKFs it tells a rich input from a poor one, but on a poor one the error can be many times its
+    /// square root (hybrid EKF, a0: 1.7 % against an error of 14 % on a 50-150 Hz multisine;
+    /// `tests/instrument.rs`, `the_ekfs_covariance_is_no_error_bar`). The RLS's and the ARX's are not scaled by
+    /// the noise at all.
     fn param_covariance(&self) -> [[T; 3]; 3];
     /// Back to the initial parameters and covariance.
     fn reset(&mut self);

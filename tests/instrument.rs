@@ -979,6 +979,31 @@ fn a_multisine_passes_the_excitation_monitor_only_wide_and_low_enough() {
     }
 }
 
+/// The EKFs' parameter covariance is no error bar. It tells a well-excited stage from a poorly excited one (the hybrid
+/// filter's standard deviation of a0 after 20 s: 0.065 % on the PRBS, 1.7 % on a 50-150 Hz multisine), but it does
+/// not bound the error: on the PRBS the estimate is well inside it (0.009 %: the random-walk `Q` keeps the
+/// covariance open), on the low multisine eight times beyond it (14 %: the filter is overconfident where the input
+/// carries little of a0). A controller built on the estimates should not take `sqrt(P)` for their accuracy.
+#[test]
+fn the_ekfs_covariance_is_no_error_bar() {
+    let measure = |excitation: &str| {
+        let mut lab = Lab::new();
+        assert!(verdict(&lab.send(&format!("excite {excitation}\n"))).starts_with("ok"));
+        lab.run(200_000);
+        let e = &lab.isr.pipeline.estimators;
+        let (p, c) = (e.2.params(), e.2.param_covariance());
+        let sd = (c[0][0] as f64).sqrt() / p.a0 as f64;
+        let err = (p.a0 as f64 / StageParams::PAYLOAD.a0 - 1.0).abs();
+        println!("hekf after 20 s of {excitation}: a0's sd {:.3} %, its error {:.3} %", sd * 100.0, err * 100.0);
+        (sd, err)
+    };
+    let (sd_rich, err_rich) = measure("prbs 1");
+    let (sd_poor, err_poor) = measure("multisine 1 50 150");
+    assert!(sd_poor > 10.0 * sd_rich, "the covariance tells the inputs apart");
+    assert!(err_rich < sd_rich, "well inside it on the PRBS");
+    assert!(err_poor > 4.0 * sd_poor, "far beyond it on the low multisine");
+}
+
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
 /// limits: beyond the clamp (the sine's and PRBS's extent exact, the multisine's from its 1.36 `A` bound), or with
 /// steps steeper than the slew limit (the PRBS's and the sine's). Where the note says so, the limits then change
