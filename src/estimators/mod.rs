@@ -154,9 +154,9 @@ pub fn full_bank<T: Real>(cfg: &TuningConfig<T>) -> FullBank<T> {
 /// gain `b0 / a0` was right). For reporting, not the sample path.
 ///
 /// Only where the series holds, a resonance well below the sample rate (`a0 step^2` 0.07 for the paper's stage):
-/// from `a0 step^2 = 1` (`f0 = fs / 2 pi`) on the estimate is reported as it is. Applied to an estimate gone wild
-/// (a0 near 1e15 on a pre-filter tuned to ring for ever, in a random console session), the correction overflowed and
-/// reported a finite state as `a0 = -inf`.
+/// from `a0 step^2 = 1` (`f0 = fs / 2 pi`) on the estimate is reported as it is. Applied to an estimate gone wild (on
+/// a pre-filter tuned to ring for ever, in a random console session), the correction overflowed f32 and reported a
+/// finite state as `a0 = -inf` (from an `a0` of about 1e20 on).
 pub(crate) fn undo_rk4_dispersion<T: Real>(p: StageParams<T>, step: T) -> StageParams<T> {
     let turn = p.a0 * step * step;
     if !(turn < T::one() && -turn < T::one()) {
