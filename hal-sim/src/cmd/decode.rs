@@ -202,7 +202,6 @@ pub fn run(
     which: usize,
     damage: Damage,
 ) -> Result<(Recording, Vec<Option<std::path::PathBuf>>), CliError> {
-    super::check_distinct(&[("--input", input)], &[("--out", out)])?;
     let name = input.display().to_string();
     let bytes = std::fs::read(input).map_err(|e| CliError(format!("{name}: cannot read: {}", io_reason(&e))))?;
     // Captures can hold noise from before the link settled: decode what is text, the frames carry their checksums.
@@ -222,6 +221,7 @@ pub fn run(
             Damage::Refuse => out.to_path_buf(),
             Damage::Skip => segment_path(out, files.len() + 1),
         };
+        // Each file written, not `out` itself: with `--segments` no file takes that name.
         super::check_distinct(&[("--input", input)], &[("--out", &path)])?;
         let mut file = OutputFile::create(&path)?;
         let result = (|| -> std::io::Result<()> {
