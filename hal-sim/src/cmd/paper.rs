@@ -17,6 +17,7 @@ use super::identify::{identify_streamed, summary_json, Identified};
 use super::{fail, CliError, OutputFile};
 use crate::bank::{Tuning, NAMES};
 use crate::sim::{Scenario, Simulation};
+use nanopos_id::Real;
 use std::io::Write;
 use std::path::Path;
 use std::sync::{mpsc, Arc};
@@ -84,15 +85,17 @@ fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(I
     let tuning = Tuning::preset(input).expect("preset exists");
     let (to64, from64) = mpsc::sync_channel::<Block>(2);
     let (to32, from32) = mpsc::sync_channel::<Block>(2);
-    let identify = |from: mpsc::Receiver<Block>, f32: bool| {
+    // Every estimator, the preset, the default windows, on the blocks as they come.
+    fn identify<T: Real>(
+        from: mpsc::Receiver<Block>,
+        source: &str,
+        rows: usize,
+        last_t: Option<f64>,
+        tuning: &Tuning,
+    ) -> Result<Identified, CliError> {
         let blocks = from.into_iter().map(|b| Ok(b.as_ref().clone()));
-        let (rows, names) = (n as u64, &NAMES[..]);
-        if f32 {
-            identify_streamed::<f32>(&source, rows, last_t, true, names, &tuning, &[], blocks)
-        } else {
-            identify_streamed::<f64>(&source, rows, last_t, true, names, &tuning, &[], blocks)
-        }
-    };
+        identify_streamed::<T>(source, rows as u64, last_t, true, &NAMES, tuning, &[], blocks)
+    }
     std::thread::scope(|s| {
         s.spawn(move || {
             for start in (0..n).step_by(BLOCK_ROWS) {
@@ -104,8 +107,8 @@ fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(I
                 }
             }
         });
-        let r32 = s.spawn(move || identify(from32, true));
-        let r64 = identify(from64, false);
+        let r32 = s.spawn(|| identify::<f32>(from32, &source, n, last_t, &tuning));
+        let r64 = identify::<f64>(from64, &source, n, last_t, &tuning);
         Ok((r64?, r32.join().expect("an identification does not panic")?))
     })
 }
