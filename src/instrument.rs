@@ -17,7 +17,7 @@
 
 use crate::control::EstimatorSet;
 use crate::estimator::{Estimator, Health, PeLevel};
-use crate::estimators::{full_bank, FullBank, TuningConfig};
+use crate::estimators::{full_bank, restart_bank, FullBank, TuningConfig};
 use crate::hal::{run_sample_with, StageBoard};
 use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOutput};
 use crate::record::RawSample;
@@ -191,7 +191,7 @@ impl<T: Real> Instrument<T> {
         }
         let bank = &mut self.pipeline.estimators;
         if let Some(t) = &c.tuning {
-            *bank = full_bank(t);
+            restart_bank(bank, t);
         }
         control(bank, c.reset, Op::Reset);
         control(bank, c.freeze, Op::Freeze);

@@ -6,7 +6,7 @@ use hal_sim::sim::Scenario;
 use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::{Adaptation, Estimator};
-use nanopos_id::estimators::{full_bank, Tuning};
+use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER};
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, SampleOutput};
@@ -134,6 +134,34 @@ fn the_interrupt_body_is_the_pipeline_the_host_tests() {
     let truth = lab.board.plant().params();
     let f0 = lab.params(2).f0_hz() as f64;
     assert!((f0 / truth.f0_hz() - 1.0).abs() < 0.01, "{f0} vs {}", truth.f0_hz());
+}
+
+/// A new tuning restarts every estimator in place ([`restart_bank`], what the interrupt does, to spare the copies of
+/// building a bank and moving it in) to exactly what building them afresh ([`full_bank`]) gives: nothing of the run
+/// before survives, not the previous samples, the health counters, a freeze or a gating pause.
+#[test]
+fn a_new_tuning_restarts_every_estimator_as_if_built_afresh() {
+    let (board_settings, _) = Scenario::Prbs.settings(200.0, 1);
+    let mut board = SimBoard::new(board_settings);
+    let lab = Lab::new();
+    let cfg = lab.ctl.config::<f32>();
+    let prbs = Tuning::preset("prbs").unwrap().design::<f32>();
+    let triangle = Tuning::preset("triangle").unwrap().design::<f32>();
+    let mut run = Pipeline::new(&cfg, full_bank(&prbs));
+    for k in 0..30_000 {
+        if k == 20_000 {
+            let e = &mut run.estimators;
+            e.0.set_adapting(false);
+            e.1.set_adapting(false);
+            e.2.set_adapting(false);
+            e.3.set_adapting(false);
+        }
+        nanopos_id::hal::run_sample(&mut board, &mut run, &cfg);
+    }
+    let fresh = full_bank(&triangle);
+    assert_ne!(format!("{:?}", run.estimators), format!("{fresh:?}"));
+    restart_bank(&mut run.estimators, &triangle);
+    assert_eq!(format!("{:?}", run.estimators), format!("{fresh:?}"));
 }
 
 #[test]

@@ -222,6 +222,15 @@ impl<T: Real> ArxEstimator<T> {
         }
     }
 
+    /// What [`ArxEstimator::new`] returns, written over this one in place: the interrupt restarts the estimators with
+    /// a new tuning this way, without building a whole estimator on the stack and copying it in.
+    pub fn restart(&mut self, cfg: &ArxConfig<T>) {
+        self.cfg = *cfg;
+        self.adapting = true;
+        self.health = Health::new();
+        self.reset();
+    }
+
     /// The RLS state (covariance, deviations).
     pub fn rls(&self) -> &DiscreteRls<T, 4> {
         self.core.rls()

@@ -204,6 +204,15 @@ impl<T: Real> Crls<T> {
         s
     }
 
+    /// What [`Crls::new`] returns, written over this one in place: the interrupt restarts the estimators with a new
+    /// tuning this way, without building a whole estimator on the stack and copying it in.
+    pub fn restart(&mut self, cfg: &CrlsConfig<T>) {
+        self.cfg = *cfg;
+        self.adapting = true;
+        self.health = Health::new();
+        self.reset_state();
+    }
+
     fn reset_state(&mut self) {
         self.x = [T::zero(); 15];
         for k in 0..3 {

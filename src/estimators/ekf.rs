@@ -454,6 +454,18 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         s
     }
 
+    /// What [`Ekf::new`] returns, written over this one in place: the interrupt restarts the estimators with a new
+    /// tuning this way, without building a whole filter on the stack and copying it in.
+    pub fn restart(&mut self, cfg: &EkfConfig<T>) {
+        self.core.cfg = *cfg;
+        self.u_prev = T::zero();
+        self.y_prev = T::zero();
+        self.adapting = true;
+        self.health = Health::new();
+        self.kind = K::default();
+        self.reset_state();
+    }
+
     fn reset_state(&mut self) {
         let c = &mut self.core;
         c.z = [T::zero(), T::zero(), T::one(), T::one(), T::one()];

@@ -147,6 +147,16 @@ pub fn full_bank<T: Real>(cfg: &TuningConfig<T>) -> FullBank<T> {
     (crls::Crls::new(cfg.rls), ekf::Cekf::new(cfg.ekf), ekf::Hekf::new(cfg.ekf), arx::ArxEstimator::new(cfg.arx))
 }
 
+/// [`full_bank`]'s result written over `bank` in place, estimator by estimator: how the interrupt applies a new
+/// tuning. Building the bank and then moving it in copied its 1.3 KiB twice, much of it byte by byte (the fields
+/// after the flags are not word-aligned in the copies' ranges): 1 400 instructions of a sample's worst case.
+pub fn restart_bank<T: Real>(bank: &mut FullBank<T>, cfg: &TuningConfig<T>) {
+    bank.0.restart(&cfg.rls);
+    bank.1.restart(&cfg.ekf);
+    bank.2.restart(&cfg.ekf);
+    bank.3.restart(&cfg.arx);
+}
+
 /// Model (1)'s parameters from an estimator that integrates its continuous equations by one RK4 step of `step` a
 /// sample. Such a step turns an oscillation at `w` by `w step (1 - (w step)^4 / 120)`: a model run that way is slow,
 /// and a fit settles where that matches the data, on `a0 (1 + (w step)^4 / 60)` (+1.4e-4 at 483 Hz and 10 kHz).
