@@ -86,6 +86,32 @@ fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
     assert_eq!(json.matches("\"starved\": 0.0").count(), 2, "{json}");
 }
 
+/// A window the record does not wholly cover is still reported (its figures are of the part that is there), with a
+/// note naming what the figures are of; a window inside the record, or ending one sample after its last, has none.
+#[test]
+fn identify_says_when_a_window_reaches_beyond_the_record() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "2", "--out", "r.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let identify = |window: &str| {
+        let out =
+            nanopos_sim(&["identify", "--input", "r.csv", "--estimators", "hekf", "--window", window], dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        // Reported as asked.
+        let t1 = window.split(':').nth(1).unwrap();
+        assert!(String::from_utf8(out.stdout).unwrap().contains(&format!("\"t1\": {t1}")));
+        String::from_utf8(out.stderr).unwrap()
+    };
+    for inside in ["0:2", "1:1.5"] {
+        assert_eq!(identify(inside), "", "{inside}");
+    }
+    let note =
+        "nanopos-sim: note: window 1.5:2.0002 reaches beyond the record (0 to 1.9999 s): its figures are of 1.5 \
+                to 1.9999 s\n";
+    assert_eq!(identify("1.5:2.0002"), note);
+    assert!(identify("1.5:30").contains("window 1.5:30 reaches beyond the record (0 to 1.9999 s)"));
+}
+
 #[test]
 fn same_seed_gives_the_same_file_and_another_seed_does_not() {
     let dir = tempfile::tempdir().unwrap();

@@ -16,7 +16,7 @@
 //!   100 Hz rows), where the mean is of held values; and `resets`, the times in the window the estimator met a
 //!   non-finite value and went back to its initial parameters (a tuning that does not suit the record resets it
 //!   over and over, and its mean is then of runs that diverged). Above 10 % starved, or any reset, a note on standard error
-//!   says so ([`health_notes`]).
+//!   says so ([`health_notes`]); and of a window the record does not wholly cover, what its figures are of.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
@@ -96,6 +96,10 @@ pub struct Identified {
     /// Windows and, per window, the figures of each estimator in `names` order, and the truth's when known: its
     /// mean and the validation RMSE of model (1) with it, the least any estimate can reach on this data.
     pub windows: Vec<(Window, Vec<WindowFigures>, Option<WindowFigures>)>,
+    /// The times of the record's first and last samples, s.
+    pub span: (f64, f64),
+    /// The record's sample period, s.
+    pub period: f64,
 }
 
 /// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
@@ -401,7 +405,7 @@ fn identify_blocks<T: Real>(
         summary.push((*w, figures, window_truth));
     }
     let truth = record.has_truth.then_some(truth_rows);
-    Ok(Identified { names, times, estimates, healths, truth, windows: summary })
+    Ok(Identified { names, times, estimates, healths, truth, windows: summary, span: (t_first, t_last), period: dt })
 }
 
 /// Hand one block of filtered samples to every estimator worker.
@@ -576,12 +580,26 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     Ok(result)
 }
 
-/// One line per estimator and window whose means are not what the input identifies: the excitation monitor held the
-/// estimator for more than a tenth of the window (its means are of held values), or it reset itself (its means are
-/// of runs that diverged, each restarted from the initial parameters).
+/// One line per window that reaches beyond the record, by a sample or more (its figures are of the part the record
+/// covers, not of the window asked for), and per estimator and window whose means are not what the input identifies:
+/// the excitation monitor held the estimator for more than a tenth of the window (its means are of held values), or
+/// it reset itself (its means are of runs that diverged, each restarted from the initial parameters).
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
+    let ((first, last), dt) = (r.span, r.period);
     for (w, figs, _) in &r.windows {
+        // A window is half open, `[t0, t1)`: one that ends a sample after the last covers it all.
+        if w.t0 < first - 0.5 * dt || w.t1 > last + 1.5 * dt {
+            notes.push(format!(
+                "window {}:{} reaches beyond the record ({} to {} s): its figures are of {} to {} s",
+                w.t0,
+                w.t1,
+                show(first),
+                show(last),
+                show(w.t0.max(first)),
+                show(w.t1.min(last))
+            ));
+        }
         for (name, f) in r.names.iter().zip(figs) {
             if f.starved > 0.1 {
                 notes.push(format!(
