@@ -180,7 +180,7 @@ impl<T: Real> Instrument<T> {
     #[inline(never)]
     #[cold]
     // From RAM on the board (src/bin/nanopos-fw/ram_code.rs): the sample that applies a change also runs all of the
-    // sample path, and this is about 4 000 instructions of mostly straight-line copies and constructions (QEMU's
+    // sample path, and this is about 1 500 instructions of mostly straight-line copies and constructions (QEMU's
     // `isr_body_applying_change`), at 2.5 cycles each from the flash.
     #[cfg_attr(target_os = "none", link_section = ".ramtext.apply_pending")]
     fn apply_pending(&mut self) {

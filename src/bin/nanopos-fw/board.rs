@@ -14,7 +14,7 @@
 //! ## Console and watchdog
 //! LPUART1 is wired to the ST-LINK's virtual COM port on the Nucleo (solder bridges SB12/SB13 closed as shipped):
 //! the run-time commands and the recording stream use it at 921 600 baud, which continuous recording needs (575
-//! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (about 35 us, up to about 65 us on the
+//! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (about 35 us, up to about 50 us on the
 //! sample that applies a command's change, plus the 10 us of a status snapshot that may hold it off: under the
 //! 87 us a FIFO lasts at this rate). The independent watchdog (IWDG, LSI 32 kHz) resets the board 0.5 s after its
 //! last feed.
