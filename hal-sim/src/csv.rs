@@ -5,7 +5,7 @@
 //! other tools write is read: a UTF-8 byte-order mark before the header, and fields in double quotes (`"t"`,
 //! `"0.5"`; a field never holds a comma here).
 
-use crate::cmd::{show, CliError};
+use crate::cmd::{clip, show, CliError};
 use std::io::Read;
 use std::path::Path;
 
@@ -212,7 +212,7 @@ impl Reader {
                     return Err(CliError(format!(
                         "{}:1: no column '{name}' in the header (found: {})",
                         r.shown,
-                        fields.join(",")
+                        clip(&fields.join(","), 120)
                     )))
                 }
             }
@@ -430,10 +430,11 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
         for end in ends {
             if let Some(c) = slot.get(count).copied().flatten() {
                 let text = unquote(line[start..end].trim_ascii());
-                let v: f64 =
-                    text.parse().map_err(|_| (line_no, format!("column '{}': '{text}' is not a number", names[c])))?;
+                let v: f64 = text
+                    .parse()
+                    .map_err(|_| (line_no, format!("column '{}': '{}' is not a number", names[c], clip(text, 40))))?;
                 if !v.is_finite() {
-                    return Err((line_no, format!("column '{}': {text} is not a finite number", names[c])));
+                    return Err((line_no, format!("column '{}': {} is not a finite number", names[c], clip(text, 40))));
                 }
                 data[c].push(v);
             }
@@ -519,6 +520,20 @@ mod tests {
         assert_eq!(one.0.data[0].len(), 500);
         assert_eq!(one.0.data[0][499], 499.0);
         assert_eq!(many.0.sample_period_s, Some(1e-4));
+    }
+
+    /// A message quotes at most the start of an absurd field or header: a field of a hundred thousand digits made a
+    /// message as long.
+    #[test]
+    fn a_message_quotes_only_the_start_of_a_huge_field() {
+        let huge = "1".repeat(100_000);
+        let path = file("huge.csv", &format!("t,u,y\n0,{huge},0\n0.0001,0,0\n"));
+        let e = read_columns(&path, &["u", "y"], Time::Required).unwrap_err();
+        let want = format!("huge.csv:2: column 'u': {}... (100000 characters) is not a finite number", &huge[..40]);
+        assert!(e.0.ends_with(&want), "{}", &e.0[..e.0.len().min(300)]);
+        let path = file("wide.csv", &format!("t,{}\n", vec!["x"; 50_000].join(",")));
+        let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
+        assert!(e.0.len() < 250 && e.0.ends_with("... (100001 characters))"), "{}", &e.0[..e.0.len().min(300)]);
     }
 
     #[test]

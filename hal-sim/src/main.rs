@@ -160,14 +160,13 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 eprintln!("nanopos-sim: note: {note}");
             }
             if args.summary.is_none() {
-                print!("{}", identify::summary_json(&result));
+                hal_sim::cmd::write_stdout(&identify::summary_json(&result))?;
             }
             Ok(())
         }
         Command::Paper { duration, out_dir } => {
             let runs = hal_sim::cmd::paper::run(duration, Some(&out_dir))?;
-            print!("{}", hal_sim::cmd::paper::table(&runs));
-            Ok(())
+            hal_sim::cmd::write_stdout(&hal_sim::cmd::paper::table(&runs))
         }
         Command::Decode { input, out, recording, segments } => {
             use hal_sim::cmd::decode::{self, Damage};
@@ -220,8 +219,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Fit { input, arx, zero_initial, weight } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;
-            println!("{}", fit.to_json());
-            Ok(())
+            hal_sim::cmd::write_stdout(&format!("{}\n", fit.to_json()))
         }
     }
 }

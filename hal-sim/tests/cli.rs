@@ -1,5 +1,7 @@
 //! `nanopos-sim simulate` as a user runs it: the file it writes, determinism, and every kind of bad input.
 
+#[cfg(target_os = "linux")]
+use std::os::unix::fs::FileTypeExt;
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -110,6 +112,66 @@ fn identify_says_when_a_window_reaches_beyond_the_record() {
                 to 1.9999 s\n";
     assert_eq!(identify("1.5:2.0002"), note);
     assert!(identify("1.5:30").contains("window 1.5:30 reaches beyond the record (0 to 1.9999 s)"));
+}
+
+/// An output that names a device or a pipe is written to it as a stream, not replaced by a file renamed over it
+/// (as root that turned `/dev/stdout` and `/dev/full` into regular files; as anyone else the temporary could not be
+/// made in `/dev`); a write that fails, to a file or to standard output, is an error, not output lost with exit 0;
+/// and a directory is refused before the run.
+#[cfg(target_os = "linux")]
+#[test]
+fn outputs_to_devices_and_pipes_are_streamed_and_their_errors_reported() {
+    use std::process::Stdio;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    assert!(nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "0.5", "--out", "r.csv"], d)
+        .status
+        .success());
+    let summary = ["identify", "--input", "r.csv", "--estimators", "hekf", "--window", "0.2:0.5"];
+    let plain = nanopos_sim(&summary, d);
+    assert!(plain.status.success() && plain.stdout.starts_with(b"{\"windows\""));
+
+    // Standard output (a pipe here) through its device name: the same text; the link itself still a link.
+    let through = nanopos_sim(&[&summary[..], &["--summary", "/dev/stdout"]].concat(), d);
+    assert!(through.status.success(), "{}", String::from_utf8_lossy(&through.stderr));
+    assert_eq!(through.stdout, plain.stdout);
+    assert!(std::fs::symlink_metadata("/dev/stdout").unwrap().file_type().is_symlink());
+
+    // A named pipe that another program reads: the whole file, as a plain file gets it.
+    let fifo = d.join("fifo");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let reader = std::thread::spawn({
+        let fifo = fifo.clone();
+        move || std::fs::read(fifo).unwrap()
+    });
+    let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "0.5", "--out", "fifo"], d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // (Before the join: a pipe replaced by a file leaves the reader waiting for ever.)
+    assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+    assert_eq!(reader.join().unwrap(), std::fs::read(d.join("r.csv")).unwrap());
+
+    // A device that takes nothing: an error naming it, for a named output and for standard output alike.
+    let full = nanopos_sim(&[&summary[..], &["--summary", "/dev/full"]].concat(), d);
+    assert_clean_failure(&full, "/dev/full: cannot write: No space left on device");
+    assert!(std::fs::metadata("/dev/full").unwrap().file_type().is_char_device());
+    for args in [&summary[..], &["fit", "--input", "r.csv", "--arx", "2,2,1"]] {
+        let to_full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+            .args(args)
+            .current_dir(d)
+            .stdout(Stdio::from(to_full))
+            .output()
+            .unwrap();
+        assert_clean_failure(&out, "standard output: cannot write: No space left on device");
+    }
+
+    // A directory: refused before the run, and nothing left in it.
+    std::fs::create_dir(d.join("est")).unwrap();
+    let out = nanopos_sim(&[&summary[..], &["--out", "est"]].concat(), d);
+    assert_clean_failure(&out, "est: is a directory, not a file name");
+    assert_eq!(std::fs::read_dir(d.join("est")).unwrap().count(), 0);
+    let names: Vec<_> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names.len(), 3, "left behind: {names:?}");
 }
 
 #[test]

@@ -12,7 +12,7 @@
 //! every gap-free run of samples goes to its own file, `OUT` with `-1`, `-2`, ... before the extension. `t` keeps
 //! counting from the recording's first sample in every segment, so the segments keep their place in time.
 
-use super::{fail, io_reason, show, CliError, OutputFile};
+use super::{clip, fail, io_reason, show, CliError, OutputFile};
 use nanopos_id::record::{decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG};
 use std::io::Write;
 use std::path::Path;
@@ -78,7 +78,7 @@ fn header_value(name: &str, line_no: usize, line: &str, key: &str) -> Result<f64
     word.parse::<f64>()
         .ok()
         .filter(|x| x.is_finite())
-        .ok_or_else(|| CliError(format!("{name}:{line_no}: {key}={word}: not a number")))
+        .ok_or_else(|| CliError(format!("{name}:{line_no}: {key}={}: not a number", clip(word, 40))))
 }
 
 fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, CliError> {

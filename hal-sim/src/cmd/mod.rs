@@ -45,6 +45,15 @@ pub fn show(x: f64) -> String {
     }
 }
 
+/// Text from the input as a message quotes it: whole up to `max` characters, else its first `max` and how long it
+/// is (a field of ten million digits made a ten-megabyte error line).
+pub fn clip(text: &str, max: usize) -> String {
+    match text.char_indices().nth(max) {
+        None => text.to_string(),
+        Some((cut, _)) => format!("{}... ({} characters)", &text[..cut], text.chars().count()),
+    }
+}
+
 /// Shorthand for building a [`CliError`].
 pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))
@@ -53,19 +62,30 @@ pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
 /// An output file written under a temporary name in the same directory and renamed into place by
 /// [`OutputFile::commit`]; dropped without commit (an error, a panic), it removes the temporary, so no partial file
 /// is ever left under the requested name.
+///
+/// A path that names a device, a pipe or a socket (`/dev/stdout`, a named pipe another program reads) is a stream,
+/// not a file to replace: it is written directly, and `commit` only flushes it. (Renamed over, `/dev/stdout` itself
+/// was replaced by a regular file when run as root, and as anyone else the temporary could not be made in `/dev`.)
 pub struct OutputFile {
     path: PathBuf,
-    temp: PathBuf,
+    /// The temporary name; `None` for a stream.
+    temp: Option<PathBuf>,
     writer: Option<BufWriter<File>>,
 }
 
 impl OutputFile {
     /// Start writing `path`.
     pub fn create(path: &Path) -> Result<Self, CliError> {
-        let name = path.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
-        let temp = path.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
-        let file = File::create(&temp)
-            .map_err(|e| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e))))?;
+        let cannot = |e: std::io::Error| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e)));
+        let (file, temp) = match std::fs::metadata(path) {
+            Ok(m) if m.is_dir() => return fail(format!("{}: is a directory, not a file name", path.display())),
+            Ok(m) if !m.is_file() => (File::options().write(true).open(path).map_err(cannot)?, None),
+            _ => {
+                let name = path.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
+                let temp = path.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
+                (File::create(&temp).map_err(cannot)?, Some(temp))
+            }
+        };
         Ok(OutputFile { path: path.to_path_buf(), temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
     }
 
@@ -84,23 +104,37 @@ impl OutputFile {
         CliError(format!("{}: cannot write: {}", self.path.display(), io_reason(&e)))
     }
 
-    /// Flush and move into place.
+    /// Flush and move into place (a stream: flush). On an error the temporary is removed.
     pub fn commit(mut self) -> Result<(), CliError> {
-        let mut w = self.writer.take().expect("commit once");
-        w.flush().map_err(|e| self.write_error(e))?;
-        let file = w.into_inner().map_err(|e| self.write_error(e.into_error()))?;
-        file.sync_all().map_err(|e| self.write_error(e))?;
-        std::fs::rename(&self.temp, &self.path)
-            .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
+        let (w, temp) = (self.writer.take().expect("commit once"), self.temp.take());
+        let done = w.into_inner().map_err(|e| self.write_error(e.into_error())).and_then(|file| {
+            let Some(temp) = &temp else { return Ok(()) };
+            file.sync_all().map_err(|e| self.write_error(e))?;
+            std::fs::rename(temp, &self.path)
+                .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
+        });
+        if let (Err(_), Some(temp)) = (&done, &temp) {
+            let _ = std::fs::remove_file(temp);
+        }
+        done
     }
 }
 
 impl Drop for OutputFile {
     fn drop(&mut self) {
-        if self.writer.take().is_some() {
-            let _ = std::fs::remove_file(&self.temp);
+        if let (Some(_), Some(temp)) = (self.writer.take(), &self.temp) {
+            let _ = std::fs::remove_file(temp);
         }
     }
+}
+
+/// Write `text` to standard output and flush it: an error (a full disk, a closed pipe) is reported, not lost with
+/// the output, as `print!` loses it when the buffer is flushed at exit.
+pub fn write_stdout(text: &str) -> Result<(), CliError> {
+    let mut out = std::io::stdout().lock();
+    out.write_all(text.as_bytes())
+        .and_then(|()| out.flush())
+        .map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
 }
 
 /// What a path names, to tell whether two paths are one file however they are spelled: an existing file by its device
@@ -112,9 +146,12 @@ enum FileId {
     New(PathBuf),
 }
 
-/// `None` when it cannot be told (its directory does not exist: creating the file will fail and say so).
+/// `None` when it cannot be told (its directory does not exist: creating the file will fail and say so), and for a
+/// device, a pipe or a socket: a stream, written directly with nothing to replace (reading `/dev/stdin` and writing
+/// `/dev/stdout` in a terminal names one device twice, and is no conflict).
 fn file_id(path: &Path) -> Option<FileId> {
     match std::fs::metadata(path) {
+        Ok(m) if !m.is_file() && !m.is_dir() => None,
         #[cfg(unix)]
         Ok(m) => {
             use std::os::unix::fs::MetadataExt;
