@@ -384,19 +384,25 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
 /// Enter: picocom, screen, PuTTY send it alone), or at both (`\r\n`, one line end). A line longer than [`MAX_LINE`]
 /// is reported once, as [`ParseError::TooLong`], and its rest discarded up to its end; a line that lost bytes on
 /// the link ([`LineBuffer::lost_bytes`]) is refused whole at its end, as [`ParseError::Damaged`].
+///
+/// Fed a read of the link's receive buffer at a time ([`LineBuffer::begin_read`], [`LineBuffer::end_read`]), it also
+/// refuses the lines a receive error or a full buffer may have damaged: no line that lost or changed a byte is
+/// executed as what arrived of it.
 #[derive(Clone, Debug)]
 pub struct LineBuffer {
     buf: [u8; MAX_LINE],
     len: usize,
     overflowed: bool,
     damaged: bool,
+    /// The read being fed came with a receive error: every line it ends is refused.
+    suspect: bool,
     /// The last byte ended a line with `\r`: a `\n` right after it belongs to that line end.
     after_cr: bool,
 }
 
 impl Default for LineBuffer {
     fn default() -> Self {
-        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false, damaged: false, after_cr: false }
+        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false, damaged: false, suspect: false, after_cr: false }
     }
 }
 
@@ -415,7 +421,7 @@ impl LineBuffer {
             } else {
                 parse(&self.buf[..self.len])
             };
-            (self.len, self.overflowed, self.damaged) = (0, false, false);
+            (self.len, self.overflowed, self.damaged) = (0, false, self.suspect);
             return Some(result);
         }
         if self.len < MAX_LINE {
@@ -433,6 +439,27 @@ impl LineBuffer {
     pub fn lost_bytes(&mut self) {
         self.damaged = true;
         self.after_cr = false;
+    }
+
+    /// Before the bytes of one read of the link's receive buffer. `error`: the link reported a receive error
+    /// (overrun, framing, noise, parity) since the last read and before this one took its bytes, so one of them is
+    /// wrong or bytes were lost among them: the line in progress, every line this read ends and the one it leaves in
+    /// progress are refused ([`LineBuffer::end_read`] closes the read).
+    pub fn begin_read(&mut self, error: bool) {
+        self.suspect = error;
+        if error {
+            self.lost_bytes();
+        }
+    }
+
+    /// After the `n` bytes of a read from a receive buffer of `capacity` bytes. A read that took all of it found it
+    /// full, and a byte that arrived while it was full was dropped (embassy's buffered UART drops it without a
+    /// word): the line the read leaves in progress, which the dropped bytes would have continued, is refused.
+    pub fn end_read(&mut self, n: usize, capacity: usize) {
+        if self.suspect || n >= capacity {
+            self.lost_bytes();
+        }
+        self.suspect = false;
     }
 }
 
@@ -601,5 +628,87 @@ mod tests {
         lb.lost_bytes();
         assert_eq!(feed(&mut lb, b"atus\r\nstop\r\n"), [Err(ParseError::Damaged), Ok(Command::Stop)]);
         assert_eq!(std::format!("{}", ParseError::Damaged), "bytes of this line were lost on the link: send it again");
+    }
+
+    /// A read that came with a receive error refuses every line it touches; one that took the whole receive buffer
+    /// (it was full: bytes after it may have been dropped) refuses the line it leaves in progress; a clean read
+    /// refuses nothing.
+    #[test]
+    fn a_read_with_an_error_or_from_a_full_buffer_refuses_the_lines_it_may_have_damaged() {
+        let mut lb = LineBuffer::default();
+        let mut read = |bytes: &[u8], error: bool, capacity: usize| {
+            lb.begin_read(error);
+            let out: std::vec::Vec<_> = bytes.iter().filter_map(|&b| lb.push(b)).collect();
+            lb.end_read(bytes.len(), capacity);
+            out
+        };
+        use Command::{Start, Status, Stop};
+        let damaged = Err(ParseError::Damaged);
+        assert_eq!(read(b"start\nsta", false, 128), [Ok(Start)]);
+        assert_eq!(read(b"tus\nstop\nsta", true, 128), [damaged.clone(), damaged.clone()]);
+        assert_eq!(read(b"rt\nstop\n", false, 128), [damaged.clone(), Ok(Stop)]);
+        assert_eq!(read(b"status\nsta", false, 10), [Ok(Status)]);
+        assert_eq!(read(b"rt\nstop\n", false, 10), [damaged, Ok(Stop)]);
+    }
+
+    /// The console's reads of the link's receive buffer, modelled: a buffer of 128 bytes that drops what arrives
+    /// while it is full (as embassy's buffered UART does, silently), bytes changed or lost with a receive error,
+    /// and reads at random moments that take everything with the error flag. Whatever the link does, no command is
+    /// executed but one that was sent, whole, in order; a line lost whole gets no verdict.
+    #[test]
+    fn no_line_the_link_damaged_is_executed() {
+        use std::collections::VecDeque;
+        const CAPACITY: usize = 128;
+        let mut rnd = crate::xorshift64(0x5eed_1e55);
+        let lines: std::vec::Vec<std::string::String> = (0..20_000)
+            .map(|k| match rnd() % 3 {
+                0 => std::format!("excite constant {}.{}", rnd() % 10, rnd() % 1000),
+                1 => std::format!("limits -{}.{} {}.{} {}", rnd() % 10, rnd() % 100, rnd() % 10, rnd() % 100, 100 + k),
+                _ => std::format!("record burst {}", 1 + k),
+            })
+            .collect();
+        let stream: std::vec::Vec<u8> = lines.iter().flat_map(|l| l.bytes().chain([b'\n'])).collect();
+        let (mut ring, mut error, mut at) = (VecDeque::new(), false, 0);
+        let (mut lb, mut next, mut executed, mut refused) = (LineBuffer::default(), 0, 0, 0);
+        while at < stream.len() || !ring.is_empty() {
+            // Bytes arrive until the next read: sometimes more than the buffer holds.
+            let gap = if rnd() % 8 == 0 { rnd() % 400 } else { rnd() % 100 };
+            for _ in 0..gap {
+                let Some(&b) = stream.get(at) else { break };
+                at += 1;
+                match rnd() % 2000 {
+                    0 => error = true,                               // overrun: lost
+                    1 => (error, _) = (true, ring.push_back(b ^ 4)), // framing or noise: changed
+                    _ if ring.len() == CAPACITY => {}                // dropped without a word
+                    _ => ring.push_back(b),
+                }
+            }
+            // One read: everything there, and the errors noted so far.
+            let bytes: std::vec::Vec<u8> = ring.drain(..).collect();
+            lb.begin_read(core::mem::take(&mut error));
+            for &b in &bytes {
+                match lb.push(b) {
+                    Some(Ok(cmd)) => {
+                        let k = next
+                            + lines[next..].iter().position(|l| parse(l.as_bytes()) == Ok(cmd)).unwrap_or_else(|| {
+                                panic!("executed {cmd:?}, which was not sent (next sent: {:?})", lines[next])
+                            });
+                        (next, executed) = (k + 1, executed + 1);
+                    }
+                    Some(Err(e)) => {
+                        assert_eq!(e, ParseError::Damaged);
+                        refused += 1;
+                    }
+                    None => {}
+                }
+            }
+            lb.end_read(bytes.len(), CAPACITY);
+        }
+        // Every case exercised, many times.
+        let lost = lines.len() - executed - refused;
+        assert!(
+            executed > 10_000 && refused > 500 && lost > 100,
+            "{executed} executed, {refused} refused, {lost} lost"
+        );
     }
 }

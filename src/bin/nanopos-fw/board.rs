@@ -35,6 +35,7 @@
 //!   (14 570 cycles) after the conversion ends. Crossing it is detected (TIM2 update flag set again before the
 //!   interrupt returns) and counted; so is an ADC overrun.
 
+use core::sync::atomic::{AtomicBool, Ordering};
 use embassy_stm32::pac;
 use embassy_stm32::pac::adc::vals::{Exten, Ovrmod, Rovsm, SampleTime, Trovs};
 use embassy_stm32::pac::timer::vals::{Mms, Ocm};
@@ -66,9 +67,35 @@ pub const CONSOLE_BAUD: u32 = 921_600;
 /// Watchdog timeout, us.
 pub const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 
+/// The console's receive buffer, bytes: more than a command line (96 bytes and its end).
+pub const CONSOLE_RX_BYTES: usize = 128;
+
 bind_interrupts!(struct Irqs {
-    LPUART1 => embassy_stm32::usart::BufferedInterruptHandler<peripherals::LPUART1>;
+    LPUART1 => ConsoleRxErrors, embassy_stm32::usart::BufferedInterruptHandler<peripherals::LPUART1>;
 });
+
+/// A receive error of the console's link (overrun, framing, noise, parity) since the console last looked.
+static CONSOLE_RX_ERROR: AtomicBool = AtomicBool::new(false);
+
+/// Bound ahead of embassy's handler of LPUART1, which clears the receive errors and, in its buffered reader, only
+/// logs them (embassy-stm32 0.6: `read` never returns an error): notes them for [`take_console_rx_error`].
+pub struct ConsoleRxErrors;
+
+impl embassy_stm32::interrupt::typelevel::Handler<embassy_stm32::interrupt::typelevel::LPUART1> for ConsoleRxErrors {
+    unsafe fn on_interrupt() {
+        let isr = pac::LPUART1.isr().read();
+        if isr.ore() || isr.fe() || isr.ne() || isr.pe() {
+            CONSOLE_RX_ERROR.store(true, Ordering::Relaxed);
+        }
+    }
+}
+
+/// Whether the console's link had a receive error since the last call. Taken under the same lock as the bytes
+/// read from the receive buffer, the errors are of those bytes: the UART's interrupt, which stores bytes and notes
+/// errors, cannot run in between.
+pub fn take_console_rx_error() -> bool {
+    CONSOLE_RX_ERROR.swap(false, Ordering::Relaxed)
+}
 
 /// The clock tree above.
 pub fn clocks() -> embassy_stm32::Config {
@@ -222,7 +249,8 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     let mut uart_config = UartConfig::default();
     uart_config.baudrate = CONSOLE_BAUD;
     let tx_buf = cortex_m::singleton!(: [u8; 1024] = [0; 1024]).expect("console buffers taken once");
-    let rx_buf = cortex_m::singleton!(: [u8; 128] = [0; 128]).expect("console buffers taken once");
+    let rx_buf =
+        cortex_m::singleton!(: [u8; CONSOLE_RX_BYTES] = [0; CONSOLE_RX_BYTES]).expect("console buffers taken once");
     let console = BufferedUart::new(p.LPUART1, p.PA3, p.PA2, tx_buf, rx_buf, Irqs, uart_config)
         .expect("LPUART1 at 921 600 baud from a 170 MHz clock");
     Parts { console, watchdog: IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US) }

@@ -12,7 +12,7 @@
 //! of recorded samples): at most about a kilobyte, a few hundred cycles, which delay one interrupt's start inside
 //! its slack and never move the sample instants (hardware-timed).
 
-use crate::board::{self, G474Board, ResetCause};
+use crate::board::{self, G474Board, ResetCause, CONSOLE_RX_BYTES};
 use core::cell::RefCell;
 use core::sync::atomic::{AtomicU16, Ordering};
 use cortex_m::interrupt::Mutex;
@@ -25,7 +25,7 @@ use embassy_stm32::peripherals::IWDG;
 use embassy_stm32::usart::BufferedUart;
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_time::{Duration, Ticker, Timer};
-use embedded_io_async::{Read, Write};
+use embedded_io_async::{BufRead, Write};
 use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
 use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
 use nanopos_id::estimator::Health;
@@ -151,22 +151,29 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     let (mut tx, mut rx) = uart.split();
     let mut line = LineBuffer::default();
     let mut reply = TextBuf::<REPLY_BYTES>::default();
-    let mut bytes = [0u8; 32];
     let mut frame = [0u8; FRAME_MAX_BYTES];
     let mut samples = [RawSample::default(); FRAME_SAMPLES];
     let mut recording = false;
     loop {
-        // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms).
-        let n = match embassy_futures::select::select(rx.read(&mut bytes), Timer::after_millis(2)).await {
-            embassy_futures::select::Either::First(Ok(n)) => n,
-            embassy_futures::select::Either::First(Err(e)) => {
-                defmt::warn!("console: receive error {} (bytes lost; the line in progress is refused)", e);
-                line.lost_bytes();
-                0
-            }
-            embassy_futures::select::Either::Second(()) => 0,
+        // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms). All of the
+        // receive buffer is taken at once, with the receive errors noted so far, under the lock (a copy of at most
+        // 128 bytes): the lines those errors or a full buffer may have damaged are refused (`LineBuffer::end_read`).
+        // The bytes go through `frame`, which the recording uses only after them.
+        let arrived = embassy_futures::select::select(rx.fill_buf(), Timer::after_millis(2)).await;
+        let (n, error) = match arrived {
+            embassy_futures::select::Either::First(_) => cortex_m::interrupt::free(|_| {
+                let n = embedded_io::Read::read(&mut rx, &mut frame[..CONSOLE_RX_BYTES]);
+                (n.unwrap_or(0), board::take_console_rx_error() || n.is_err())
+            }),
+            embassy_futures::select::Either::Second(()) => (0, board::take_console_rx_error()),
         };
-        for &b in &bytes[..n] {
+        if error {
+            defmt::warn!(
+                "console: receive error (bytes lost or changed on the link; the lines they touch are refused)"
+            );
+        }
+        line.begin_read(error);
+        for &b in &frame[..n] {
             let Some(parsed) = line.push(b) else { continue };
             reply.clear();
             let (change, mut rest) = match parsed {
