@@ -645,8 +645,8 @@ mod tests {
         use Command::{Start, Status, Stop};
         let damaged = Err(ParseError::Damaged);
         assert_eq!(read(b"start\nsta", false, 128), [Ok(Start)]);
-        assert_eq!(read(b"tus\nstop\nsta", true, 128), [damaged.clone(), damaged.clone()]);
-        assert_eq!(read(b"rt\nstop\n", false, 128), [damaged.clone(), Ok(Stop)]);
+        assert_eq!(read(b"tus\nstop\nsta", true, 128), [damaged, damaged]);
+        assert_eq!(read(b"rt\nstop\n", false, 128), [damaged, Ok(Stop)]);
         assert_eq!(read(b"status\nsta", false, 10), [Ok(Status)]);
         assert_eq!(read(b"rt\nstop\n", false, 10), [damaged, Ok(Stop)]);
     }
@@ -689,11 +689,11 @@ mod tests {
             for &b in &bytes {
                 match lb.push(b) {
                     Some(Ok(cmd)) => {
-                        let k = next
-                            + lines[next..].iter().position(|l| parse(l.as_bytes()) == Ok(cmd)).unwrap_or_else(|| {
-                                panic!("executed {cmd:?}, which was not sent (next sent: {:?})", lines[next])
-                            });
-                        (next, executed) = (k + 1, executed + 1);
+                        let sent = lines[next..].iter().position(|l| parse(l.as_bytes()) == Ok(cmd));
+                        let Some(k) = sent else {
+                            panic!("executed {cmd:?}, which was not sent (next sent: {:?})", lines[next])
+                        };
+                        (next, executed) = (next + k + 1, executed + 1);
                     }
                     Some(Err(e)) => {
                         assert_eq!(e, ParseError::Damaged);
