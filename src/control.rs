@@ -385,9 +385,8 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
 /// is reported once, as [`ParseError::TooLong`], and its rest discarded up to its end; a line that lost bytes on
 /// the link ([`LineBuffer::lost_bytes`]) is refused whole at its end, as [`ParseError::Damaged`].
 ///
-/// Fed a read of the link's receive buffer at a time ([`LineBuffer::begin_read`], [`LineBuffer::end_read`]), it also
-/// refuses the lines a receive error or a full buffer may have damaged: no line that lost or changed a byte is
-/// executed as what arrived of it.
+/// Fed a read of the link's receive buffer at a time ([`LineBuffer::read`]), it also refuses the lines a receive
+/// error or a full buffer may have damaged: no line that lost or changed a byte is executed as what arrived of it.
 #[derive(Clone, Debug)]
 pub struct LineBuffer {
     buf: [u8; MAX_LINE],
@@ -441,25 +440,47 @@ impl LineBuffer {
         self.after_cr = false;
     }
 
-    /// Before the bytes of one read of the link's receive buffer. `error`: the link reported a receive error
-    /// (overrun, framing, noise, parity) since the last read and before this one took its bytes, so one of them is
-    /// wrong or bytes were lost among them: the line in progress, every line this read ends and the one it leaves in
-    /// progress are refused ([`LineBuffer::end_read`] closes the read).
-    pub fn begin_read(&mut self, error: bool) {
+    /// The lines that `bytes`, one read of the link's receive buffer of `capacity` bytes, completes, each parsed
+    /// (or why not), in order.
+    ///
+    /// - `error`: the link reported a receive error (overrun, framing, noise, parity) since the last read and before
+    ///   this one took its bytes, so one of them is wrong or bytes were lost among them: the line in progress, every
+    ///   line this read ends and the one it leaves in progress are refused.
+    /// - A read that took all of the buffer found it full, and a byte that arrived while it was full was dropped
+    ///   (embassy's buffered UART drops it without a word): the line the read leaves in progress, which the dropped
+    ///   bytes would have continued, is refused.
+    ///
+    /// Both take effect when the lines are done with (the iterator dropped; bytes left unread count as lost).
+    pub fn read<'a>(&'a mut self, bytes: &'a [u8], error: bool, capacity: usize) -> ReadLines<'a> {
         self.suspect = error;
         if error {
             self.lost_bytes();
         }
+        ReadLines { full: bytes.len() >= capacity, line: self, bytes: bytes.iter() }
     }
+}
 
-    /// After the `n` bytes of a read from a receive buffer of `capacity` bytes. A read that took all of it found it
-    /// full, and a byte that arrived while it was full was dropped (embassy's buffered UART drops it without a
-    /// word): the line the read leaves in progress, which the dropped bytes would have continued, is refused.
-    pub fn end_read(&mut self, n: usize, capacity: usize) {
-        if self.suspect || n >= capacity {
-            self.lost_bytes();
+/// The lines one read of the link completes: [`LineBuffer::read`].
+pub struct ReadLines<'a> {
+    line: &'a mut LineBuffer,
+    bytes: core::slice::Iter<'a, u8>,
+    full: bool,
+}
+
+impl Iterator for ReadLines<'_> {
+    type Item = Result<Command, ParseError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        self.bytes.by_ref().find_map(|&b| self.line.push(b))
+    }
+}
+
+impl Drop for ReadLines<'_> {
+    fn drop(&mut self) {
+        if self.line.suspect || self.full || self.bytes.len() > 0 {
+            self.line.lost_bytes();
         }
-        self.suspect = false;
+        self.line.suspect = false;
     }
 }
 
@@ -632,23 +653,28 @@ mod tests {
 
     /// A read that came with a receive error refuses every line it touches; one that took the whole receive buffer
     /// (it was full: bytes after it may have been dropped) refuses the line it leaves in progress; a clean read
-    /// refuses nothing.
+    /// refuses nothing; one dropped before its last line refuses the line after.
     #[test]
     fn a_read_with_an_error_or_from_a_full_buffer_refuses_the_lines_it_may_have_damaged() {
         let mut lb = LineBuffer::default();
-        let mut read = |bytes: &[u8], error: bool, capacity: usize| {
-            lb.begin_read(error);
-            let out: std::vec::Vec<_> = bytes.iter().filter_map(|&b| lb.push(b)).collect();
-            lb.end_read(bytes.len(), capacity);
-            out
-        };
+        fn read(
+            lb: &mut LineBuffer,
+            bytes: &[u8],
+            error: bool,
+            capacity: usize,
+        ) -> std::vec::Vec<Result<Command, ParseError>> {
+            lb.read(bytes, error, capacity).collect()
+        }
         use Command::{Start, Status, Stop};
         let damaged = Err(ParseError::Damaged);
-        assert_eq!(read(b"start\nsta", false, 128), [Ok(Start)]);
-        assert_eq!(read(b"tus\nstop\nsta", true, 128), [damaged, damaged]);
-        assert_eq!(read(b"rt\nstop\n", false, 128), [damaged, Ok(Stop)]);
-        assert_eq!(read(b"status\nsta", false, 10), [Ok(Status)]);
-        assert_eq!(read(b"rt\nstop\n", false, 10), [damaged, Ok(Stop)]);
+        assert_eq!(read(&mut lb, b"start\nsta", false, 128), [Ok(Start)]);
+        assert_eq!(read(&mut lb, b"tus\nstop\nsta", true, 128), [damaged, damaged]);
+        assert_eq!(read(&mut lb, b"rt\nstop\n", false, 128), [damaged, Ok(Stop)]);
+        assert_eq!(read(&mut lb, b"status\nsta", false, 10), [Ok(Status)]);
+        assert_eq!(read(&mut lb, b"rt\nstop\n", false, 10), [damaged, Ok(Stop)]);
+        // Lines left unread when the read is dropped count as lost: the next line is refused.
+        assert_eq!(lb.read(b"stop\nstart\nsta", false, 128).next(), Some(Ok(Stop)));
+        assert_eq!(read(&mut lb, b"tus\nstop\n", false, 128), [damaged, Ok(Stop)]);
     }
 
     /// The console's reads of the link's receive buffer, modelled: a buffer of 128 bytes that drops what arrives
@@ -685,24 +711,21 @@ mod tests {
             }
             // One read: everything there, and the errors noted so far.
             let bytes: std::vec::Vec<u8> = ring.drain(..).collect();
-            lb.begin_read(core::mem::take(&mut error));
-            for &b in &bytes {
-                match lb.push(b) {
-                    Some(Ok(cmd)) => {
+            for parsed in lb.read(&bytes, core::mem::take(&mut error), CAPACITY) {
+                match parsed {
+                    Ok(cmd) => {
                         let sent = lines[next..].iter().position(|l| parse(l.as_bytes()) == Ok(cmd));
                         let Some(k) = sent else {
                             panic!("executed {cmd:?}, which was not sent (next sent: {:?})", lines[next])
                         };
                         (next, executed) = (next + k + 1, executed + 1);
                     }
-                    Some(Err(e)) => {
+                    Err(e) => {
                         assert_eq!(e, ParseError::Damaged);
                         refused += 1;
                     }
-                    None => {}
                 }
             }
-            lb.end_read(bytes.len(), CAPACITY);
         }
         // Every case exercised, many times.
         let lost = lines.len() - executed - refused;

@@ -157,7 +157,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     loop {
         // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms). All of the
         // receive buffer is taken at once, with the receive errors noted so far, under the lock (a copy of at most
-        // 128 bytes): the lines those errors or a full buffer may have damaged are refused (`LineBuffer::end_read`).
+        // 128 bytes): the lines those errors or a full buffer may have damaged are refused (`LineBuffer::read`).
         // The bytes go through `frame`, which the recording uses only after them.
         let arrived = embassy_futures::select::select(rx.fill_buf(), Timer::after_millis(2)).await;
         let (n, error) = match arrived {
@@ -172,9 +172,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 "console: receive error (bytes lost or changed on the link; the lines they touch are refused)"
             );
         }
-        line.begin_read(error);
-        for &b in &frame[..n] {
-            let Some(parsed) = line.push(b) else { continue };
+        for parsed in line.read(&frame[..n], error, CONSOLE_RX_BYTES) {
             reply.clear();
             let (change, mut rest) = match parsed {
                 Ok(cmd) => {
