@@ -153,7 +153,8 @@ pub enum ParseError {
     Empty,
     /// Longer than [`MAX_LINE`] (the rest of the line was discarded).
     TooLong,
-    /// Bytes of the line were lost on the link (a receive error): refused whole, whatever arrived of it.
+    /// Bytes of the line were lost or changed on the link (a receive error, a full receive buffer): refused whole,
+    /// whatever arrived of it.
     Damaged,
     /// A byte outside printable ASCII.
     NotAscii {
