@@ -165,6 +165,14 @@ fn outputs_to_devices_and_pipes_are_streamed_and_their_errors_reported() {
         assert_clean_failure(&out, "standard output: cannot write: No space left on device");
     }
 
+    // `decode --segments` names its files after --out: a device is no name to number.
+    std::fs::write(d.join("capture.txt"), capture(300, 0)).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "capture.txt", "--out", "/dev/stdout", "--segments"], d);
+    assert_clean_failure(&out, "--out /dev/stdout: not a file name: --segments writes one file per run");
+    let out = nanopos_sim(&["decode", "--input", "capture.txt", "--out", "/dev/stdout"], d);
+    assert!(out.status.success() && out.stdout.starts_with(b"t,u,y\n"), "{}", String::from_utf8_lossy(&out.stderr));
+    std::fs::remove_file(d.join("capture.txt")).unwrap();
+
     // A directory: refused before the run, and nothing left in it.
     std::fs::create_dir(d.join("est")).unwrap();
     let out = nanopos_sim(&[&summary[..], &["--out", "est"]].concat(), d);

@@ -203,6 +203,13 @@ pub fn run(
     damage: Damage,
 ) -> Result<(Recording, Vec<Option<std::path::PathBuf>>), CliError> {
     let name = input.display().to_string();
+    if damage == Damage::Skip && std::fs::metadata(out).is_ok_and(|m| !m.is_file()) {
+        return fail(format!(
+            "--out {}: not a file name: --segments writes one file per run, named after it (run.csv -> run-1.csv, \
+             run-2.csv, ...)",
+            out.display()
+        ));
+    }
     let bytes = std::fs::read(input).map_err(|e| CliError(format!("{name}: cannot read: {}", io_reason(&e))))?;
     // Captures can hold noise from before the link settled: decode what is text, the frames carry their checksums.
     let text = String::from_utf8_lossy(&bytes);
