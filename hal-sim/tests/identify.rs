@@ -367,4 +367,10 @@ fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
     }
     let bad = nanopos_sim(&["paper", "--duration", "1"], dir.path());
     assert_eq!(bad.status.code(), Some(2));
+    // A file where the directory should be: said at once, before the run.
+    let file = dir.path().join("res").join("prbs-summary.json");
+    let bad = nanopos_sim(&["paper", "--out-dir", file.to_str().unwrap()], dir.path());
+    let stderr = String::from_utf8(bad.stderr).unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+    assert_eq!(stderr, format!("nanopos-sim: --out-dir {}: not a directory\n", file.display()));
 }

@@ -40,6 +40,9 @@ pub fn run(duration_s: f64, out_dir: Option<&Path>) -> Result<Vec<PaperRun>, Cli
         return fail(format!("--duration {duration_s}: between 4 and 3600 s"));
     }
     if let Some(d) = out_dir {
+        if std::fs::metadata(d).is_ok_and(|m| !m.is_dir()) {
+            return fail(format!("--out-dir {}: not a directory", d.display()));
+        }
         std::fs::create_dir_all(d)
             .map_err(|e| CliError(format!("{}: cannot create: {}", d.display(), super::io_reason(&e))))?;
     }
