@@ -67,7 +67,9 @@ pub const CONSOLE_BAUD: u32 = 921_600;
 /// Watchdog timeout, us.
 pub const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 
-/// The console's receive buffer, bytes: more than a command line (96 bytes and its end).
+/// The console's receive buffer, bytes: more than a command line (96 bytes and its end). embassy's ring buffer holds
+/// all of them (its indices wrap at twice the length: full is 128 bytes, not 127), so a read of 128 bytes is how the
+/// console learns it was full (`LineBuffer::read`).
 pub const CONSOLE_RX_BYTES: usize = 128;
 
 bind_interrupts!(struct Irqs {
