@@ -89,6 +89,7 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     let sizes = section_sizes(&elf);
     let (flash, ram) = (sizes.text + sizes.data, sizes.data + sizes.bss);
     let ccm_code = check_ram_code(&elf);
+    check_stack_below_statics(&elf);
     let report = format!(
         "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}, \"ccm_code\": {ccm_code}}}\n",
         sizes.text, sizes.data, sizes.bss
@@ -100,6 +101,33 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     );
     // The STM32G474RE's limits (memory.x): 512 KiB flash, 96 KiB SRAM.
     assert!(flash <= 512 * 1024 && ram <= 96 * 1024, "{sizes:?}");
+}
+
+/// Linked by flip-link (`.cargo/config.toml`): the stack starts below every static and grows down to the start of
+/// RAM, so an overflow faults at the RAM's edge instead of overwriting the statics. Without it the stack starts at
+/// the top of RAM, above them.
+fn check_stack_below_statics(elf: &Elf) {
+    const RAM_START: u64 = 0x2000_0000;
+    let symtab = elf.section(".symtab").expect("symbols");
+    let strtab = elf.sections().nth(elf.u32_at(symtab + 24) as usize).expect("the symbols' strings");
+    let (sym_off, sym_size, strings) =
+        (elf.u32_at(symtab + 16) as usize, elf.u32_at(symtab + 20) as usize, elf.u32_at(strtab + 16) as usize);
+    let stack_start = (sym_off..sym_off + sym_size)
+        .step_by(16)
+        .find(|&s| elf.str_at(strings + elf.u32_at(s) as usize) == "_stack_start")
+        .map(|s| elf.u32_at(s + 4))
+        .expect("a _stack_start symbol");
+    for name in [".data", ".bss", ".uninit"] {
+        let h = elf.section(name).unwrap_or_else(|| panic!("a {name} section"));
+        let addr = elf.u32_at(h + 12);
+        assert!(
+            stack_start <= addr,
+            "the stack starts at {stack_start:#x}, above {name} at {addr:#x}: not flip-link's"
+        );
+    }
+    let stack = stack_start - RAM_START;
+    assert!(stack >= 64 * 1024, "a stack of {stack} B");
+    println!("firmware: stack {stack} B, from {stack_start:#x} down to the start of RAM, below the statics");
 }
 
 /// The sample interrupt runs from CCM SRAM (`src/bin/nanopos-fw/ram_code.rs`): `.ramtext` lies in the CCM, is
