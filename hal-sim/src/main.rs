@@ -207,6 +207,16 @@ fn run(cli: Cli) -> Result<(), CliError> {
                     show(step)
                 );
             }
+            if segments {
+                let written = files.iter().flatten().count();
+                for stale in decode::stale_segments(&out, written) {
+                    eprintln!(
+                        "nanopos-sim: note: {} is from an earlier decode, not this capture (its runs went to {written} \
+                         files): left as it was",
+                        stale.display()
+                    );
+                }
+            }
             match rec.ended {
                 Some(true) => eprintln!(
                     "nanopos-sim: note: the recording stopped early: the board's buffer overflowed (the link is \

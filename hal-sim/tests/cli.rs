@@ -352,9 +352,18 @@ fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("decode --segments"));
     assert!(!dir.path().join("run.csv").exists());
 
+    // Files an earlier decode numbered beyond this one's are named, not taken for this capture's.
+    for stale in ["run-4.csv", "run-5.csv", "run-7.csv"] {
+        std::fs::write(dir.path().join(stale), "t,u,y\n").unwrap();
+    }
     let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv", "--segments"], dir.path());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
+    for stale in ["run-4.csv", "run-5.csv"] {
+        let note = format!("note: {stale} is from an earlier decode, not this capture (its runs went to 3 files)");
+        assert!(stderr.contains(&note), "{stderr}");
+        assert_eq!(std::fs::read_to_string(dir.path().join(stale)).unwrap(), "t,u,y\n");
+    }
     for msg in [
         "skipped: cap.txt:6: frame starts at sample 7144, expected 7096: 48 samples missing",
         "skipped: cap.txt:9: checksum mismatch",

@@ -193,6 +193,13 @@ pub fn segment_path(out: &Path, k: usize) -> std::path::PathBuf {
     out.with_file_name(name)
 }
 
+/// Files numbered after the `written` segment files of a decode into `out` that are already there (`run-4.csv`,
+/// `run-5.csv`, ... after three): left from an earlier decode of another capture, which a `run-*.csv` would take for
+/// this one's (up to the first number that is not there). Left as they are; `decode` says so.
+pub fn stale_segments(out: &Path, written: usize) -> Vec<std::path::PathBuf> {
+    (written + 1..).map(|k| segment_path(out, k)).take_while(|p| p.exists()).collect()
+}
+
 /// Decode recording `which` of `input` into `out` (with [`Damage::Skip`], into one file per segment of 2 or more
 /// samples, numbered from 1 in time order by [`segment_path`]; a lone sample between two gaps is not written);
 /// returns the recording and, for each of its segments, the file it went to (`None`: too short to write).
