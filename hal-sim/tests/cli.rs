@@ -182,6 +182,28 @@ fn outputs_to_devices_and_pipes_are_streamed_and_their_errors_reported() {
     assert_eq!(names.len(), 3, "left behind: {names:?}");
 }
 
+/// An output named through a symbolic link replaces the file the link names, and the link stays (renamed over, the
+/// link became the new file and the file it named kept the old contents); a link to a file not there yet makes it.
+#[cfg(unix)]
+#[test]
+fn an_output_through_a_symbolic_link_writes_the_file_it_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::create_dir(d.join("data")).unwrap();
+    std::fs::write(d.join("data/run.csv"), "old\n").unwrap();
+    std::os::unix::fs::symlink("data/run.csv", d.join("link.csv")).unwrap();
+    std::os::unix::fs::symlink("data/new.csv", d.join("dangling.csv")).unwrap();
+    for (link, file) in [("link.csv", "data/run.csv"), ("dangling.csv", "data/new.csv")] {
+        let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "0.01", "--out", link], d);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(std::fs::symlink_metadata(d.join(link)).unwrap().file_type().is_symlink(), "{link}");
+        assert!(std::fs::read_to_string(d.join(file)).unwrap().starts_with("t,u,y,a0,a1,b0\n"), "{file}");
+    }
+    let mut names: Vec<_> = std::fs::read_dir(d.join("data")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    names.sort();
+    assert_eq!(names, ["new.csv", "run.csv"], "no temporary left");
+}
+
 #[test]
 fn same_seed_gives_the_same_file_and_another_seed_does_not() {
     let dir = tempfile::tempdir().unwrap();

@@ -66,27 +66,49 @@ pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
 /// A path that names a device, a pipe or a socket (`/dev/stdout`, a named pipe another program reads) is a stream,
 /// not a file to replace: it is written directly, and `commit` only flushes it. (Renamed over, `/dev/stdout` itself
 /// was replaced by a regular file when run as root, and as anyone else the temporary could not be made in `/dev`.)
+/// A symbolic link is followed: the file it names is replaced, next to it, and the link stays (renamed over, the
+/// link was replaced by the file and the file it named kept the old contents).
 pub struct OutputFile {
+    /// As the user named it (for messages).
     path: PathBuf,
+    /// Where the file goes: `path`, or the file a link at `path` names.
+    target: PathBuf,
     /// The temporary name; `None` for a stream.
     temp: Option<PathBuf>,
     writer: Option<BufWriter<File>>,
+}
+
+/// The file `path` names through any symbolic links (the last one's target may not exist yet); `path` itself if it
+/// is not a link, or the links go round in a loop.
+fn link_target(path: &Path) -> PathBuf {
+    let mut at = path.to_path_buf();
+    for _ in 0..40 {
+        match std::fs::read_link(&at) {
+            Ok(to) => at = at.parent().map_or(to.clone(), |dir| dir.join(&to)),
+            Err(_) => return at,
+        }
+    }
+    path.to_path_buf()
 }
 
 impl OutputFile {
     /// Start writing `path`.
     pub fn create(path: &Path) -> Result<Self, CliError> {
         let cannot = |e: std::io::Error| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e)));
-        let (file, temp) = match std::fs::metadata(path) {
+        let (file, target, temp) = match std::fs::metadata(path) {
             Ok(m) if m.is_dir() => return fail(format!("{}: is a directory, not a file name", path.display())),
-            Ok(m) if !m.is_file() => (File::options().write(true).open(path).map_err(cannot)?, None),
+            Ok(m) if !m.is_file() => {
+                (File::options().write(true).open(path).map_err(cannot)?, path.to_path_buf(), None)
+            }
             _ => {
-                let name = path.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
-                let temp = path.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
-                (File::create(&temp).map_err(cannot)?, Some(temp))
+                let target = link_target(path);
+                let name =
+                    target.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
+                let temp = target.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
+                (File::create(&temp).map_err(cannot)?, target, Some(temp))
             }
         };
-        Ok(OutputFile { path: path.to_path_buf(), temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
+        Ok(OutputFile { path: path.to_path_buf(), target, temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
     }
 
     /// The path it will have.
@@ -110,7 +132,7 @@ impl OutputFile {
         let done = w.into_inner().map_err(|e| self.write_error(e.into_error())).and_then(|file| {
             let Some(temp) = &temp else { return Ok(()) };
             file.sync_all().map_err(|e| self.write_error(e))?;
-            std::fs::rename(temp, &self.path)
+            std::fs::rename(temp, &self.target)
                 .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
         });
         if let (Err(_), Some(temp)) = (&done, &temp) {
