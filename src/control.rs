@@ -394,15 +394,13 @@ pub struct LineBuffer {
     len: usize,
     overflowed: bool,
     damaged: bool,
-    /// The read being fed came with a receive error: every line it ends is refused.
-    suspect: bool,
     /// The last byte ended a line with `\r`: a `\n` right after it belongs to that line end.
     after_cr: bool,
 }
 
 impl Default for LineBuffer {
     fn default() -> Self {
-        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false, damaged: false, suspect: false, after_cr: false }
+        LineBuffer { buf: [0; MAX_LINE], len: 0, overflowed: false, damaged: false, after_cr: false }
     }
 }
 
@@ -421,7 +419,7 @@ impl LineBuffer {
             } else {
                 parse(&self.buf[..self.len])
             };
-            (self.len, self.overflowed, self.damaged) = (0, false, self.suspect);
+            (self.len, self.overflowed, self.damaged) = (0, false, false);
             return Some(result);
         }
         if self.len < MAX_LINE {
@@ -453,11 +451,10 @@ impl LineBuffer {
     ///
     /// Both take effect when the lines are done with (the iterator dropped; bytes left unread count as lost).
     pub fn read<'a>(&'a mut self, bytes: &'a [u8], error: bool, capacity: usize) -> ReadLines<'a> {
-        self.suspect = error;
         if error {
             self.lost_bytes();
         }
-        ReadLines { full: bytes.len() >= capacity, line: self, bytes: bytes.iter() }
+        ReadLines { full: bytes.len() >= capacity, suspect: error, line: self, bytes: bytes.iter() }
     }
 }
 
@@ -465,23 +462,28 @@ impl LineBuffer {
 pub struct ReadLines<'a> {
     line: &'a mut LineBuffer,
     bytes: core::slice::Iter<'a, u8>,
+    /// The read took the whole receive buffer.
     full: bool,
+    /// The read came with a receive error: every line it ends is refused.
+    suspect: bool,
 }
 
 impl Iterator for ReadLines<'_> {
     type Item = Result<Command, ParseError>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        self.bytes.by_ref().find_map(|&b| self.line.push(b))
+        let parsed = self.bytes.by_ref().find_map(|&b| self.line.push(b));
+        // The next line, begun in this read, is refused too (a `\r\n` across the line end stays one).
+        self.line.damaged |= self.suspect && parsed.is_some();
+        parsed
     }
 }
 
 impl Drop for ReadLines<'_> {
     fn drop(&mut self) {
-        if self.line.suspect || self.full || self.bytes.len() > 0 {
+        if self.suspect || self.full || self.bytes.len() > 0 {
             self.line.lost_bytes();
         }
-        self.line.suspect = false;
     }
 }
 

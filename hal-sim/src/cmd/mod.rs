@@ -78,6 +78,11 @@ pub struct OutputFile {
     writer: Option<BufWriter<File>>,
 }
 
+/// Whether what a path names is a device, a pipe or a socket: a stream, written directly, with no file to replace.
+fn is_stream(m: &std::fs::Metadata) -> bool {
+    !m.is_file() && !m.is_dir()
+}
+
 /// The file `path` names through any symbolic links (the last one's target may not exist yet); `path` itself if it
 /// is not a link, or the links go round in a loop.
 fn link_target(path: &Path) -> PathBuf {
@@ -97,7 +102,7 @@ impl OutputFile {
         let cannot = |e: std::io::Error| CliError(format!("{}: cannot create: {}", path.display(), io_reason(&e)));
         let (file, target, temp) = match std::fs::metadata(path) {
             Ok(m) if m.is_dir() => return fail(format!("{}: is a directory, not a file name", path.display())),
-            Ok(m) if !m.is_file() => {
+            Ok(m) if is_stream(&m) => {
                 (File::options().write(true).open(path).map_err(cannot)?, path.to_path_buf(), None)
             }
             _ => {
@@ -173,7 +178,7 @@ enum FileId {
 /// `/dev/stdout` in a terminal names one device twice, and is no conflict).
 fn file_id(path: &Path) -> Option<FileId> {
     match std::fs::metadata(path) {
-        Ok(m) if !m.is_file() && !m.is_dir() => None,
+        Ok(m) if is_stream(&m) => None,
         #[cfg(unix)]
         Ok(m) => {
             use std::os::unix::fs::MetadataExt;

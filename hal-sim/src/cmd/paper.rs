@@ -96,7 +96,8 @@ fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(I
         last_t: Option<f64>,
         tuning: &Tuning,
     ) -> Result<Identified, CliError> {
-        let blocks = from.into_iter().map(|b| Ok(b.as_ref().clone()));
+        // The identification that takes a block last takes it whole; the other copies it.
+        let blocks = from.into_iter().map(|b| Ok(Arc::unwrap_or_clone(b)));
         identify_streamed::<T>(source, rows as u64, last_t, true, &NAMES, tuning, &[], blocks)
     }
     std::thread::scope(|s| {
