@@ -56,6 +56,8 @@ pub fn fmin<T: PartialOrd>(a: T, b: T) -> T {
 
 /// A floating-point scalar the core runs in.
 pub trait Real: Scalar + Float + FloatConst {
+    /// The scalar's name, `"f32"` or `"f64"` (what a host tool's output says it was computed in).
+    const NAME: &'static str;
     /// A 64-bit phase accumulator as a fraction of a cycle in `[0, 1)`, to the precision this scalar holds
     /// (24 bits for f32, 53 for f64), without a 64-bit float conversion on the target.
     fn phase_fraction(phase: u64) -> Self;
@@ -84,6 +86,8 @@ impl Scalar for f32 {
 }
 
 impl Real for f32 {
+    const NAME: &'static str = "f32";
+
     #[inline(always)]
     fn phase_fraction(phase: u64) -> Self {
         // Top 24 bits: exactly representable in f32, and a u32 -> f32 conversion is one VCVT.
@@ -132,6 +136,8 @@ impl Scalar for f64 {
 }
 
 impl Real for f64 {
+    const NAME: &'static str = "f64";
+
     #[inline(always)]
     fn phase_fraction(phase: u64) -> Self {
         (phase >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0)

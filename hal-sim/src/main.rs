@@ -65,6 +65,10 @@ enum Command {
         /// input that is not rounded) [default: the board's, 3.3 V / 4096 / 0.165 = 4.88 mV].
         #[arg(long, value_name = "V", allow_negative_numbers = true)]
         dac_step: Option<hal_sim::cmd::identify::DacStep>,
+        /// The scalar of the pipeline and the estimators: f64 (the reference) or f32 (the firmware's: what the board
+        /// computes from these samples, and which tunings it refuses).
+        #[arg(long, value_enum, default_value = "f64")]
+        precision: PrecisionArg,
     },
     /// The paper's whole experiment on the simulated board: PRBS and triangle, every estimator, f64 and f32;
     /// prints a Table II-style table and writes the summaries.
@@ -119,6 +123,23 @@ enum ScenarioArg {
     Multisine,
 }
 
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum PrecisionArg {
+    /// Double precision, the reference.
+    F64,
+    /// Single precision, the firmware's.
+    F32,
+}
+
+impl From<PrecisionArg> for hal_sim::cmd::identify::Precision {
+    fn from(p: PrecisionArg) -> Self {
+        match p {
+            PrecisionArg::F64 => Self::F64,
+            PrecisionArg::F32 => Self::F32,
+        }
+    }
+}
+
 impl From<ScenarioArg> for Scenario {
     fn from(s: ScenarioArg) -> Self {
         match s {
@@ -142,7 +163,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
             };
             simulate::run(&args).map(|_| ())
         }
-        Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step } => {
+        Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step, precision } => {
             use hal_sim::cmd::identify;
             let tuning = hal_sim::tuning::resolve(&tuning)?;
             let args = identify::IdentifyArgs {
@@ -154,6 +175,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 summary: summary.as_deref(),
                 plot: plot.as_deref(),
                 dac_step_v: dac_step,
+                precision: precision.into(),
             };
             let result = identify::run(&args)?;
             for note in identify::health_notes(&result) {

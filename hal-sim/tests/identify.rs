@@ -176,6 +176,51 @@ fn a_tuning_is_checked_at_its_records_sample_rate() {
     }
 }
 
+/// `--precision f32` runs the pipeline and the estimators in the firmware's scalar: on the paper's PRBS run its window
+/// means agree with f64's to 1e-4 (SPEC 10), the summary says which it is, and a tuning f32 cannot hold (`R` of
+/// 1e-45 um^2: `1 / R` overflows f32), which the board's `tune` refuses and f64 runs, is refused, naming the tuning.
+#[test]
+fn identify_in_the_firmwares_f32() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "8");
+    let summary = |precision: &str| {
+        let args = ["identify", "--input", "run.csv", "--estimators", "rls,ekf,hekf", "--precision", precision];
+        let out = nanopos_sim(&args, d);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let (s64, s32) = (summary("f64"), summary("f32"));
+    assert!(s64.starts_with("{\"precision\": \"f64\", ") && s32.starts_with("{\"precision\": \"f32\", "));
+    assert_eq!(summary("f64"), s64, "the default is f64 and repeatable");
+    let numbers = |s: &str, key: &str| -> Vec<f64> {
+        s.split(&format!("\"{key}\": ")).skip(1).map(|v| v.split([',', '}']).next().unwrap().parse().unwrap()).collect()
+    };
+    let mut worst = 0.0f64;
+    for key in ["a0", "a1", "b0"] {
+        let (v64, v32) = (numbers(&s64, key), numbers(&s32, key));
+        assert_eq!(v64.len(), 2 * 4, "{key}: two windows, three estimators and the truth");
+        for (a, b) in v64.iter().zip(&v32) {
+            worst = worst.max((b / a - 1.0).abs());
+        }
+    }
+    eprintln!("f32 against f64, window means of a0, a1, b0: worst relative difference {worst:.1e}");
+    assert!(worst > 0.0 && worst < 1e-4, "{worst:e}");
+
+    std::fs::write(d.join("tiny_r.toml"), "[ekf]\nr = 1e-45\n").unwrap();
+    let args = ["identify", "--input", "run.csv", "--estimators", "ekf", "--tuning", "tiny_r.toml", "--window", "7:8"];
+    let out = nanopos_sim(&args, d);
+    assert!(out.status.success(), "f64 holds it: {}", String::from_utf8_lossy(&out.stderr));
+    let out = nanopos_sim(&[&args[..], &["--precision", "f32"]].concat(), d);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    let refusal =
+        "nanopos-sim: tiny_r.toml: at the sample period of run.csv (0.0001 s), in f32: the estimators cannot \
+                   hold this tuning";
+    assert!(stderr.starts_with(refusal) && stderr.lines().count() == 1, "{stderr}");
+    assert!(out.stdout.is_empty());
+}
+
 /// A record no stage could produce (the probe pinned at 1e30 um under a PRBS) drives estimates where the derived
 /// quantities have no value (`a0 < 0`: no `f0`): the summary says `null`, and stays JSON (it wrote `NaN`).
 #[test]
@@ -263,13 +308,16 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--window", "1e-300:1e-299"], "window 1e-300:1e-299 holds no estimate"),
         (
             &["identify", "--input", "slow.csv", "--tuning", "fast_band.toml"],
-            "fast_band.toml: at the sample period of slow.csv (0.0004 s): the continuous-time RLS steps its pre-filter \
-             by RK4",
+            "fast_band.toml: at the sample period of slow.csv (0.0004 s), in f64: the continuous-time RLS steps its \
+             pre-filter by RK4",
         ),
         // Each value in range; `q_b0 / b0^2` is not a number in f64.
         (&["identify", "--input", "ok.csv", "--tuning", "tiny.toml"], "tiny.toml: at the sample period of ok.csv"),
         (&["identify", "--input", "ok.csv", "--tuning", "near_dc.toml"], "lag replica: no stable filter"),
-        (&["identify", "--input", "ok.csv", "--tuning", "fast_rls.toml"], "fast_rls.toml: [rls] gamma = 15000: above 0 and at most 10000 /s"),
+        (
+            &["identify", "--input", "ok.csv", "--tuning", "fast_rls.toml"],
+            "fast_rls.toml: [rls] gamma = 15000: above 0 and at most 10000 /s",
+        ),
     ];
     for (args, mention) in cases {
         let out = nanopos_sim(args, d);

@@ -1,5 +1,5 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
-//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V]`
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V] [--precision f64|f32]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
 //! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
@@ -7,7 +7,9 @@
 //! truth and are reported next to the estimates.
 //!
 //! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
-//! - `SUMMARY.json`: per window, each estimator's mean parameters over it and the validation RMSE of SPEC section 7:
+//! - `--precision`: the scalar of the pipeline and the estimators, f64 (the reference, default) or f32 (the
+//!   firmware's: the board's results on the same samples, and its refusal of a tuning f32 cannot hold).
+//! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and the validation RMSE of SPEC section 7:
 //!   model (1) with those means, simulated exactly (zero-order hold) on the replica input `u'` from zero state one
 //!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`; and
 //!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
@@ -100,6 +102,8 @@ pub struct Identified {
     pub span: (f64, f64),
     /// The record's sample period, s.
     pub period: f64,
+    /// The scalar the pipeline and the estimators ran in: `"f64"`, or `"f32"`, the firmware's.
+    pub precision: &'static str,
 }
 
 /// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
@@ -247,9 +251,9 @@ fn identify_blocks<T: Real>(
     // The tuning at the record's sample period: its values' ranges and whether the estimators can run it depend on
     // it (a tuning is not checked at the board's 10 kHz when it is read).
     let (name, tuning) = (&tuning.name, tuning.at(dt)?);
-    tuning
-        .runnable::<T>()
-        .map_err(|u| CliError(format!("{name}: at the sample period of {source} ({} s): {u}", show(dt))))?;
+    tuning.runnable::<T>().map_err(|u| {
+        CliError(format!("{name}: at the sample period of {source} ({} s), in {}: {u}", show(dt), T::NAME))
+    })?;
     // The stage's pre-filter is the tuning's (the continuous-time RLS has its own copy of it), the replicas matched
     // at its centre as on the board.
     let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
@@ -405,7 +409,8 @@ fn identify_blocks<T: Real>(
         summary.push((*w, figures, window_truth));
     }
     let truth = record.has_truth.then_some(truth_rows);
-    Ok(Identified { names, times, estimates, healths, truth, windows: summary, span: (t_first, t_last), period: dt })
+    let span = (t_first, t_last);
+    Ok(Identified { names, times, estimates, healths, truth, windows: summary, span, period: dt, precision: T::NAME })
 }
 
 /// Hand one block of filtered samples to every estimator worker.
@@ -527,6 +532,20 @@ pub struct IdentifyArgs<'a> {
     pub plot: Option<&'a Path>,
     /// The input's step for one DAC code, V (0: not rounded; `None`: the simulated board's, as the firmware's).
     pub dac_step_v: Option<DacStep>,
+    /// The scalar the pipeline and the estimators run in.
+    pub precision: Precision,
+}
+
+/// `--precision`: the scalar of the pipeline and the estimators.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Precision {
+    /// f64, the reference.
+    #[default]
+    F64,
+    /// f32, the firmware's: what the board computes from the same samples (the QEMU harness shows the Cortex-M4F's
+    /// f32 results equal the host's bit for bit on the same f32 input; a CSV's decimal volts round to it), including
+    /// its refusal of a tuning f32 cannot hold.
+    F32,
 }
 
 /// `--dac-step V`: the input's step for one DAC code, finite and not negative.
@@ -569,7 +588,11 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
         Ok(None) => None,
         Err(e) => Some(Err(e)),
     });
-    let result = identify_blocks::<f64>(&record, &args.estimators, &args.tuning, &args.windows, blocks)?;
+    let (names, tuning, windows) = (&args.estimators, &args.tuning, &args.windows);
+    let result = match args.precision {
+        Precision::F64 => identify_blocks::<f64>(&record, names, tuning, windows, blocks)?,
+        Precision::F32 => identify_blocks::<f32>(&record, names, tuning, windows, blocks)?,
+    };
     // Every file is written before any is moved into place.
     let est = est.map(|f| write_estimates(f, &result)).transpose()?;
     let sum = sum.map(|f| write_summary(f, &result)).transpose()?;
@@ -687,7 +710,7 @@ pub fn summary_json(r: &Identified) -> String {
             format!("{{\"t0\": {:?}, \"t1\": {:?}, \"estimators\": {{{}}}{truth}}}", w.t0, w.t1, ests.join(", "))
         })
         .collect();
-    format!("{{\"windows\": [{}]}}\n", windows.join(", "))
+    format!("{{\"precision\": \"{}\", \"windows\": [{}]}}\n", r.precision, windows.join(", "))
 }
 
 fn write_summary(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
@@ -838,8 +861,10 @@ mod tests {
             summary: None,
             plot: None,
             dac_step_v: None,
+            precision: Precision::F64,
         };
         let streamed = run(&args).unwrap();
+        let streamed32 = run(&IdentifyArgs { precision: Precision::F32, ..args }).unwrap();
 
         let (cols, truth) =
             crate::csv::read_columns_optional(&input, &["u", "y"], &["a0", "a1", "b0"], Time::Required).unwrap();
@@ -862,6 +887,13 @@ mod tests {
             assert_eq!(streamed.estimates, other.estimates);
             assert_eq!(summary_json(&streamed), summary_json(other));
         }
+        // `--precision f32`: the pipeline and the estimators in f32, as the firmware runs them, and the summary says so.
+        let whole32 = identify_in::<f32>(&Recording { source: "test", t, u, y, truth }, &NAMES, &tuning, &[]).unwrap();
+        assert_eq!(streamed32.estimates, whole32.estimates);
+        assert_eq!(summary_json(&streamed32), summary_json(&whole32));
+        assert_ne!(streamed32.estimates, streamed.estimates, "f32 rounds differently from f64");
+        assert!(summary_json(&streamed).starts_with("{\"precision\": \"f64\", \"windows\": ["));
+        assert!(summary_json(&streamed32).starts_with("{\"precision\": \"f32\", \"windows\": ["));
         assert_eq!(streamed.windows[1].0, Window { t0: 14.0, t1: 16.0 });
     }
 
