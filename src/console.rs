@@ -178,13 +178,11 @@ impl Controller {
         if let Waveform::Multisine { f_lo_hz, f_hi_hz } = self.chosen.waveform {
             // A band that misses the resonance does not identify the stage (tests/instrument.rs: 600-1000 Hz and
             // 50-150 Hz about 423 Hz).
-            let (f0, from) = resonance.unwrap_or((self.tuning.ekf.initial.f0_hz(), "tune initial"));
+            let (f0, from) = self.resonance_or_initial(resonance);
             if !(f_lo_hz..=f_hi_hz).contains(&f0) {
-                let whose = if resonance.is_some() { "'s estimate" } else { "" };
                 writeln!(
                     reply,
-                    "note: {} to {} Hz misses the resonance ({} Hz, {from}{whose}): such a band does not identify \
-                     the stage",
+                    "note: {} to {} Hz misses the resonance ({} Hz, {from}): such a band does not identify the stage",
                     Num(f_lo_hz, 6),
                     Num(f_hi_hz, 6),
                     Num(f0, 4)
@@ -202,6 +200,46 @@ impl Controller {
             )?;
         }
         Ok(())
+    }
+
+    /// After `tune initial` and `tune prefilter`: a line when the pre-filter's centre is far from the stage's
+    /// resonance ([`crate::filters::PrefilterDesign::off_resonance`]), where the estimates come out biased by
+    /// several %: for `tune initial` the resonance of the new initial parameters (a new stage, the pre-filter left
+    /// where the last one needed it), for `tune prefilter` `resonance` (the interrupt's estimate, taken before the
+    /// restart), else `tune initial`'s.
+    fn prefilter_note(
+        &self,
+        key: TuningKey,
+        resonance: Option<(f64, &'static str)>,
+        reply: &mut impl Write,
+    ) -> fmt::Result {
+        let (f0, from) = match key {
+            TuningKey::Initial => self.resonance_or_initial(None),
+            TuningKey::Prefilter => self.resonance_or_initial(resonance),
+            _ => return Ok(()),
+        };
+        let f_p = self.tuning.rls.prefilter.f_p_hz;
+        if let Some(ratio) = self.tuning.rls.prefilter.off_resonance(f0) {
+            writeln!(
+                reply,
+                "note: the pre-filter's f_p ({} Hz) is {} times the resonance ({} Hz, {from}): the estimates can \
+                 come out biased by several %; keep f_p near the stage's resonance (tune prefilter) and the initial \
+                 parameters near the stage (tune initial)",
+                Num(f_p, 6),
+                Num(ratio, 3),
+                Num(f0, 4)
+            )?;
+        }
+        Ok(())
+    }
+
+    /// The stage's resonance and where it is from: `resonance` (Hz, and the estimator whose estimate it is), else
+    /// the one of `tune initial`.
+    fn resonance_or_initial(&self, resonance: Option<(f64, &'static str)>) -> (f64, Whose) {
+        match resonance {
+            Some((f0, name)) => (f0, Whose::Estimate(name)),
+            None => (self.tuning.ekf.initial.f0_hz(), Whose::Initial),
+        }
     }
 
     /// Answer a line that did not parse.
@@ -223,10 +261,14 @@ impl Controller {
         if matches!(cmd, Command::Status) {
             return (None, Rest { status: Some(status()), next: 0 });
         }
-        // For `excite multisine`'s note: the resonance as the interrupt estimates it now.
-        let resonance = matches!(cmd, Command::Excite(ExcitationChoice::Multisine { .. }))
-            .then(|| estimated_resonance(&status()))
-            .flatten();
+        // For the notes of `excite multisine` and `tune prefilter`: the resonance as the interrupt estimates it now.
+        let resonance = matches!(
+            cmd,
+            Command::Excite(ExcitationChoice::Multisine { .. })
+                | Command::Tune { key: TuningKey::Prefilter, values: Some(_) }
+        )
+        .then(|| estimated_resonance(&status()))
+        .flatten();
         match self.try_execute(cmd, resonance, reply) {
             Ok(change) => (change, Rest::none()),
             Err(e) => {
@@ -336,6 +378,7 @@ impl Controller {
                 change.freeze = self.frozen;
                 self.tuning = t;
                 self.tuned = true;
+                self.prefilter_note(key, resonance, reply)?;
                 write_tune(reply, key, values)?;
                 writeln!(reply, " (estimators restarted)")?;
             }
@@ -581,6 +624,22 @@ fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str
     let i = if running(2) { 2 } else { (0..4).find(|&i| running(i))? };
     let f0 = status.estimates[i].0.f0_hz().to_f64()?;
     (f0.is_finite() && f0 > 0.0).then_some((f0, ESTIMATOR_NAMES[i]))
+}
+
+/// Where a resonance in a note is from: an estimator's estimate, or `tune initial`.
+#[derive(Clone, Copy)]
+enum Whose {
+    Estimate(&'static str),
+    Initial,
+}
+
+impl fmt::Display for Whose {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Whose::Estimate(name) => write!(f, "{name}'s estimate"),
+            Whose::Initial => f.write_str("tune initial"),
+        }
+    }
 }
 
 /// Latched faults by name (`none` if none).

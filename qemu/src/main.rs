@@ -338,8 +338,8 @@ fn main() -> ! {
     //    holds 5.2 million instructions; had it wrapped, the count would be refused.
     let mut ctl = Controller::new(PipelineSettings::default(), vectors.board, true)
         .unwrap_or_else(|_| fail("the controller's settings are invalid"));
-    //    `excite multisine` judges its band against the interrupt's estimate: a snapshot taken beforehand, whose
-    //    copy is counted here (the snapshot itself is `status_snapshot`, below).
+    //    `excite multisine` and `tune prefilter` judge the band and the pre-filter against the interrupt's estimate: a
+    //    snapshot taken beforehand, whose copy is counted here (the snapshot itself is `status_snapshot`, below).
     let prbs = nanopos_id::estimators::Tuning::preset("prbs").map_or_else(|| fail("prbs tuning"), |t| t.design());
     let snapshot = Instrument::new(start.cfg, &prbs).status();
     //    The last is refused, after the longest design there is: the ARX's zero-order hold of a matrix of norm near
@@ -363,7 +363,8 @@ fn main() -> ! {
             // SAFETY: SysTick's registers, always mapped; nothing else uses them while this runs. Writing the
             // current value restarts the count from the reload value and clears COUNTFLAG.
             unsafe { (*SYST::PTR).cvr.write(0) };
-            let status = || if name == "console_excite_multisine" { snapshot } else { idle_status() };
+            let asks = matches!(name, "console_excite_multisine" | "console_tune_prefilter");
+            let status = || if asks { snapshot } else { idle_status() };
             let ((change, _), n) = c.count(|| ctl.execute::<f32>(cmd, status, &mut reply));
             // SAFETY: as above; reading the control register clears COUNTFLAG.
             if unsafe { (*SYST::PTR).csr.read() } & (1 << 16) != 0 {
@@ -463,7 +464,7 @@ fn main() -> ! {
     semihosting::process::exit(0)
 }
 
-/// No status: the counted commands but `excite multisine` do not ask for it.
+/// No status: the counted commands but `excite multisine` and `tune prefilter` do not ask for it.
 fn idle_status() -> Status<f32> {
     fail("a counted command asked for the status")
 }
