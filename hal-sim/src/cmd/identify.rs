@@ -36,6 +36,7 @@ use crate::board::SimBoard;
 use crate::csv::{Reader, Time};
 use crate::tuning::TuningArg;
 use nanopos_id::estimator::{Adaptation, EstimatorBank, FilteredSample, Health};
+use nanopos_id::filters::PrefilterDesign;
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
 use nanopos_id::pipeline::{Pipeline, PipelineSettings};
@@ -104,6 +105,8 @@ pub struct Identified {
     pub period: f64,
     /// The scalar the pipeline and the estimators ran in: `"f64"`, or `"f32"`, the firmware's.
     pub precision: &'static str,
+    /// The stage's pre-filter `W_p` the tuning gave (the pipeline's, and the continuous-time RLS's own).
+    pub prefilter: PrefilterDesign,
 }
 
 /// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
@@ -410,7 +413,8 @@ fn identify_blocks<T: Real>(
     }
     let truth = record.has_truth.then_some(truth_rows);
     let span = (t_first, t_last);
-    Ok(Identified { names, times, estimates, healths, truth, windows: summary, span, period: dt, precision: T::NAME })
+    let (precision, prefilter) = (T::NAME, tuning.rls.prefilter);
+    Ok(Identified { names, times, estimates, healths, truth, windows: summary, span, period: dt, precision, prefilter })
 }
 
 /// Hand one block of filtered samples to every estimator worker.
@@ -606,7 +610,10 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// One line per window that reaches beyond the record, by a sample or more (its figures are of the part the record
 /// covers, not of the window asked for), and per estimator and window whose means are not what the input identifies:
 /// the excitation monitor held the estimator for more than a tenth of the window (its means are of held values), or
-/// it reset itself (its means are of runs that diverged, each restarted from the initial parameters).
+/// it reset itself (its means are of runs that diverged, each restarted from the initial parameters); and per window
+/// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates come
+/// out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
+/// board's console takes it).
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -622,6 +629,23 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 show(w.t0.max(first)),
                 show(w.t1.min(last))
             ));
+        }
+        let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
+        if let Some(f) = figs.get(by) {
+            let f0 = f.mean.f0_hz();
+            if let Some(ratio) = r.prefilter.off_resonance(f0) {
+                notes.push(format!(
+                    "window {}:{}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): the \
+                     estimates can come out biased by several %; give --tuning a pre-filter near the resonance \
+                     (prefilter = [F_LC, F_P, ZETA])",
+                    w.t0,
+                    w.t1,
+                    show(r.prefilter.f_p_hz),
+                    ratio,
+                    f0,
+                    r.names[by]
+                ));
+            }
         }
         for (name, f) in r.names.iter().zip(figs) {
             if f.starved > 0.1 {
