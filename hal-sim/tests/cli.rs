@@ -129,7 +129,7 @@ fn outputs_to_devices_and_pipes_are_streamed_and_their_errors_reported() {
         .success());
     let summary = ["identify", "--input", "r.csv", "--estimators", "hekf", "--window", "0.2:0.5"];
     let plain = nanopos_sim(&summary, d);
-    assert!(plain.status.success() && plain.stdout.starts_with(b"{\"windows\""));
+    assert!(plain.status.success() && plain.stdout.starts_with(b"{\"precision\": \"f64\", \"windows\""));
 
     // Standard output (a pipe here) through its device name: the same text; the link itself still a link.
     let through = nanopos_sim(&[&summary[..], &["--summary", "/dev/stdout"]].concat(), d);
