@@ -98,6 +98,39 @@ fn hekf_on_the_full_simulated_board() {
     }
 }
 
+/// What would meet the b0 goal on the full board: the second mode's bias on `b0` depends on where the pre-filter sits
+/// against the resonance, and crosses zero with `f_p` near 1.06 times it. The paper's 450 Hz is there for the
+/// payload's 423 Hz (b0 -0.035 %, above) but not for the 483 Hz without it (+0.28 %); moved to 512 Hz, the window
+/// without payload is within 0.1 % on a0 and b0 (measured b0 -0.008 % in f64) and the one with it is not (-0.26 %).
+/// One fixed pre-filter cannot sit there for both masses; one re-centred after a detected change (which restarts
+/// the estimators, as the console's `tune prefilter` does) would, and is not built: the paper and the SPEC fix the
+/// pre-filter.
+#[test]
+fn the_second_modes_bias_on_b0_vanishes_with_the_prefilter_at_1_06_f0() {
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    use nanopos_id::filters::PrefilterDesign;
+    let design = HekfDesign::default();
+    let moved = PrefilterDesign { f_p_hz: 512.0, ..PrefilterDesign::default() };
+    let h = run(
+        hal_sim::sim::Scenario::Prbs,
+        200.0,
+        1,
+        || Hekf::<f64>::new(design.design()),
+        || Hekf::<f32>::new(design.design()),
+        |_, p| *p = p.with_prefilter(moved),
+    );
+    for (name, hist) in [("f64", &h.f64), ("f32", &h.f32)] {
+        let errors = [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
+            let (mean, truth) = window_mean(hist, t0, t1);
+            rel_errors(&mean, &truth)
+        });
+        eprintln!("hekf {name}, f_p 512 Hz: a0, a1, b0 with payload {:+.4?}, without {:+.4?}", errors[0], errors[1]);
+        let [with, without] = errors;
+        assert!(without[0].abs() < 1e-3 && without[1].abs() < 1e-2 && without[2].abs() < 1e-3, "{without:?}");
+        assert!(with[2] < -2e-3, "with the payload the moved pre-filter is off its resonance: {with:?}");
+    }
+}
+
 #[test]
 #[ignore = "diagnosis: which board effect biases the estimate (run with --ignored --nocapture)"]
 fn hekf_bias_by_board_effect() {
