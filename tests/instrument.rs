@@ -984,6 +984,21 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     assert_eq!((rec.first_index(), rec.len(), rec.segments.len(), rec.ended), (0, 20_001, 1, Some(false)));
     assert_eq!(files, [Some(csv.clone())]);
     let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
+    // `nanopos-sim identify --precision f32` on the decoded file.
+    use hal_sim::cmd::identify::{self, IdentifyArgs, Precision};
+    let args = IdentifyArgs {
+        input: &csv,
+        estimators: hal_sim::bank::NAMES.to_vec(),
+        tuning: hal_sim::bank::Tuning::preset("prbs").unwrap().into(),
+        windows: Vec::new(),
+        out: None,
+        summary: None,
+        plot: None,
+        dac_step_v: None,
+        precision: Precision::F32,
+    };
+    let replayed = identify::run(&args).unwrap();
+    assert_eq!(replayed.names, ESTIMATOR_NAMES);
     std::fs::remove_dir_all(&dir).unwrap();
 
     // The host's replay of the decoded file, in f32 like the board: the interrupt's estimates, to rounding of the
@@ -991,16 +1006,25 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     let cfg = lab.ctl.config::<f32>();
     let mut replay = Pipeline::new(&cfg, full_bank(&lab.ctl.tuning::<f32>()));
     let (u, y) = (&cols.data[0], &cols.data[1]);
+    let mut at_last_row = None;
     for k in 0..u.len() {
         replay.replay(&cfg, u[k] as f32, y[k] as f32);
+        let e = &replay.estimators;
+        if k + 1 == 100 * replayed.times.len() {
+            at_last_row = Some([e.0.params(), e.1.params(), e.2.params(), e.3.params()]);
+        }
     }
     let e = &replay.estimators;
-    let host = [e.0.params(), e.1.params(), e.2.params(), e.3.params()];
-    for (i, h) in host.iter().enumerate() {
+    for (i, h) in [e.0.params(), e.1.params(), e.2.params(), e.3.params()].iter().enumerate() {
         let b = board[i];
         for (x, z) in [(h.a0, b.a0), (h.a1, b.a1), (h.b0, b.b0)] {
             assert!(((x - z) / z).abs() < 1e-4, "{}: host {h:?} board {b:?}", ESTIMATOR_NAMES[i]);
         }
+    }
+    // `identify --precision f32` is this replay, bit for bit (its rows every 100 samples).
+    let row = replayed.estimates.last().unwrap();
+    for (i, h) in at_last_row.expect("a row").iter().enumerate() {
+        assert_eq!(row[i], StageParams { a0: h.a0 as f64, a1: h.a1 as f64, b0: h.b0 as f64 }, "{}", ESTIMATOR_NAMES[i]);
     }
 }
 
