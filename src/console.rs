@@ -203,7 +203,7 @@ impl Controller {
     }
 
     /// After `tune initial` and `tune prefilter`: a line when the pre-filter's centre is far from the stage's
-    /// resonance ([`crate::filters::PrefilterDesign::off_resonance`]), where the estimates come out biased by
+    /// resonance ([`crate::filters::PrefilterDesign::off_resonance`]), where the estimates can come out biased by
     /// several %: for `tune initial` the resonance of the new initial parameters (a new stage, the pre-filter left
     /// where the last one needed it), for `tune prefilter` `resonance` (the interrupt's estimate, taken before the
     /// restart), else `tune initial`'s.

@@ -1,5 +1,6 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
-//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V] [--precision f64|f32]`
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V]
+//! [--precision f64|f32]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
 //! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
@@ -9,16 +10,17 @@
 //! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
 //! - `--precision`: the scalar of the pipeline and the estimators, f64 (the reference, default) or f32 (the
 //!   firmware's: the board's results on the same samples, and its refusal of a tuning f32 cannot hold).
-//! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and the validation RMSE of SPEC section 7:
-//!   model (1) with those means, simulated exactly (zero-order hold) on the replica input `u'` from zero state one
-//!   second before the window (the transient of the wrong start has decayed by e^-38 by then), against `y'`; and
-//!   the estimator's own running innovation RMS averaged over the window (`null` for the RLS-type estimators), the
-//!   health view of the same question: far above the noise floor, the model does not fit; and `starved`, the share
-//!   of the window the excitation monitor held the estimator (input too weak, or a single sinusoid; sampled with the
-//!   100 Hz rows), where the mean is of held values; and `resets`, the times in the window the estimator met a
-//!   non-finite value and went back to its initial parameters (a tuning that does not suit the record resets it
-//!   over and over, and its mean is then of runs that diverged). Above 10 % starved, or any reset, a note on standard error
-//!   says so ([`health_notes`]); and of a window the record does not wholly cover, what its figures are of.
+//! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and
+//!   the validation RMSE of SPEC section 7: model (1) with those means, simulated exactly (zero-order hold) on the
+//!   replica input `u'` from zero state one second before the window (the transient of the wrong start has decayed
+//!   by e^-38 by then), against `y'`; and the estimator's own running innovation RMS averaged over the window
+//!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
+//!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
+//!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `resets`, the
+//!   times in the window the estimator met a non-finite value and went back to its initial parameters (a tuning that
+//!   does not suit the record resets it over and over, and its mean is then of runs that diverged). Above 10 %
+//!   starved, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
+//!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
@@ -611,8 +613,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// covers, not of the window asked for), and per estimator and window whose means are not what the input identifies:
 /// the excitation monitor held the estimator for more than a tenth of the window (its means are of held values), or
 /// it reset itself (its means are of runs that diverged, each restarted from the initial parameters); and per window
-/// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates come
-/// out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
+/// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates can
+/// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
 /// board's console takes it).
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
@@ -635,8 +637,8 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             let f0 = f.mean.f0_hz();
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
                 notes.push(format!(
-                    "window {}:{}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): the \
-                     estimates can come out biased by several %; give --tuning a pre-filter near the resonance \
+                    "window {}:{}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): \
+                     the estimates can come out biased by several %; give --tuning a pre-filter near the resonance \
                      (prefilter = [F_LC, F_P, ZETA])",
                     w.t0,
                     w.t1,
@@ -911,7 +913,7 @@ mod tests {
             assert_eq!(streamed.estimates, other.estimates);
             assert_eq!(summary_json(&streamed), summary_json(other));
         }
-        // `--precision f32`: the pipeline and the estimators in f32, as the firmware runs them, and the summary says so.
+        // `--precision f32`: the pipeline and the estimators in f32, as the firmware runs them; the summary says so.
         let whole32 = identify_in::<f32>(&Recording { source: "test", t, u, y, truth }, &NAMES, &tuning, &[]).unwrap();
         assert_eq!(streamed32.estimates, whole32.estimates);
         assert_eq!(summary_json(&streamed32), summary_json(&whole32));
