@@ -324,6 +324,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--window", "5:1"], "T0 < T1"),
         (&["identify", "--input", "ok.csv", "--dac-step", "-1"], "'-1': expected the input's step for one DAC code"),
         (&["identify", "--input", "ok.csv", "--dac-step", "nan"], "'nan': expected the input's step"),
+        (&["identify", "--input", "ok.csv", "--precision", "f16"], "invalid value 'f16' for '--precision"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
         // In exponent form, not the 301 digits of `Display`.
         (&["identify", "--input", "late.csv", "--out", "e.csv"], "late.csv:3: time 1e300 does not advance from 1e300"),
