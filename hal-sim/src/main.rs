@@ -201,7 +201,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 eprintln!("nanopos-sim: skipped: {msg}");
             }
             for (seg, file) in rec.segments.iter().zip(&files) {
-                let n = seg.samples.len();
+                let n = seg.len;
                 let at = (seg.first_index - origin) as f64 / rate;
                 match file {
                     Some(path) => eprintln!(

@@ -14,7 +14,7 @@
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
 use nanopos_id::record::{decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG};
-use std::io::Write;
+use std::io::{BufRead, Write};
 use std::path::Path;
 
 /// A gap-free run of samples.
@@ -22,11 +22,11 @@ use std::path::Path;
 pub struct Segment {
     /// Index of its first sample since the board started.
     pub first_index: u64,
-    /// The samples.
-    pub samples: Vec<RawSample>,
+    /// How many samples it has.
+    pub len: u64,
 }
 
-/// What a decoded recording holds.
+/// What a decoded recording holds (its samples went to the files as they were read).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Recording {
     /// The header.
@@ -46,8 +46,8 @@ impl Recording {
     }
 
     /// Samples decoded, over all segments.
-    pub fn len(&self) -> usize {
-        self.segments.iter().map(|s| s.samples.len()).sum()
+    pub fn len(&self) -> u64 {
+        self.segments.iter().map(|s| s.len).sum()
     }
 
     /// Whether no sample was decoded.
@@ -102,74 +102,6 @@ fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, 
     Ok(header)
 }
 
-/// Recording number `which` (1-based) of the capture `text` (`name` for messages).
-pub fn parse(name: &str, text: &str, which: usize, damage: Damage) -> Result<Recording, CliError> {
-    let mut found = 0;
-    let mut rec: Option<Recording> = None;
-    let mut frame = [RawSample::default(); FRAME_SAMPLES];
-    for (i, line) in text.lines().enumerate() {
-        let line_no = i + 1;
-        let line = line.trim_end_matches('\r');
-        if line.starts_with(HEADER_TAG) {
-            if rec.is_some() {
-                break;
-            }
-            found += 1;
-            if found == which {
-                let header = parse_header(name, line_no, line)?;
-                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None });
-            }
-            continue;
-        }
-        let Some(r) = rec.as_mut() else { continue };
-        if line.starts_with(END_TAG) {
-            r.ended = Some(line.contains("overflow=1"));
-            break;
-        }
-        if !line.starts_with('R') {
-            continue;
-        }
-        let (index, n) = match decode_frame(line.as_bytes(), &mut frame) {
-            Ok(decoded) => decoded,
-            Err(e) => {
-                r.refuse_or_skip(damage, format!("{name}:{line_no}: {e}"))?;
-                continue;
-            }
-        };
-        // The sample the current segment continues with, if there is one.
-        let expected = r.segments.last().map(|s| s.first_index + s.samples.len() as u64);
-        match expected {
-            Some(e) if index == e => r.segments.last_mut().expect("a last segment").samples.extend(&frame[..n]),
-            Some(e) if index < e => r.refuse_or_skip(
-                damage,
-                format!(
-                    "{name}:{line_no}: frame starts at sample {index}, before the expected {e} (a line repeated in \
-                     the capture)"
-                ),
-            )?,
-            _ => {
-                if let Some(e) = expected {
-                    r.refuse_or_skip(
-                        damage,
-                        format!(
-                            "{name}:{line_no}: frame starts at sample {index}, expected {e}: {} samples missing \
-                             (lines lost in the capture)",
-                            index - e
-                        ),
-                    )?;
-                }
-                r.segments.push(Segment { first_index: index, samples: frame[..n].to_vec() });
-            }
-        }
-    }
-    match rec {
-        Some(r) if r.segments.iter().any(|s| s.samples.len() >= MIN_SAMPLES) => Ok(r),
-        Some(_) => fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
-        None if found == 0 => fail(format!("{name}: no recording in the capture (no '{HEADER_TAG}' line)")),
-        None => fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
-    }
-}
-
 impl Recording {
     /// A damaged or lost part, `msg`: an error, or with [`Damage::Skip`] a note in [`Recording::damage`].
     fn refuse_or_skip(&mut self, damage: Damage, msg: String) -> Result<(), CliError> {
@@ -203,6 +135,11 @@ pub fn stale_segments(out: &Path, written: usize) -> Vec<std::path::PathBuf> {
 /// Decode recording `which` of `input` into `out` (with [`Damage::Skip`], into one file per segment of 2 or more
 /// samples, numbered from 1 in time order by [`segment_path`]; a lone sample between two gaps is not written);
 /// returns the recording and, for each of its segments, the file it went to (`None`: too short to write).
+///
+/// The capture is read a line at a time and each frame's samples written as they come: what is held is a line and
+/// the few samples of a segment too short yet to have a file, whatever the length of the capture (an hour of
+/// continuous recording is about 200 MB). The files are written under temporary names and moved into place only
+/// once the whole recording decoded: a capture refused half way leaves nothing behind.
 pub fn run(
     input: &Path,
     out: &Path,
@@ -210,49 +147,202 @@ pub fn run(
     damage: Damage,
 ) -> Result<(Recording, Vec<Option<std::path::PathBuf>>), CliError> {
     let name = input.display().to_string();
-    if damage == Damage::Skip && std::fs::metadata(out).is_ok_and(|m| !m.is_file()) {
-        return fail(format!(
-            "--out {}: not a file name: --segments writes one file per run, named after it (run.csv -> run-1.csv, \
-             run-2.csv, ...)",
-            out.display()
-        ));
+    match damage {
+        Damage::Skip if std::fs::metadata(out).is_ok_and(|m| !m.is_file()) => {
+            return fail(format!(
+                "--out {}: not a file name: --segments writes one file per run, named after it (run.csv -> \
+                 run-1.csv, run-2.csv, ...)",
+                out.display()
+            ))
+        }
+        // Each segment's file is checked when it is made (with `--segments` no file takes the name `out`).
+        Damage::Skip => {}
+        Damage::Refuse => super::check_distinct(&[("--input", input)], &[("--out", out)])?,
     }
-    let bytes = std::fs::read(input).map_err(|e| CliError(format!("{name}: cannot read: {}", io_reason(&e))))?;
-    // Captures can hold noise from before the link settled: decode what is text, the frames carry their checksums.
-    let text = String::from_utf8_lossy(&bytes);
-    let rec = parse(&name, &text, which.max(1), damage)?;
-    let h = rec.header;
-    let origin = rec.first_index();
-    // Every file is complete before any is moved into place.
-    let mut files = Vec::new();
-    let mut written = Vec::new();
-    for seg in &rec.segments {
-        if seg.samples.len() < MIN_SAMPLES {
-            written.push(None);
+    let cannot_read = |e: std::io::Error| CliError(format!("{name}: cannot read: {}", io_reason(&e)));
+    let mut reader = std::io::BufReader::with_capacity(1 << 20, std::fs::File::open(input).map_err(cannot_read)?);
+    let which = which.max(1);
+    let (mut found, mut rec, mut sink): (usize, Option<Recording>, Option<Sink>) = (0, None, None);
+    let mut frame = [RawSample::default(); FRAME_SAMPLES];
+    let mut bytes = Vec::new();
+    for line_no in 1.. {
+        bytes.clear();
+        if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
+            break;
+        }
+        // Captures can hold noise from before the link settled: decode what is text, the frames carry their
+        // checksums.
+        let text = String::from_utf8_lossy(&bytes);
+        let line = text.strip_suffix('\n').unwrap_or(&text).trim_end_matches('\r');
+        if line.starts_with(HEADER_TAG) {
+            if rec.is_some() {
+                break;
+            }
+            found += 1;
+            if found == which {
+                let header = parse_header(&name, line_no, line)?;
+                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None });
+                sink = Some(Sink::new(input, out, damage, header));
+            }
             continue;
         }
-        let path = match damage {
-            Damage::Refuse => out.to_path_buf(),
-            Damage::Skip => segment_path(out, files.len() + 1),
-        };
-        // Each file written, not `out` itself: with `--segments` no file takes that name.
-        super::check_distinct(&[("--input", input)], &[("--out", &path)])?;
-        let mut file = OutputFile::create(&path)?;
-        let result = (|| -> std::io::Result<()> {
-            let w = file.writer();
-            writeln!(w, "t,u,y")?;
-            for (j, s) in seg.samples.iter().enumerate() {
-                let (u, y) = h.physical(*s);
-                writeln!(w, "{},{},{}", (seg.first_index - origin + j as u64) as f64 / h.rate_hz, u, y)?;
+        let (Some(r), Some(sink)) = (rec.as_mut(), sink.as_mut()) else { continue };
+        if line.starts_with(END_TAG) {
+            r.ended = Some(line.contains("overflow=1"));
+            break;
+        }
+        if !line.starts_with('R') {
+            continue;
+        }
+        let (index, n) = match decode_frame(line.as_bytes(), &mut frame) {
+            Ok(decoded) => decoded,
+            Err(e) => {
+                r.refuse_or_skip(damage, format!("{name}:{line_no}: {e}"))?;
+                continue;
             }
-            Ok(())
-        })();
-        result.map_err(|e| file.write_error(e))?;
-        written.push(Some(path));
-        files.push(file);
+        };
+        // The sample the current segment continues with, if there is one.
+        let expected = r.segments.last().map(|s| s.first_index + s.len);
+        match expected {
+            Some(e) if index == e => r.segments.last_mut().expect("a last segment").len += n as u64,
+            Some(e) if index < e => {
+                r.refuse_or_skip(
+                    damage,
+                    format!(
+                        "{name}:{line_no}: frame starts at sample {index}, before the expected {e} (a line repeated \
+                         in the capture)"
+                    ),
+                )?;
+                continue;
+            }
+            _ => {
+                if let Some(e) = expected {
+                    r.refuse_or_skip(
+                        damage,
+                        format!(
+                            "{name}:{line_no}: frame starts at sample {index}, expected {e}: {} samples missing \
+                             (lines lost in the capture)",
+                            index - e
+                        ),
+                    )?;
+                }
+                sink.start(index);
+                r.segments.push(Segment { first_index: index, len: n as u64 });
+            }
+        }
+        sink.push(&frame[..n])?;
     }
+    let (rec, sink) = match (rec, sink) {
+        (Some(r), Some(s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
+        (Some(_), _) => {
+            return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples"))
+        }
+        (None, _) if found == 0 => {
+            return fail(format!("{name}: no recording in the capture (no '{HEADER_TAG}' line)"))
+        }
+        (None, _) => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
+    };
+    let (files, written) = sink.finish();
+    // Every file is complete before any is moved into place.
     for file in files {
         file.commit()?;
     }
     Ok((rec, written))
+}
+
+/// Where the chosen recording's samples go as they are decoded: a file per segment, made once the segment has
+/// [`MIN_SAMPLES`] (its first samples held until then), rows `t,u,y` with `t` from the recording's first sample.
+struct Sink<'a> {
+    input: &'a Path,
+    out: &'a Path,
+    damage: Damage,
+    header: RecordHeader,
+    /// Index of the recording's first decoded sample (`t = 0`).
+    origin: Option<u64>,
+    /// Index of the next sample of the current segment.
+    next: u64,
+    /// The current segment's file, once it has one.
+    file: Option<(OutputFile, std::path::PathBuf)>,
+    /// The current segment's samples while it has too few for a file.
+    held: Vec<RawSample>,
+    /// The finished segments' files, to commit.
+    done: Vec<OutputFile>,
+    /// For each finished segment, the file it went to (`None`: too short).
+    written: Vec<Option<std::path::PathBuf>>,
+}
+
+impl<'a> Sink<'a> {
+    fn new(input: &'a Path, out: &'a Path, damage: Damage, header: RecordHeader) -> Self {
+        Sink {
+            input,
+            out,
+            damage,
+            header,
+            origin: None,
+            next: 0,
+            file: None,
+            held: Vec::new(),
+            done: Vec::new(),
+            written: Vec::new(),
+        }
+    }
+
+    /// A segment starts at sample `index` (the first one: the recording's `t = 0`).
+    fn start(&mut self, index: u64) {
+        if self.origin.is_some() {
+            self.close();
+        }
+        self.origin.get_or_insert(index);
+        self.next = index;
+    }
+
+    fn close(&mut self) {
+        match self.file.take() {
+            Some((file, path)) => {
+                self.done.push(file);
+                self.written.push(Some(path));
+            }
+            None => self.written.push(None),
+        }
+        self.held.clear();
+    }
+
+    /// The current segment's next samples.
+    fn push(&mut self, samples: &[RawSample]) -> Result<(), CliError> {
+        if self.file.is_none() {
+            self.held.extend_from_slice(samples);
+            if self.held.len() < MIN_SAMPLES {
+                return Ok(());
+            }
+            let path = match self.damage {
+                Damage::Refuse => self.out.to_path_buf(),
+                Damage::Skip => segment_path(self.out, self.done.len() + 1),
+            };
+            if self.damage == Damage::Skip {
+                super::check_distinct(&[("--input", self.input)], &[("--out", &path)])?;
+            }
+            let mut file = OutputFile::create(&path)?;
+            writeln!(file.writer(), "t,u,y").map_err(|e| file.write_error(e))?;
+            self.file = Some((file, path));
+            let held = std::mem::take(&mut self.held);
+            return self.push(&held);
+        }
+        let (h, origin) = (self.header, self.origin.unwrap_or(self.next));
+        let (file, _) = self.file.as_mut().expect("a file");
+        let result = samples.iter().try_for_each(|s| {
+            let (u, y) = h.physical(*s);
+            let t = (self.next - origin) as f64 / h.rate_hz;
+            self.next += 1;
+            writeln!(file.writer(), "{t},{u},{y}")
+        });
+        result.map_err(|e| file.write_error(e))
+    }
+
+    /// The files to commit and, per segment, where it went.
+    fn finish(mut self) -> (Vec<OutputFile>, Vec<Option<std::path::PathBuf>>) {
+        if self.origin.is_some() {
+            self.close();
+        }
+        (self.done, self.written)
+    }
 }
