@@ -948,9 +948,11 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
     }
 
     fn health(&self) -> Health {
-        // The square root when asked, not per sample, and in the working scalar: on the target the FPU's, not a
-        // software f64 one under the lock the status is taken in. The same f32 either way (a square root rounded
-        // to f64 and then to f32 is the correctly rounded f32 one).
+        // The square root when asked, not per sample, and in the working scalar: on the target libm's `sqrtf`, in
+        // software but in f32 (70 instructions, about 50 on a normal number's way: rustc 1.95 has no stable way to
+        // emit `vsqrt.f32` in `no_std`, see BENCHMARKS.md on `vfma`), not a software f64 one under the lock the
+        // status is taken in. The same f32 either way (a square root rounded to f64 and then to f32 is the correctly
+        // rounded f32 one).
         Health { innovation_rms_um: self.innovation_ms.sqrt().as_f64() as f32, ..self.health }
     }
 }
