@@ -483,7 +483,8 @@ impl Controller {
 
 /// The line that closes a recording (once it stopped and its last frame went out).
 pub fn write_record_end(r: &RecordStatus, w: &mut impl Write) -> fmt::Result {
-    writeln!(w, "{} samples={} overflow={}", crate::record::END_TAG, r.recorded, r.overflowed as u8)
+    let end = crate::record::END_TAG;
+    crate::record::write_checked_line(w, format_args!("{end} samples={} overflow={}", r.recorded, r.overflowed as u8))
 }
 
 /// Why a command was refused.

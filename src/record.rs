@@ -4,20 +4,25 @@
 //! A recording is a header line, then frames:
 //!
 //! ```text
-//! # nanopos-record v1 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50
+//! # nanopos-record v2 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50 crc=29b1
 //! R00000000a3f2 <base64 of up to 48 samples> 1c0f
 //! R00000000a422 ...
-//! # nanopos-record end samples=2048 overflow=0
+//! # nanopos-record end samples=2048 overflow=0 crc=3faa
 //! ```
 //!
 //! - **Header:** the sample rate and the affine maps from codes to the command in volts (`u`) and the probe reading
-//!   in micrometres (`y`), in the configuration of the moment, with enough digits to be exact for these converters.
+//!   in micrometres (`y`), in the configuration of the moment, with enough digits to be exact for these converters;
+//!   last, ` crc=` and the CRC-16 of everything before it (4 hex digits), as every line of the recording has: a
+//!   changed digit in a scaling or the rate would otherwise mis-scale or mis-time the whole recording without a
+//!   trace. (`v1`, before the header and the end line had it, is still read, unchecked.)
 //! - **Frame:** `R`, the index of its first sample since the board started (12 hex digits), a space, the samples in
 //!   standard base64 without padding (each sample 4 bytes: the DAC code *in effect* over the sample period, then the
 //!   probe code read at its start, both little-endian `u16`), a space, and the CRC-16/CCITT-FALSE of everything
 //!   before that space (4 hex digits). Frames follow each other without gaps: a recording stops at the first sample
 //!   the board could not keep (its buffer full because the link is slower than the stream), and says so.
-//! - **End:** a line with the number of samples and whether the recording ended by overflow.
+//! - **End:** a line with the number of samples recorded and whether the recording ended by overflow, and its CRC-16
+//!   as the header's. The count tells a capture that lost frames at the recording's start or end, where no
+//!   frame's index shows the gap.
 //!
 //! Any other line (command replies, `ok ...`) is not part of the recording: a capture of the whole serial stream
 //! converts as is.
@@ -31,8 +36,10 @@
 pub const FRAME_SAMPLES: usize = 48;
 /// Longest frame line, bytes, with its `\n`.
 pub const FRAME_MAX_BYTES: usize = 1 + 12 + 1 + (FRAME_SAMPLES * 4 * 4).div_ceil(3) + 1 + 4 + 1;
-/// The header's first word.
-pub const HEADER_TAG: &str = "# nanopos-record v1";
+/// The header's first words.
+pub const HEADER_TAG: &str = "# nanopos-record v2";
+/// The header's first words in the first version of the format, whose header and end line had no CRC.
+pub const HEADER_TAG_V1: &str = "# nanopos-record v1";
 /// The end line's first word.
 pub const END_TAG: &str = "# nanopos-record end";
 
@@ -49,7 +56,11 @@ const B64: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz012
 
 /// CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF).
 pub fn crc16(bytes: &[u8]) -> u16 {
-    let mut crc = 0xFFFFu16;
+    crc16_update(0xFFFF, bytes)
+}
+
+/// [`crc16`] continued over `bytes` from `crc`.
+fn crc16_update(mut crc: u16, bytes: &[u8]) -> u16 {
     for &b in bytes {
         crc ^= (b as u16) << 8;
         for _ in 0..8 {
@@ -57,6 +68,35 @@ pub fn crc16(bytes: &[u8]) -> u16 {
         }
     }
     crc
+}
+
+/// Passes text on and keeps the CRC-16 of it: a line's checksum without holding the line.
+struct CrcWrite<'a, W: core::fmt::Write> {
+    out: &'a mut W,
+    crc: u16,
+}
+
+impl<W: core::fmt::Write> core::fmt::Write for CrcWrite<'_, W> {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        self.crc = crc16_update(self.crc, s.as_bytes());
+        self.out.write_str(s)
+    }
+}
+
+/// Write `line` and ` crc=` with the CRC-16 of `line` (4 hex digits), then `\n`: the header's and the end line's form.
+pub fn write_checked_line(out: &mut impl core::fmt::Write, line: core::fmt::Arguments) -> core::fmt::Result {
+    let mut w = CrcWrite { out, crc: 0xFFFF };
+    core::fmt::Write::write_fmt(&mut w, line)?;
+    let crc = w.crc;
+    writeln!(out, " crc={crc:04x}")
+}
+
+/// The line without its ` crc=XXXX` if that is the CRC-16 of what precedes it (see [`write_checked_line`]); `None`
+/// if the line has no CRC, or another.
+pub fn checked_body(line: &str) -> Option<&str> {
+    let (body, crc) = line.rsplit_once(" crc=")?;
+    let crc = u16::from_str_radix(crc, 16).ok().filter(|_| crc.len() == 4)?;
+    (crc16(body.as_bytes()) == crc).then_some(body)
 }
 
 fn hex_digit(v: u64) -> u8 {
@@ -180,18 +220,20 @@ pub struct RecordHeader {
 }
 
 impl RecordHeader {
-    /// Write the header line (with its `\n`).
+    /// Write the header line (with its CRC and `\n`).
     pub fn write(&self, out: &mut impl core::fmt::Write) -> core::fmt::Result {
         use crate::text::Num;
-        writeln!(
+        write_checked_line(
             out,
-            "{HEADER_TAG} rate_hz={} delay={} u_v_per_code={} u_v_offset={} y_um_per_code={} y_um_offset={}",
-            Num(self.rate_hz, 15),
-            self.delay,
-            Num(self.u_v_per_code, 15),
-            Num(self.u_v_offset, 15),
-            Num(self.y_um_per_code, 15),
-            Num(self.y_um_offset, 15)
+            format_args!(
+                "{HEADER_TAG} rate_hz={} delay={} u_v_per_code={} u_v_offset={} y_um_per_code={} y_um_offset={}",
+                Num(self.rate_hz, 15),
+                self.delay,
+                Num(self.u_v_per_code, 15),
+                Num(self.u_v_offset, 15),
+                Num(self.y_um_per_code, 15),
+                Num(self.y_um_offset, 15)
+            ),
         )
     }
 
@@ -232,5 +274,39 @@ mod tests {
             assert!(decode_frame(&line[..line.len() - 6], &mut out).is_err());
         }
         assert_eq!(crc16(b"123456789"), 0x29B1);
+    }
+
+    /// The header and the end line carry the CRC of what precedes ` crc=`: one character changed anywhere, or the
+    /// CRC missing, and the line is not taken as intact.
+    #[test]
+    fn a_checked_line_is_intact_only_as_written() {
+        let header = RecordHeader {
+            rate_hz: 10_000.0,
+            delay: 1,
+            u_v_per_code: 20.0 / 4096.0,
+            u_v_offset: -10.0,
+            y_um_per_code: 100.0 / 65536.0,
+            y_um_offset: -50.0,
+        };
+        let mut text = crate::text::TextBuf::<256>::default();
+        header.write(&mut text).unwrap();
+        let line = text.as_str().strip_suffix('\n').unwrap();
+        let body = checked_body(line).unwrap();
+        assert_eq!(
+            body,
+            "# nanopos-record v2 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 \
+             y_um_per_code=0.00152587890625 y_um_offset=-50"
+        );
+        assert!(line.ends_with(" crc=29b1"), "the module's example: {line}");
+        for i in 0..line.len() {
+            let mut bad = line.as_bytes().to_vec();
+            bad[i] = if bad[i] == b'7' { b'8' } else { b'7' };
+            assert_eq!(checked_body(core::str::from_utf8(&bad).unwrap()), None, "{i}");
+        }
+        assert_eq!(checked_body(body), None, "no CRC");
+        let mut end = crate::text::TextBuf::<80>::default();
+        write_checked_line(&mut end, format_args!("{END_TAG} samples={} overflow={}", 2048, 0)).unwrap();
+        assert_eq!(end.as_str(), "# nanopos-record end samples=2048 overflow=0 crc=3faa\n");
+        assert_eq!(checked_body(end.as_str().trim_end()), Some("# nanopos-record end samples=2048 overflow=0"));
     }
 }

@@ -852,7 +852,7 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     let mut lab = Lab::new();
     lab.run(777);
     let mut link = lab.send("record burst 3000\n");
-    assert!(link.starts_with("# nanopos-record v1 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50\n"), "{link}");
+    assert!(link.starts_with("# nanopos-record v2 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50 crc=29b1\n"), "{link}");
     assert!(link.ends_with("ok record burst 3000\n"));
     // `send` ran the sample that applied the change: the first recorded sample is that one.
     let first_index = lab.isr.status().samples - 1;
@@ -869,7 +869,7 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     assert!(!st.active && !st.overflowed && st.recorded == 3000, "{st:?}");
     let mut end = TextBuf::<80>::default();
     write_record_end(&st, &mut end).unwrap();
-    assert_eq!(end.as_str(), "# nanopos-record end samples=3000 overflow=0\n");
+    assert_eq!(end.as_str(), "# nanopos-record end samples=3000 overflow=0 crc=8f53\n");
 
     // Decode: contiguous frames from the sample the change applied on; y is each sample's probe code, u the code
     // in effect over its period (the board's delay of one sample: the code written one sample earlier).

@@ -197,6 +197,12 @@ fn run(cli: Cli) -> Result<(), CliError> {
             let (rec, files) = decode::run(&input, &out, recording, damage)?;
             let rate = rec.header.rate_hz;
             let origin = rec.first_index();
+            if !rec.checked {
+                eprintln!(
+                    "nanopos-sim: note: the recording's header has no checksum (format v1, from a firmware before \
+                     v2): its rate and scalings are taken as they are"
+                );
+            }
             for msg in &rec.damage {
                 eprintln!("nanopos-sim: skipped: {msg}");
             }

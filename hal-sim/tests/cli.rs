@@ -264,17 +264,24 @@ fn help_exits_zero() {
     assert!(String::from_utf8_lossy(&out.stdout).contains("--scenario"));
 }
 
+/// The board's recording header.
+const HEADER: nanopos_id::record::RecordHeader = nanopos_id::record::RecordHeader {
+    rate_hz: 10_000.0,
+    delay: 1,
+    u_v_per_code: 20.0 / 4096.0,
+    u_v_offset: -10.0,
+    y_um_per_code: 100.0 / 65536.0,
+    y_um_offset: -50.0,
+};
+
 /// A capture as the board's serial link delivers it: replies around a recording of `n` samples.
 fn capture(n: usize, first: u64) -> String {
-    use nanopos_id::record::{encode_frame, RawSample, RecordHeader, FRAME_MAX_BYTES, FRAME_SAMPLES};
-    let header = RecordHeader {
-        rate_hz: 10_000.0,
-        delay: 1,
-        u_v_per_code: 20.0 / 4096.0,
-        u_v_offset: -10.0,
-        y_um_per_code: 100.0 / 65536.0,
-        y_um_offset: -50.0,
-    };
+    capture_with(n, first, HEADER)
+}
+
+/// [`capture`] with another header.
+fn capture_with(n: usize, first: u64, header: nanopos_id::record::RecordHeader) -> String {
+    use nanopos_id::record::{encode_frame, write_checked_line, RawSample, END_TAG, FRAME_MAX_BYTES, FRAME_SAMPLES};
     let mut text = String::from("ok status samples=12\n");
     let mut h = nanopos_id::text::TextBuf::<256>::default();
     header.write(&mut h).unwrap();
@@ -287,8 +294,23 @@ fn capture(n: usize, first: u64) -> String {
         let len = encode_frame(first + (i * FRAME_SAMPLES) as u64, chunk, &mut buf);
         text.push_str(std::str::from_utf8(&buf[..len]).unwrap());
     }
-    text.push_str(&format!("# nanopos-record end samples={n} overflow=0\nok status samples=99\n"));
+    let mut end = nanopos_id::text::TextBuf::<80>::default();
+    write_checked_line(&mut end, format_args!("{END_TAG} samples={n} overflow=0")).unwrap();
+    text.push_str(end.as_str());
+    text.push_str("ok status samples=99\n");
     text
+}
+
+/// `text` as a firmware before the header's and the end line's CRC wrote it (format v1).
+fn v1(text: &str) -> String {
+    text.lines()
+        .map(|l| match l.rsplit_once(" crc=") {
+            Some((body, _)) if l.starts_with("# nanopos-record") => body.replace("record v2", "record v1"),
+            _ => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+        + "\n"
 }
 
 #[test]
@@ -316,8 +338,7 @@ fn decode_turns_a_capture_into_the_csv_identify_reads() {
 fn decode_says_when_identify_needs_the_boards_dac_step() {
     let dir = tempfile::tempdir().unwrap();
     let default = capture(100, 0);
-    let other = default.replacen("u_v_per_code=0.0048828125", "u_v_per_code=0.009765625", 1);
-    assert_ne!(default, other);
+    let other = capture_with(100, 0, nanopos_id::record::RecordHeader { u_v_per_code: 20.0 / 2048.0, ..HEADER });
     for (text, note) in [(default, None), (other, Some("note: this board's DAC steps by 0.009765625 V, not the 0.0048828125 V identify assumes: give it --dac-step 0.009765625"))] {
         std::fs::write(dir.path().join("cap.txt"), text).unwrap();
         let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
@@ -420,6 +441,34 @@ fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// A capture from a firmware before the header's CRC (format v1) still decodes, with a note that its scalings are
+/// unchecked; with `--segments`, frames lost at the recording's end (which no frame's index shows; the end line's
+/// count does) are reported and the rest written.
+#[test]
+fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = capture(200, 0);
+    std::fs::write(dir.path().join("old.txt"), v1(&good)).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "old.txt", "--out", "old.csv"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("note: the recording's header has no checksum (format v1"), "{stderr}");
+    std::fs::write(dir.path().join("new.txt"), &good).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "new.txt", "--out", "new.csv"], dir.path());
+    assert!(out.status.success() && !String::from_utf8_lossy(&out.stderr).contains("note"));
+    let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+    assert_eq!(read("old.csv"), read("new.csv"));
+
+    let lines: Vec<&str> = good.lines().collect();
+    let cut = lines[..lines.len() - 3].iter().chain(&lines[lines.len() - 2..]).copied().collect::<Vec<_>>();
+    std::fs::write(dir.path().join("cut.txt"), cut.join("\n")).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "cut.txt", "--out", "cut.csv", "--segments"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("skipped: cut.txt: the end line counts 200 samples recorded, the frames span 192"));
+    assert!(stderr.contains("192 samples (0.0192 s at 10000 Hz) from board sample 0 (t = 0 s) written to cut-1.csv"));
+}
+
 #[test]
 fn decode_refuses_damage_and_gaps_naming_the_line() {
     let good = capture(200, 0);
@@ -429,20 +478,35 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     damaged[3] = damaged[3].replacen('A', "B", 1);
     // A frame lost in the capture.
     let gap: Vec<&str> = lines.iter().enumerate().filter(|(i, _)| *i != 4).map(|(_, l)| *l).collect();
-    let cases: [(String, &[&str], &str); 8] = [
+    let cases: [(String, &[&str], &str); 11] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
         (good.clone(), &["--recording", "2"], "recording 2 asked for, the capture holds 1"),
-        (good.replace("rate_hz=10000", "rate_hz=fast"), &[], "cap.txt:2: rate_hz=fast: not a number"),
+        // A header changed in transfer: its CRC no longer matches.
+        (good.replace("rate_hz=10000", "rate_hz=10800"), &[], "cap.txt:2: recording header damaged in transfer"),
+        // In the format without the CRC (v1), a header is read as it is: what cannot be read is named.
+        (v1(&good).replace("rate_hz=10000", "rate_hz=fast"), &[], "cap.txt:2: rate_hz=fast: not a number"),
         // Not quietly cast to a u8 (300 would have been 255, 2.5 would have been 2).
         (
-            good.replace("delay=1", "delay=300"),
+            v1(&good).replace("delay=1", "delay=300"),
             &[],
             "cap.txt:2: delay=300: not a whole number of samples from 0 to 255",
         ),
-        (good.replace("delay=1", "delay=2.5"), &[], "cap.txt:2: delay=2.5: not a whole number"),
-        (good.replace("delay=1", "delay=1e300"), &[], "cap.txt:2: delay=1e300: not a whole number"),
+        (v1(&good).replace("delay=1", "delay=2.5"), &[], "cap.txt:2: delay=2.5: not a whole number"),
+        (v1(&good).replace("delay=1", "delay=1e300"), &[], "cap.txt:2: delay=1e300: not a whole number"),
+        // The end line changed in transfer, and frames lost at the recording's end, which no frame's index shows.
+        (
+            good.replace("samples=200 overflow=0", "samples=200 overflow=1"),
+            &[],
+            "cap.txt:9: the recording's end line damaged",
+        ),
+        (
+            lines[..lines.len() - 3].iter().chain(&lines[lines.len() - 2..]).copied().collect::<Vec<_>>().join("\n"),
+            &[],
+            "cap.txt: the end line counts 200 samples recorded, the frames span 192 (board samples 0 to 192): frames \
+             lost at the recording's start or end",
+        ),
     ];
     for (text, extra, msg) in cases {
         let dir = tempfile::tempdir().unwrap();

@@ -13,7 +13,9 @@
 //! counting from the recording's first sample in every segment, so the segments keep their place in time.
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
-use nanopos_id::record::{decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG};
+use nanopos_id::record::{
+    checked_body, decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG, HEADER_TAG_V1,
+};
 use std::io::{BufRead, Write};
 use std::path::Path;
 
@@ -37,6 +39,9 @@ pub struct Recording {
     pub damage: Vec<String>,
     /// The end line: `Some(overflowed)` when present.
     pub ended: Option<bool>,
+    /// Whether the header and the end line carried their CRC (the format's `v2`; `v1` did not, and its header's
+    /// rate and scalings are taken as they are).
+    pub checked: bool,
 }
 
 impl Recording {
@@ -165,6 +170,8 @@ pub fn run(
     let (mut found, mut rec, mut sink): (usize, Option<Recording>, Option<Sink>) = (0, None, None);
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut bytes = Vec::new();
+    // The end line's count of the samples recorded, when it has one.
+    let mut end_samples = None;
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
@@ -174,21 +181,48 @@ pub fn run(
         // checksums.
         let text = String::from_utf8_lossy(&bytes);
         let line = text.strip_suffix('\n').unwrap_or(&text).trim_end_matches('\r');
-        if line.starts_with(HEADER_TAG) {
+        let version = [(HEADER_TAG, true), (HEADER_TAG_V1, false)].into_iter().find(|(tag, _)| line.starts_with(tag));
+        if let Some((_, checked)) = version {
             if rec.is_some() {
                 break;
             }
             found += 1;
             if found == which {
-                let header = parse_header(&name, line_no, line)?;
-                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None });
+                // Its rate and scalings apply to every sample: a header that lost or changed a character is refused,
+                // with `--segments` too (nothing could be decoded with it).
+                let body = match checked {
+                    true => checked_body(line).ok_or_else(|| {
+                        CliError(format!(
+                            "{name}:{line_no}: recording header damaged in transfer (its checksum does not match): \
+                             its rate and scalings cannot be trusted; record again"
+                        ))
+                    })?,
+                    false => line,
+                };
+                let header = parse_header(&name, line_no, body)?;
+                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None, checked });
                 sink = Some(Sink::new(input, out, damage, header));
             }
             continue;
         }
         let (Some(r), Some(sink)) = (rec.as_mut(), sink.as_mut()) else { continue };
         if line.starts_with(END_TAG) {
-            r.ended = Some(line.contains("overflow=1"));
+            match if r.checked { checked_body(line) } else { Some(line) } {
+                Some(body) => {
+                    r.ended = Some(body.contains("overflow=1"));
+                    end_samples = body
+                        .split_ascii_whitespace()
+                        .find_map(|w| w.strip_prefix("samples="))
+                        .and_then(|n| n.parse::<u64>().ok());
+                }
+                None => r.refuse_or_skip(
+                    damage,
+                    format!(
+                        "{name}:{line_no}: the recording's end line damaged in transfer (its checksum does not \
+                         match): whether the recording overflowed, and how many samples it had, are not known"
+                    ),
+                )?,
+            }
             break;
         }
         if !line.starts_with('R') {
@@ -232,13 +266,28 @@ pub fn run(
         }
         sink.push(&frame[..n])?;
     }
+    // Frames lost at the recording's start or end leave no gap between frames; the end line's count shows them.
+    if let (Some(r), Some(recorded)) = (rec.as_mut(), end_samples) {
+        if let (Some(first), Some(last)) = (r.segments.first(), r.segments.last()) {
+            let span = last.first_index + last.len - first.first_index;
+            if span != recorded {
+                let msg = format!(
+                    "{name}: the end line counts {recorded} samples recorded, the frames span {span} (board samples \
+                     {} to {}): frames lost at the recording's start or end",
+                    first.first_index,
+                    last.first_index + last.len
+                );
+                r.refuse_or_skip(damage, msg)?;
+            }
+        }
+    }
     let (rec, sink) = match (rec, sink) {
         (Some(r), Some(s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
         (Some(_), _) => {
             return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples"))
         }
         (None, _) if found == 0 => {
-            return fail(format!("{name}: no recording in the capture (no '{HEADER_TAG}' line)"))
+            return fail(format!("{name}: no recording in the capture (no '# nanopos-record' header line)"))
         }
         (None, _) => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     };
@@ -344,5 +393,123 @@ impl<'a> Sink<'a> {
             self.close();
         }
         (self.done, self.written)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nanopos_id::record::{encode_frame, write_checked_line, FRAME_MAX_BYTES};
+
+    /// A capture of `n` samples from board sample 1000 with replies around it, as lines.
+    fn capture(n: usize) -> Vec<Vec<u8>> {
+        let header = RecordHeader {
+            rate_hz: 10_000.0,
+            delay: 1,
+            u_v_per_code: 20.0 / 4096.0,
+            u_v_offset: -10.0,
+            y_um_per_code: 100.0 / 65536.0,
+            y_um_offset: -50.0,
+        };
+        let mut h = nanopos_id::text::TextBuf::<256>::default();
+        header.write(&mut h).unwrap();
+        let mut lines = vec![b"ok status samples=12\n".to_vec(), h.as_str().as_bytes().to_vec()];
+        let samples: Vec<RawSample> =
+            (0..n).map(|k| RawSample { u_code: 2000 + (k % 97) as u16, y_code: 30_000 + (k % 1013) as u16 }).collect();
+        let mut buf = [0u8; FRAME_MAX_BYTES];
+        for (i, chunk) in samples.chunks(FRAME_SAMPLES).enumerate() {
+            let len = encode_frame(1000 + (i * FRAME_SAMPLES) as u64, chunk, &mut buf);
+            lines.push(buf[..len].to_vec());
+        }
+        let mut end = nanopos_id::text::TextBuf::<80>::default();
+        write_checked_line(&mut end, format_args!("{END_TAG} samples={n} overflow=0")).unwrap();
+        lines.push(end.as_str().as_bytes().to_vec());
+        lines
+    }
+
+    /// A capture mangled at random (bytes changed, lines lost, repeated, swapped, cut short, noise added) never makes
+    /// `decode` panic or leave a temporary file: refusing, it writes nothing; decoding, each file holds its segment's
+    /// samples, each the intact capture's at that board sample, a sample period apart.
+    #[test]
+    fn a_mangled_capture_is_decoded_or_refused_never_a_panic() {
+        let dir = tempfile::tempdir().unwrap();
+        let good = capture(2000);
+        let (input, whole) = (dir.path().join("good.txt"), dir.path().join("whole.csv"));
+        std::fs::write(&input, good.concat()).unwrap();
+        run(&input, &whole, 1, Damage::Refuse).unwrap();
+        let whole = std::fs::read_to_string(&whole).unwrap();
+        // `u,y` of board sample 1000 + k.
+        let intact: Vec<&str> = whole.lines().skip(1).map(|r| r.split_once(',').unwrap().1).collect();
+        let mut next = nanopos_id::xorshift64(0x5DEE_CE66_D1CE_4E5B);
+        let (mut refused, mut segmented) = (0, 0);
+        for case in 0..300 {
+            let mut lines = good.clone();
+            for _ in 0..1 + next() % 4 {
+                let at = (next() % lines.len() as u64) as usize;
+                match next() % 6 {
+                    0 => {
+                        let line = &mut lines[at];
+                        let k = (next() % line.len() as u64) as usize;
+                        line[k] = (next() % 256) as u8;
+                    }
+                    1 => drop(lines.remove(at)),
+                    2 => {
+                        let line = lines[at].clone();
+                        lines.insert(at, line);
+                    }
+                    3 => {
+                        let other = (next() % lines.len() as u64) as usize;
+                        lines.swap(at, other);
+                    }
+                    4 => lines[at].truncate((next() % 40) as usize),
+                    _ => lines.insert(at, (0..next() % 60).map(|_| (next() % 256) as u8).collect()),
+                }
+            }
+            let dir = tempfile::tempdir().unwrap();
+            let (cap, out) = (dir.path().join("cap.txt"), dir.path().join("run.csv"));
+            std::fs::write(&cap, lines.concat()).unwrap();
+            for damage in [Damage::Refuse, Damage::Skip] {
+                let result = run(&cap, &out, 1, damage);
+                let mut names: Vec<String> = std::fs::read_dir(dir.path())
+                    .unwrap()
+                    .map(|e| e.unwrap().file_name().into_string().unwrap())
+                    .collect();
+                names.sort();
+                match result {
+                    Err(e) => {
+                        assert!(!e.0.is_empty() && !e.0.contains('\n'), "case {case}: {e:?}");
+                        assert_eq!(names, ["cap.txt"], "case {case} {damage:?}: refused, and left files: {e:?}");
+                        refused += 1;
+                    }
+                    Ok((rec, written)) => {
+                        assert_eq!(written.len(), rec.segments.len(), "case {case}");
+                        for (seg, path) in rec.segments.iter().zip(&written) {
+                            let Some(path) = path else { continue };
+                            let text = std::fs::read_to_string(path).unwrap();
+                            let got: Vec<&str> = text.lines().collect();
+                            assert_eq!(got[0], "t,u,y");
+                            assert_eq!(got.len() as u64, seg.len + 1, "case {case}: {}", path.display());
+                            let mut last_t: Option<f64> = None;
+                            for (j, row) in got[1..].iter().enumerate() {
+                                let (t, uy) = row.split_once(',').unwrap();
+                                let k = (seg.first_index - 1000) as usize + j;
+                                assert_eq!(Some(&uy), intact.get(k), "case {case}: board sample {}", 1000 + k);
+                                let t: f64 = t.parse().unwrap();
+                                if let Some(last) = last_t {
+                                    assert!((t - last - 1e-4).abs() < 1e-9, "case {case}: t {last} then {t}");
+                                }
+                                last_t = Some(t);
+                            }
+                        }
+                        segmented += (rec.segments.len() > 1) as usize;
+                        for name in names.iter().filter(|n| *n != "cap.txt") {
+                            std::fs::remove_file(dir.path().join(name)).unwrap();
+                        }
+                    }
+                }
+            }
+        }
+        eprintln!("mangled captures: {refused} refusals, {segmented} decodes into several segments (of 600)");
+        assert!(refused > 50 && segmented > 20, "the cases reach both ways: {refused} {segmented}");
     }
 }
