@@ -442,7 +442,8 @@ mod tests {
         let intact: Vec<&str> = whole.lines().skip(1).map(|r| r.split_once(',').unwrap().1).collect();
         let mut next = nanopos_id::xorshift64(0x5DEE_CE66_D1CE_4E5B);
         let (mut refused, mut segmented) = (0, 0);
-        for case in 0..300 {
+        const CASES: usize = 300;
+        for case in 0..CASES {
             let mut lines = good.clone();
             for _ in 0..1 + next() % 4 {
                 let at = (next() % lines.len() as u64) as usize;
@@ -509,7 +510,7 @@ mod tests {
                 }
             }
         }
-        eprintln!("mangled captures: {refused} refusals, {segmented} decodes into several segments (of 600)");
+        eprintln!("mangled captures: {refused} refusals, {segmented} decodes into several segments (of {})", 2 * CASES);
         assert!(refused > 50 && segmented > 20, "the cases reach both ways: {refused} {segmented}");
     }
 }
