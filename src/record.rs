@@ -220,6 +220,17 @@ pub struct RecordHeader {
 }
 
 impl RecordHeader {
+    /// The firmware's on the NUCLEO-G474RE with its default front end (10 kHz; the 12-bit DAC over +-10 V, the
+    /// 16-bit probe code over +-50 um): the header of the module's example.
+    pub const EXAMPLE: Self = RecordHeader {
+        rate_hz: 10_000.0,
+        delay: 1,
+        u_v_per_code: 20.0 / 4096.0,
+        u_v_offset: -10.0,
+        y_um_per_code: 100.0 / 65536.0,
+        y_um_offset: -50.0,
+    };
+
     /// Write the header line (with its CRC and `\n`).
     pub fn write(&self, out: &mut impl core::fmt::Write) -> core::fmt::Result {
         use crate::text::Num;
@@ -280,16 +291,8 @@ mod tests {
     /// CRC missing, and the line is not taken as intact.
     #[test]
     fn a_checked_line_is_intact_only_as_written() {
-        let header = RecordHeader {
-            rate_hz: 10_000.0,
-            delay: 1,
-            u_v_per_code: 20.0 / 4096.0,
-            u_v_offset: -10.0,
-            y_um_per_code: 100.0 / 65536.0,
-            y_um_offset: -50.0,
-        };
         let mut text = crate::text::TextBuf::<256>::default();
-        header.write(&mut text).unwrap();
+        RecordHeader::EXAMPLE.write(&mut text).unwrap();
         let line = text.as_str().strip_suffix('\n').unwrap();
         let body = checked_body(line).unwrap();
         assert_eq!(

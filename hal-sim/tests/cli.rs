@@ -265,14 +265,7 @@ fn help_exits_zero() {
 }
 
 /// The board's recording header.
-const HEADER: nanopos_id::record::RecordHeader = nanopos_id::record::RecordHeader {
-    rate_hz: 10_000.0,
-    delay: 1,
-    u_v_per_code: 20.0 / 4096.0,
-    u_v_offset: -10.0,
-    y_um_per_code: 100.0 / 65536.0,
-    y_um_offset: -50.0,
-};
+const HEADER: nanopos_id::record::RecordHeader = nanopos_id::record::RecordHeader::EXAMPLE;
 
 /// A capture as the board's serial link delivers it: replies around a recording of `n` samples.
 fn capture(n: usize, first: u64) -> String {

@@ -403,16 +403,8 @@ mod tests {
 
     /// A capture of `n` samples from board sample 1000 with replies around it, as lines.
     fn capture(n: usize) -> Vec<Vec<u8>> {
-        let header = RecordHeader {
-            rate_hz: 10_000.0,
-            delay: 1,
-            u_v_per_code: 20.0 / 4096.0,
-            u_v_offset: -10.0,
-            y_um_per_code: 100.0 / 65536.0,
-            y_um_offset: -50.0,
-        };
         let mut h = nanopos_id::text::TextBuf::<256>::default();
-        header.write(&mut h).unwrap();
+        RecordHeader::EXAMPLE.write(&mut h).unwrap();
         let mut lines = vec![b"ok status samples=12\n".to_vec(), h.as_str().as_bytes().to_vec()];
         let samples: Vec<RawSample> =
             (0..n).map(|k| RawSample { u_code: 2000 + (k % 97) as u16, y_code: 30_000 + (k % 1013) as u16 }).collect();
