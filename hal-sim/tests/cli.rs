@@ -435,8 +435,8 @@ fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
 }
 
 /// A capture from a firmware before the header's CRC (format v1) still decodes, with a note that its scalings are
-/// unchecked; with `--segments`, frames lost at the recording's end (which no frame's index shows; the end line's
-/// count does) are reported and the rest written.
+/// unchecked; a header of no known version is refused but counted; with `--segments`, frames lost at the recording's
+/// end (which no frame's index shows; the end line's count does) are reported and the rest written.
 #[test]
 fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
     let dir = tempfile::tempdir().unwrap();
@@ -453,6 +453,22 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
     assert_eq!(read("old.csv"), read("new.csv"));
 
     let lines: Vec<&str> = good.lines().collect();
+    // A header whose version was damaged (or is a later firmware's) is refused, and still counted, so that
+    // `--recording 2` is the second recording.
+    let two = capture(100, 0).replacen("record v2", "record w2", 1) + &capture(100, 5000);
+    std::fs::write(dir.path().join("two.txt"), &two).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "two.txt", "--out", "two.csv"], dir.path());
+    assert_clean_failure(
+        &out,
+        "two.txt:2: '# nanopos-record w2 rate_hz=10000 delay=... (138 characters)': a recording header of no version",
+    );
+    let out = nanopos_sim(&["decode", "--input", "two.txt", "--out", "two.csv", "--recording", "2"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && stderr.contains("100 samples (0.01 s at 10000 Hz) from board sample 5000"),
+        "{stderr}"
+    );
+
     let cut = lines[..lines.len() - 3].iter().chain(&lines[lines.len() - 2..]).copied().collect::<Vec<_>>();
     std::fs::write(dir.path().join("cut.txt"), cut.join("\n")).unwrap();
     let out = nanopos_sim(&["decode", "--input", "cut.txt", "--out", "cut.csv", "--segments"], dir.path());

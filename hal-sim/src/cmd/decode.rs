@@ -61,6 +61,9 @@ impl Recording {
     }
 }
 
+/// How every header line of the format begins, and its end line.
+const HEADER_PREFIX: &str = "# nanopos-record ";
+
 /// What to do with a damaged frame or a gap.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Damage {
@@ -181,13 +184,25 @@ pub fn run(
         // checksums.
         let text = String::from_utf8_lossy(&bytes);
         let line = text.strip_suffix('\n').unwrap_or(&text).trim_end_matches('\r');
-        let version = [(HEADER_TAG, true), (HEADER_TAG_V1, false)].into_iter().find(|(tag, _)| line.starts_with(tag));
-        if let Some((_, checked)) = version {
+        // A header: of this format (v2, checked), of the first (v1), or a line that starts as one and is neither
+        // (its version damaged in transfer, or a later format's): counted all the same, so that `--recording N`
+        // keeps its number for the recordings after it.
+        let version = [(HEADER_TAG, Some(true)), (HEADER_TAG_V1, Some(false)), (HEADER_PREFIX, None)]
+            .into_iter()
+            .find(|(tag, _)| line.starts_with(tag) && !line.starts_with(END_TAG));
+        if let Some((_, version)) = version {
             if rec.is_some() {
                 break;
             }
             found += 1;
             if found == which {
+                let Some(checked) = version else {
+                    return fail(format!(
+                        "{name}:{line_no}: '{}': a recording header of no version this decoder reads (damaged in \
+                         transfer, or from a later firmware)",
+                        clip(line, 40)
+                    ));
+                };
                 // Its rate and scalings apply to every sample: a header that lost or changed a character is refused,
                 // with `--segments` too (nothing could be decoded with it).
                 let body = match checked {
@@ -287,7 +302,7 @@ pub fn run(
             return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples"))
         }
         (None, _) if found == 0 => {
-            return fail(format!("{name}: no recording in the capture (no '# nanopos-record' header line)"))
+            return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line)"))
         }
         (None, _) => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     };
