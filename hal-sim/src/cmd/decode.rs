@@ -170,7 +170,8 @@ pub fn run(
     let cannot_read = |e: std::io::Error| CliError(format!("{name}: cannot read: {}", io_reason(&e)));
     let mut reader = std::io::BufReader::with_capacity(1 << 20, std::fs::File::open(input).map_err(cannot_read)?);
     let which = which.max(1);
-    let (mut found, mut rec, mut sink): (usize, Option<Recording>, Option<Sink>) = (0, None, None);
+    // The chosen recording, once its header is read, and where its samples go.
+    let (mut found, mut chosen): (usize, Option<(Recording, Sink)>) = (0, None);
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut bytes = Vec::new();
     // The end line's count of the samples recorded, when it has one.
@@ -191,7 +192,7 @@ pub fn run(
             .into_iter()
             .find(|(tag, _)| line.starts_with(tag) && !line.starts_with(END_TAG));
         if let Some((_, version)) = version {
-            if rec.is_some() {
+            if chosen.is_some() {
                 break;
             }
             found += 1;
@@ -205,24 +206,21 @@ pub fn run(
                 };
                 // Its rate and scalings apply to every sample: a header that lost or changed a character is refused,
                 // with `--segments` too (nothing could be decoded with it).
-                let body = match checked {
-                    true => checked_body(line).ok_or_else(|| {
-                        CliError(format!(
-                            "{name}:{line_no}: recording header damaged in transfer (its checksum does not match): \
-                             its rate and scalings cannot be trusted; record again"
-                        ))
-                    })?,
-                    false => line,
-                };
+                let body = intact(line, checked).ok_or_else(|| {
+                    CliError(format!(
+                        "{name}:{line_no}: recording header damaged in transfer (its checksum does not match): its \
+                         rate and scalings cannot be trusted; record again"
+                    ))
+                })?;
                 let header = parse_header(&name, line_no, body)?;
-                rec = Some(Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None, checked });
-                sink = Some(Sink::new(input, out, damage, header));
+                let rec = Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None, checked };
+                chosen = Some((rec, Sink::new(input, out, damage, header)));
             }
             continue;
         }
-        let (Some(r), Some(sink)) = (rec.as_mut(), sink.as_mut()) else { continue };
+        let Some((r, sink)) = chosen.as_mut() else { continue };
         if line.starts_with(END_TAG) {
-            match if r.checked { checked_body(line) } else { Some(line) } {
+            match intact(line, r.checked) {
                 Some(body) => {
                     r.ended = Some(body.contains("overflow=1"));
                     end_samples = body
@@ -282,7 +280,7 @@ pub fn run(
         sink.push(&frame[..n])?;
     }
     // Frames lost at the recording's start or end leave no gap between frames; the end line's count shows them.
-    if let (Some(r), Some(recorded)) = (rec.as_mut(), end_samples) {
+    if let (Some((r, _)), Some(recorded)) = (chosen.as_mut(), end_samples) {
         if let (Some(first), Some(last)) = (r.segments.first(), r.segments.last()) {
             let span = last.first_index + last.len - first.first_index;
             if span != recorded {
@@ -296,15 +294,13 @@ pub fn run(
             }
         }
     }
-    let (rec, sink) = match (rec, sink) {
-        (Some(r), Some(s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
-        (Some(_), _) => {
-            return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples"))
-        }
-        (None, _) if found == 0 => {
+    let (rec, sink) = match chosen {
+        Some((r, s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
+        Some(_) => return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
+        None if found == 0 => {
             return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line)"))
         }
-        (None, _) => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
+        None => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     };
     let (files, written) = sink.finish();
     // Every file is complete before any is moved into place.
@@ -312,6 +308,15 @@ pub fn run(
         file.commit()?;
     }
     Ok((rec, written))
+}
+
+/// A header or end line without its CRC if it is intact (`checked`: the format has one), or as it is (v1).
+fn intact(line: &str, checked: bool) -> Option<&str> {
+    if checked {
+        checked_body(line)
+    } else {
+        Some(line)
+    }
 }
 
 /// Where the chosen recording's samples go as they are decoded: a file per segment, made once the segment has
@@ -326,7 +331,7 @@ struct Sink<'a> {
     /// Index of the next sample of the current segment.
     next: u64,
     /// The current segment's file, once it has one.
-    file: Option<(OutputFile, std::path::PathBuf)>,
+    file: Option<OutputFile>,
     /// The current segment's samples while it has too few for a file.
     held: Vec<RawSample>,
     /// The finished segments' files, to commit.
@@ -362,9 +367,9 @@ impl<'a> Sink<'a> {
 
     fn close(&mut self) {
         match self.file.take() {
-            Some((file, path)) => {
+            Some(file) => {
+                self.written.push(Some(file.path().to_path_buf()));
                 self.done.push(file);
-                self.written.push(Some(path));
             }
             None => self.written.push(None),
         }
@@ -387,12 +392,12 @@ impl<'a> Sink<'a> {
             }
             let mut file = OutputFile::create(&path)?;
             writeln!(file.writer(), "t,u,y").map_err(|e| file.write_error(e))?;
-            self.file = Some((file, path));
+            self.file = Some(file);
             let held = std::mem::take(&mut self.held);
             return self.push(&held);
         }
-        let (h, origin) = (self.header, self.origin.unwrap_or(self.next));
-        let (file, _) = self.file.as_mut().expect("a file");
+        let (h, origin) = (self.header, self.origin.expect("a segment started"));
+        let file = self.file.as_mut().expect("a file");
         let result = samples.iter().try_for_each(|s| {
             let (u, y) = h.physical(*s);
             let t = (self.next - origin) as f64 / h.rate_hz;

@@ -619,6 +619,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
+    // The resonance the pre-filter is compared with: the hybrid EKF's, else the first estimator's.
+    let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
     for (w, figs, _) in &r.windows {
         // A window is half open, `[t0, t1)`: one that ends a sample after the last covers it all.
         if w.t0 < first - 0.5 * dt || w.t1 > last + 1.5 * dt {
@@ -632,7 +634,6 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 show(w.t1.min(last))
             ));
         }
-        let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
         if let Some(f) = figs.get(by) {
             let f0 = f.mean.f0_hz();
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
