@@ -80,7 +80,8 @@ fn hekf_f32_stays_with_f64_on_the_reference_prbs_data() {
 /// SPEC 10 on the full board: a0 and b0 within 0.1 %, a1 within 1 %, relock in about a second. Met, except b0
 /// without payload (+0.28 to +0.30 %): the second mode (1.9 kHz) that the 2nd-order model cannot represent (+0.06 %
 /// with it switched off, see hekf_bias_by_board_effect). That window's b0 is guarded at 0.35 % and the limit written
-/// down.
+/// down; a pre-filter placed for this board's second mode meets it, at a cost to the other estimators
+/// (a_prefilter_placed_for_the_boards_second_mode_meets_the_b0_goal_in_both_windows).
 fn assert_ekf_goals(name: &str, r: &hal_sim::experiment::Report) {
     for (w, e) in r.windows.iter().enumerate() {
         let b0_bound = if w == 0 { 1e-3 } else { 3.5e-3 };
@@ -98,36 +99,76 @@ fn hekf_on_the_full_simulated_board() {
     }
 }
 
-/// What would meet the b0 goal on the full board: the second mode's bias on `b0` depends on where the pre-filter sits
-/// against the resonance, and crosses zero with `f_p` near 1.06 times it. The paper's 450 Hz is there for the
-/// payload's 423 Hz (b0 -0.035 %, above) but not for the 483 Hz without it (+0.28 %); moved to 512 Hz, the window
-/// without payload is within 0.1 % on a0 and b0 (measured b0 -0.008 % in f64) and the one with it is not (-0.26 %).
-/// One fixed pre-filter cannot sit there for both masses; one re-centred after a detected change (which restarts
-/// the estimators, as the console's `tune prefilter` does) would, and is not built: the paper and the SPEC fix the
-/// pre-filter.
+/// What meets the b0 goal on the full board: the second mode's bias on `b0` depends on where the pre-filter sits
+/// against the resonance and on its width. Moving `f_p` alone, the bias crosses zero near 1.06 times the resonance:
+/// the paper's 450 Hz is there for the payload's 423 Hz (b0 -0.035 %) but not for the 483 Hz without it (+0.28 %);
+/// at 512 Hz the window without payload is within 0.1 % (b0 -0.008 % in f64) and the one with it is not (-0.26 %).
+/// Widening the pre-filter as well moves the two windows' biases differently: at `f_p` 525 Hz and `zeta_p` 0.22 both
+/// EKFs meet every PRBS goal in both windows (b0 -0.07 / +0.07 % hybrid, -0.06 / +0.08 % continuous; seeds 1 to 4
+/// within 0.005 % of each other). That pair was found by a grid search over `f_p` 420-530 Hz and `zeta_p` 0.02-0.28
+/// against the simulated truth, which a user of a real stage does not have, for this board's illustrative 1.9 kHz
+/// mode; and the replicas, matched at `f_p`, move with it. It costs the other two estimators: on the same record
+/// (`identify --tuning` with `prefilter = [100, 525, 0.22]`) the RLS's and the ARX's `b0` with the payload go from
+/// -0.05 / -0.08 % to -0.58 / -0.68 % and their validation RMSE from 5.5 / 6.0 nm to 8.8 / 9.3 nm. So the defaults
+/// stay the paper's (SPEC section 4).
 #[test]
-fn the_second_modes_bias_on_b0_vanishes_with_the_prefilter_at_1_06_f0() {
+fn a_prefilter_placed_for_the_boards_second_mode_meets_the_b0_goal_in_both_windows() {
     use hal_sim::experiment::{rel_errors, run, window_mean};
     use nanopos_id::filters::PrefilterDesign;
     let design = HekfDesign::default();
-    let moved = PrefilterDesign { f_p_hz: 512.0, ..PrefilterDesign::default() };
+    let errors = |hist: &[hal_sim::experiment::Sample]| {
+        [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
+            let (mean, truth) = window_mean(hist, t0, t1);
+            rel_errors(&mean, &truth)
+        })
+    };
+    let at = |f_p_hz: f64, zeta_p: f64| {
+        let moved = PrefilterDesign { f_p_hz, zeta_p, ..PrefilterDesign::default() };
+        move |_: &mut hal_sim::board::BoardSettings, p: &mut nanopos_id::pipeline::PipelineSettings| {
+            *p = p.with_prefilter(moved)
+        }
+    };
+    // f_p alone: one window or the other.
     let h = run(
         hal_sim::sim::Scenario::Prbs,
         200.0,
         1,
         || Hekf::<f64>::new(design.design()),
         || Hekf::<f32>::new(design.design()),
-        |_, p| *p = p.with_prefilter(moved),
+        at(512.0, 0.1),
     );
-    for (name, hist) in [("f64", &h.f64), ("f32", &h.f32)] {
-        let errors = [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
-            let (mean, truth) = window_mean(hist, t0, t1);
-            rel_errors(&mean, &truth)
-        });
-        eprintln!("hekf {name}, f_p 512 Hz: a0, a1, b0 with payload {:+.4?}, without {:+.4?}", errors[0], errors[1]);
-        let [with, without] = errors;
+    for (name, hist) in h.both() {
+        let [with, without] = errors(hist);
+        eprintln!("hekf {name}, f_p 512 Hz: a0, a1, b0 with payload {with:+.4?}, without {without:+.4?}");
         assert!(without[0].abs() < 1e-3 && without[1].abs() < 1e-2 && without[2].abs() < 1e-3, "{without:?}");
         assert!(with[2] < -2e-3, "with the payload the moved pre-filter is off its resonance: {with:?}");
+    }
+    // f_p and zeta_p: both windows, both filters, both precisions.
+    let hekf = run(
+        hal_sim::sim::Scenario::Prbs,
+        200.0,
+        1,
+        || Hekf::<f64>::new(design.design()),
+        || Hekf::<f32>::new(design.design()),
+        at(525.0, 0.22),
+    );
+    let cekf = run(
+        hal_sim::sim::Scenario::Prbs,
+        200.0,
+        1,
+        || Cekf::<f64>::new(design.design()),
+        || Cekf::<f32>::new(design.design()),
+        at(525.0, 0.22),
+    );
+    for (filter, h) in [("hekf", &hekf), ("cekf", &cekf)] {
+        for (name, hist) in h.both() {
+            let [with, without] = errors(hist);
+            let r = hal_sim::experiment::report(&format!("{filter} {name} at 525 Hz, 0.22"), hist);
+            for e in [with, without] {
+                assert!(e[0].abs() < 1e-3 && e[1].abs() < 1e-2 && e[2].abs() < 1e-3, "{filter} {name}: {e:?}");
+            }
+            assert!(r.relock_s.is_some_and(|t| t < 1.0), "{filter} {name}: {:?}", r.relock_s);
+        }
     }
 }
 
