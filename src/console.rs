@@ -29,18 +29,21 @@ use core::fmt::{self, Write};
 /// is about 300.
 pub const REPLY_BYTES: usize = 512;
 
-/// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
-/// at a time by [`Rest::write_next`] from the snapshot taken when the command ran.
+/// What remains of a reply once [`Controller::execute`] wrote its first part, written one line at a time by
+/// [`Rest::write_next`]: for `status`, its lines from the snapshot taken when the command ran; for `record on` or
+/// `record burst`, and for a change of the tuning while a recording runs, the tuning's lines for the recording
+/// ([`crate::record::write_tuning_line`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Rest<T> {
     status: Option<Status<T>>,
+    tuning: bool,
     next: usize,
 }
 
 impl<T> Rest<T> {
     /// Nothing more.
     pub const fn none() -> Self {
-        Rest { status: None, next: 0 }
+        Rest { status: None, tuning: false, next: 0 }
     }
 }
 
@@ -48,6 +51,12 @@ impl<T: Real> Rest<T> {
     /// Write the next part into `reply` (emptied by the caller): `false`, writing nothing, when the reply is complete.
     #[inline(never)]
     pub fn write_next(&mut self, ctl: &Controller, reply: &mut impl Write) -> bool {
+        if self.tuning {
+            let Some(&key) = TuningKey::ALL.get(self.next) else { return false };
+            let _ = crate::record::write_tuning_line(reply, key, &ctl.tuning.get(key)[..key.len()]);
+            self.next += 1;
+            return true;
+        }
         let Some(s) = &self.status else { return false };
         if self.next > s.estimates.len() {
             return false;
@@ -74,6 +83,9 @@ pub struct Controller {
     /// soft double costs 1.2 KiB of flash.
     tuned: bool,
     frozen: EstimatorSet,
+    /// Since `record on` or `record burst`, until `record off` or [`Controller::record_ended`]: a change of the
+    /// tuning then goes into the recording too.
+    recording: bool,
 }
 
 impl Controller {
@@ -92,6 +104,7 @@ impl Controller {
             preset: TuningPreset::Prbs,
             tuned: tuning != Tuning::of(TuningPreset::Prbs),
             frozen: EstimatorSet(0),
+            recording: false,
         };
         c.design::<f32>(&c.settings, running)?;
         Ok(c)
@@ -126,6 +139,11 @@ impl Controller {
             s.excitation = ExcitationDesign::constant(s.limits.safe_v);
         }
         s.design(&self.board)
+    }
+
+    /// The recording stopped by itself (a burst's end, or an overflow): its end line went out.
+    pub fn record_ended(&mut self) {
+        self.recording = false;
     }
 
     /// The recording header of the current settings.
@@ -259,7 +277,7 @@ impl Controller {
         reply: &mut impl Write,
     ) -> (Option<Change<T>>, Rest<T>) {
         if matches!(cmd, Command::Status) {
-            return (None, Rest { status: Some(status()), next: 0 });
+            return (None, Rest { status: Some(status()), tuning: false, next: 0 });
         }
         // For the notes of `excite multisine` and `tune prefilter`: the resonance as the interrupt estimates it now.
         let resonance = matches!(
@@ -270,7 +288,12 @@ impl Controller {
         .then(|| estimated_resonance(&status()))
         .flatten();
         match self.try_execute(cmd, resonance, reply) {
-            Ok(change) => (change, Rest::none()),
+            Ok(change) => {
+                // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
+                let tuning =
+                    self.recording && change.as_ref().is_some_and(|c| c.tuning.is_some() || c.record.is_some());
+                (change, Rest { status: None, tuning, next: 0 })
+            }
             Err(e) => {
                 let _ = writeln!(reply, "error: {e}");
                 (None, Rest::none())
@@ -403,6 +426,7 @@ impl Controller {
                 if self.board.probe.bits > 16 || self.board.amplifier.bits > 16 {
                     return Err(Refusal::Text("record: the v1 stream carries 16-bit codes; this board's are wider"));
                 }
+                self.recording = r != Recording::Off;
                 change.record = Some(match r {
                     Recording::Off => Some(0),
                     Recording::On => None,

@@ -23,6 +23,13 @@
 //! - **End:** a line with the number of samples recorded and whether the recording ended by overflow, and its CRC-16
 //!   as the header's. The count tells a capture that lost frames at the recording's start or end, where no
 //!   frame's index shows the gap.
+//! - **Tuning:** after the header, before the first frame, one line per tuning key ([`TuningKey::ALL`]) with the
+//!   values the estimators run, `# nanopos-tuning ekf q 3d719799812dea11 ... crc=XXXX` (the words of the console's
+//!   `tune`, then each value as the 16 hex digits of its f64 bits: exact, so that a replay with them is the board's
+//!   to the bit), and again, all of them, after each change of the tuning while the recording runs (the estimators
+//!   restarted there, which a replay from the start does not do). `decode` turns them into the TOML file
+//!   `identify --tuning` reads. Their tag is not `# nanopos-record`: a decoder of the first v2 firmware takes every
+//!   line that starts so for the next recording's header, and skips these.
 //!
 //! Any other line (command replies, `ok ...`) is not part of the recording: a capture of the whole serial stream
 //! converts as is.
@@ -31,6 +38,8 @@
 //! 276 bytes per 4.8 ms, 57.5 kB/s, 575 kbit/s with start and stop bits. Continuous recording at 10 kHz needs the
 //! link at 921 600 baud (62 % of it); at 115 200 baud only bursts that fit the board's buffer
 //! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete.
+
+use crate::estimators::TuningKey;
 
 /// Samples per frame.
 pub const FRAME_SAMPLES: usize = 48;
@@ -42,6 +51,68 @@ pub const HEADER_TAG: &str = "# nanopos-record v2";
 pub const HEADER_TAG_V1: &str = "# nanopos-record v1";
 /// The end line's first word.
 pub const END_TAG: &str = "# nanopos-record end";
+
+/// A tuning line's first words (see the module's doc).
+pub const TUNING_TAG: &str = "# nanopos-tuning";
+
+/// Write the tuning line of `key` with `values` (its [`TuningKey::len`] values), with its CRC and `\n`.
+pub fn write_tuning_line(out: &mut impl core::fmt::Write, key: TuningKey, values: &[f64]) -> core::fmt::Result {
+    struct Bits<'a>(&'a [f64]);
+    impl core::fmt::Display for Bits<'_> {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            self.0.iter().try_for_each(|v| {
+                let bits = v.to_bits();
+                let mut word = *b" 0000000000000000";
+                for (i, c) in word[1..].iter_mut().enumerate() {
+                    *c = hex_digit(bits >> (60 - 4 * i));
+                }
+                f.write_str(core::str::from_utf8(&word).unwrap_or_default())
+            })
+        }
+    }
+    let words = match key.path() {
+        ("", name) => ("", "", name),
+        (section, name) => (section, " ", name),
+    };
+    write_checked_line(out, format_args!("{TUNING_TAG} {}{}{}{}", words.0, words.1, words.2, Bits(values)))
+}
+
+/// Write every tuning line of `tuning`, in [`TuningKey::ALL`]'s order (the console writes them a line at a time).
+pub fn write_tuning_lines(out: &mut impl core::fmt::Write, tuning: &crate::estimators::Tuning) -> core::fmt::Result {
+    TuningKey::ALL.into_iter().try_for_each(|key| write_tuning_line(out, key, &tuning.get(key)[..key.len()]))
+}
+
+/// Why a tuning line was not read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TuningLineError {
+    /// Its CRC does not match: changed or cut in transfer.
+    Damaged,
+    /// Intact, but of a key or a number of values this tuning does not have (a later firmware's).
+    Unknown,
+}
+
+/// The key and the values of a tuning line (without its `\n`), the values after the key's [`TuningKey::len`] zero.
+pub fn read_tuning_line(line: &str) -> Result<(TuningKey, [f64; 5]), TuningLineError> {
+    use TuningLineError::{Damaged, Unknown};
+    let body = checked_body(line).ok_or(Damaged)?;
+    let mut words = body.strip_prefix(TUNING_TAG).ok_or(Unknown)?.split_ascii_whitespace();
+    let first = words.next().ok_or(Unknown)?;
+    let key = match TuningKey::parse("", first) {
+        Some(key) => key,
+        None => TuningKey::parse(first, words.next().ok_or(Unknown)?).ok_or(Unknown)?,
+    };
+    let mut values = [0.0; 5];
+    let mut n = 0;
+    for word in words {
+        let bits = u64::from_str_radix(word, 16).ok().filter(|_| word.len() == 16 && n < key.len()).ok_or(Unknown)?;
+        values[n] = f64::from_bits(bits);
+        n += 1;
+    }
+    if n != key.len() {
+        return Err(Unknown);
+    }
+    Ok((key, values))
+}
 
 /// One recorded sample: the converter codes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -311,5 +382,47 @@ mod tests {
         write_checked_line(&mut end, format_args!("{END_TAG} samples={} overflow={}", 2048, 0)).unwrap();
         assert_eq!(end.as_str(), "# nanopos-record end samples=2048 overflow=0 crc=3faa\n");
         assert_eq!(checked_body(end.as_str().trim_end()), Some("# nanopos-record end samples=2048 overflow=0"));
+    }
+
+    /// Every key's line reads back its key and its values bit for bit, also values no decimal form with few digits
+    /// holds; a line changed anywhere is damaged; an intact line of a key or a count this tuning lacks is unknown.
+    #[test]
+    fn tuning_lines_carry_every_key_exactly() {
+        use crate::control::TuningPreset;
+        let mut tuning = crate::estimators::Tuning::of(TuningPreset::Prbs);
+        tuning.set(TuningKey::EkfR, &[0.1 + 0.2]).unwrap();
+        tuning.set(TuningKey::Initial, &[5.000_000_000_000_01e5, 70.0 / 3.0, 6e6 * core::f64::consts::PI]).unwrap();
+        for key in TuningKey::ALL {
+            let values = tuning.get(key);
+            let mut text = crate::text::TextBuf::<256>::default();
+            write_tuning_line(&mut text, key, &values[..key.len()]).unwrap();
+            let line = text.as_str().strip_suffix('\n').unwrap();
+            let (read, got) = read_tuning_line(line).unwrap();
+            assert_eq!(read, key, "{line}");
+            assert_eq!(
+                got[..key.len()].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                values[..key.len()].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "{line}"
+            );
+            for i in 0..line.len() {
+                let mut bad = line.as_bytes().to_vec();
+                bad[i] = if bad[i] == b'7' { b'8' } else { b'7' };
+                assert_eq!(read_tuning_line(core::str::from_utf8(&bad).unwrap()), Err(TuningLineError::Damaged), "{i}");
+            }
+        }
+        let mut text = crate::text::TextBuf::<256>::default();
+        write_tuning_line(&mut text, TuningKey::EkfR, &[1.5e-6]).unwrap();
+        assert_eq!(text.as_str(), "# nanopos-tuning ekf r 3eb92a737110e454 crc=2a23\n");
+        for (body, why) in [
+            ("# nanopos-tuning ekf r", "no value"),
+            ("# nanopos-tuning ekf r 3eb92a737110e454 3eb92a737110e454", "two values for one"),
+            ("# nanopos-tuning ekf q 3eb92a737110e454", "one value for five"),
+            ("# nanopos-tuning ekf gain 3eb92a737110e454", "a key this tuning lacks"),
+            ("# nanopos-tuning ekf r 3eb92a737110e45", "15 digits"),
+        ] {
+            let mut line = crate::text::TextBuf::<256>::default();
+            write_checked_line(&mut line, format_args!("{body}")).unwrap();
+            assert_eq!(read_tuning_line(line.as_str().trim_end()), Err(TuningLineError::Unknown), "{why}");
+        }
     }
 }

@@ -13,6 +13,7 @@ use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, SampleOutput};
 use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
+use std::path::{Path, PathBuf};
 
 /// The board, the interrupt's state and the command side, wired as in the firmware.
 struct Lab {
@@ -853,7 +854,11 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     lab.run(777);
     let mut link = lab.send("record burst 3000\n");
     assert!(link.starts_with("# nanopos-record v2 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50 crc=29b1\n"), "{link}");
-    assert!(link.ends_with("ok record burst 3000\n"));
+    // Then the tuning the estimators run, a line per key.
+    let (reply, tuning) = link.split_once("ok record burst 3000\n").unwrap();
+    assert!(reply.ends_with(" crc=29b1\n"), "{reply}");
+    let keys: Vec<_> = tuning.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap().0).collect();
+    assert_eq!(keys, nanopos_id::estimators::TuningKey::ALL);
     // `send` ran the sample that applied the change: the first recorded sample is that one.
     let first_index = lab.isr.status().samples - 1;
     let mut outputs = Vec::new();
@@ -955,41 +960,58 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     assert_eq!(total, RECORD_BUFFER);
 }
 
-#[test]
-fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() {
-    let mut lab = Lab::new();
-    // From the very first sample, so the host's replay starts from the same rest as the interrupt's estimators.
+/// The board's first 20 001 samples recorded (from its first sample, so that a replay starts from the same rest as
+/// the interrupt's estimators) and decoded on the host: what the interrupt's estimators hold after the last one and
+/// after the 20 000th (`identify`'s last row), the decoded recording, and the folder of the capture and what
+/// `decode` wrote (to remove).
+fn record_from_the_start(lab: &mut Lab, name: &str) -> (Recorded, hal_sim::cmd::decode::Recording, PathBuf) {
+    // `record on` applies on the recording's first sample.
     let mut link = lab.send("record on\n");
+    let mut at_last_row = Vec::new();
     for k in 0..20_000 {
         lab.sample();
         if k % 20 == 0 {
-            drain(&mut lab, &mut link, false);
+            drain(lab, &mut link, false);
+        }
+        if k == 19_998 {
+            at_last_row = (0..4).map(|i| lab.params(i)).collect();
         }
     }
     // What the interrupt's estimators hold after the last recorded sample (`record off` applies before its sample).
     let board: Vec<_> = (0..4).map(|i| lab.params(i)).collect();
     link.push_str(&lab.send("record off\n"));
-    drain(&mut lab, &mut link, true);
+    drain(lab, &mut link, true);
     let st = lab.isr.record_status();
     let mut end = TextBuf::<80>::default();
     write_record_end(&st, &mut end).unwrap();
     link.push_str(end.as_str());
     assert!(!st.overflowed && st.recorded == 20_001, "{st:?}");
 
-    let dir = std::env::temp_dir().join(format!("nanopos-record-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("nanopos-record-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let (capture, csv) = (dir.join("capture.txt"), dir.join("run.csv"));
     std::fs::write(&capture, &link).unwrap();
     let (rec, files) = hal_sim::cmd::decode::run(&capture, &csv, 1, hal_sim::cmd::decode::Damage::Refuse).unwrap();
     assert_eq!((rec.first_index(), rec.len(), rec.segments.len(), rec.ended), (0, 20_001, 1, Some(false)));
     assert_eq!(files, [Some(csv.clone())]);
-    let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
-    // `nanopos-sim identify --precision f32` on the decoded file.
+    (Recorded { board, at_last_row }, rec, dir)
+}
+
+/// What the interrupt's estimators held in [`record_from_the_start`].
+struct Recorded {
+    /// After the last recorded sample.
+    board: Vec<StageParams<f32>>,
+    /// After the 20 000th, where `identify` writes its last row.
+    at_last_row: Vec<StageParams<f32>>,
+}
+
+/// `nanopos-sim identify --precision f32` with `tuning` on the decoded file `csv`.
+fn identify_f32(csv: &Path, tuning: hal_sim::tuning::TuningArg) -> hal_sim::cmd::identify::Identified {
     use hal_sim::cmd::identify::{self, IdentifyArgs, Precision};
     let args = IdentifyArgs {
-        input: &csv,
+        input: csv,
         estimators: hal_sim::bank::NAMES.to_vec(),
-        tuning: hal_sim::bank::Tuning::preset("prbs").unwrap().into(),
+        tuning,
         windows: Vec::new(),
         out: None,
         summary: None,
@@ -997,7 +1019,16 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
         dac_step_v: None,
         precision: Precision::F32,
     };
-    let replayed = identify::run(&args).unwrap();
+    identify::run(&args).unwrap()
+}
+
+#[test]
+fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() {
+    let mut lab = Lab::new();
+    let (Recorded { board, .. }, _, dir) = record_from_the_start(&mut lab, "replay");
+    let csv = dir.join("run.csv");
+    let cols = hal_sim::csv::read_columns(&csv, &["u", "y"], hal_sim::csv::Time::Required).unwrap();
+    let replayed = identify_f32(&csv, hal_sim::bank::Tuning::preset("prbs").unwrap().into());
     assert_eq!(replayed.names, ESTIMATOR_NAMES);
     std::fs::remove_dir_all(&dir).unwrap();
 
@@ -1026,6 +1057,60 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     for (i, h) in at_last_row.expect("a row").iter().enumerate() {
         assert_eq!(row[i], StageParams { a0: h.a0 as f64, a1: h.a1 as f64, b0: h.b0 as f64 }, "{}", ESTIMATOR_NAMES[i]);
     }
+}
+
+/// The largest relative difference between an estimate and the board's, over the estimators and the parameters.
+fn worst_relative(row: &[StageParams<f64>], board: &[StageParams<f32>]) -> f64 {
+    row.iter()
+        .zip(board)
+        .flat_map(|(h, b)| [(h.a0, b.a0), (h.a1, b.a1), (h.b0, b.b0)])
+        .map(|(x, z)| ((x - z as f64) / z as f64).abs())
+        .fold(0.0, f64::max)
+}
+
+/// A board tuned on the console records its tuning with its samples: `decode` writes it beside the CSV, and a replay
+/// with it is the interrupt's estimates bit for bit (this board's scalings are exact in f32: the decoded volts round
+/// to the interrupt's), where a replay with the preset is 20 % off.
+#[test]
+fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
+    let mut lab = Lab::new();
+    for command in [
+        "tune initial 6.5e5 72.5 6.3e6\n",
+        "tune rls gamma 0.7\n",
+        "tune ekf q 1e-12 1e-6 3e9 0.3 1e9\n",
+        "tune ekf r 2.2e-6\n",
+        "tune ekf substeps 3\n",
+        "tune arx lambda 0.9995\n",
+    ] {
+        assert!(lab.send(command).contains("(estimators restarted)"), "{command}");
+    }
+    // A board started with this tuning (a replay starts from rest).
+    lab.board = Lab::new().board;
+    lab.isr = Instrument::new(lab.ctl.config(), &lab.ctl.tuning());
+    let (recorded, rec, dir) = record_from_the_start(&mut lab, "tuning");
+    let board = recorded.at_last_row;
+    let csv = dir.join("run.csv");
+    let toml = hal_sim::cmd::decode::tuning_path(&csv);
+    assert_eq!(
+        (rec.tuning_file.as_deref(), rec.tuning_notes.len()),
+        (Some(toml.as_path()), 0),
+        "{:?}",
+        rec.tuning_notes
+    );
+    let text = std::fs::read_to_string(&toml).unwrap();
+    assert!(text.contains("\ninitial = [650000.0, 72.5, 6300000.0]\n") && text.contains("\nsubsteps = 3\n"), "{text}");
+    let from_file = hal_sim::tuning::resolve(toml.to_str().unwrap()).unwrap();
+    let designed = from_file.at(1e-4).unwrap().design::<f64>();
+    assert!(designed == lab.ctl.tuning::<f64>(), "the file holds the board's tuning exactly");
+    let with_file = identify_f32(&csv, from_file);
+    let with_preset = identify_f32(&csv, hal_sim::bank::Tuning::preset("prbs").unwrap().into());
+    std::fs::remove_dir_all(&dir).unwrap();
+    let (tuned, preset) = (
+        worst_relative(with_file.estimates.last().unwrap(), &board),
+        worst_relative(with_preset.estimates.last().unwrap(), &board),
+    );
+    println!("identify's last row against the board's estimates: with the recorded tuning {tuned:.1e}, with the preset {preset:.1e}");
+    assert!(tuned == 0.0 && preset > 1e-2, "{tuned} {preset}");
 }
 
 /// A limit of the excitation monitor, kept measured: it judges richness through its 5-20 Hz shaping filter, where a

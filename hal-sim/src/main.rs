@@ -245,6 +245,16 @@ fn run(cli: Cli) -> Result<(), CliError> {
                     );
                 }
             }
+            if let Some(path) = &rec.tuning_file {
+                let path = path.display();
+                eprintln!(
+                    "nanopos-sim: the board's tuning at the recording's start written to {path}: replay with identify \
+                     --tuning {path}"
+                );
+            }
+            for msg in &rec.tuning_notes {
+                eprintln!("nanopos-sim: note: {msg}");
+            }
             match rec.ended {
                 Some(true) => eprintln!(
                     "nanopos-sim: note: the recording stopped early: the board's buffer overflowed (the link is \

@@ -294,6 +294,15 @@ fn capture_with(n: usize, first: u64, header: nanopos_id::record::RecordHeader) 
     text
 }
 
+/// `text` (a [`capture`]) with the tuning lines of the PRBS preset after `record burst`'s reply, as the firmware
+/// sends them (a capture without them is a firmware's before them).
+fn with_tuning(text: &str) -> String {
+    let mut lines = String::new();
+    let tuning = nanopos_id::estimators::Tuning::of(nanopos_id::control::TuningPreset::Prbs);
+    nanopos_id::record::write_tuning_lines(&mut lines, &tuning).unwrap();
+    text.replacen("ok record burst 100\n", &format!("ok record burst 100\n{lines}"), 1)
+}
+
 /// `text` as a firmware before the header's and the end line's CRC wrote it (format v1).
 fn v1(text: &str) -> String {
     text.lines()
@@ -446,9 +455,20 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert!(stderr.contains("note: the recording's header has no checksum (format v1"), "{stderr}");
-    std::fs::write(dir.path().join("new.txt"), &good).unwrap();
+    std::fs::write(dir.path().join("new.txt"), with_tuning(&good)).unwrap();
     let out = nanopos_sim(&["decode", "--input", "new.txt", "--out", "new.csv"], dir.path());
-    assert!(out.status.success() && !String::from_utf8_lossy(&out.stderr).contains("note"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !stderr.contains("note"), "{stderr}");
+    // The board's tuning beside it, which identify reads.
+    let tuning =
+        "the board's tuning at the recording's start written to new.tuning.toml: replay with identify --tuning \
+                  new.tuning.toml";
+    assert!(stderr.contains(tuning), "{stderr}");
+    let out = nanopos_sim(
+        &["identify", "--input", "new.csv", "--tuning", "new.tuning.toml", "--estimators", "arx"],
+        dir.path(),
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
     assert_eq!(read("old.csv"), read("new.csv"));
 

@@ -11,10 +11,19 @@
 //! `--segments` nothing is refused and nothing good is thrown away: damaged frames are skipped (each reported), and
 //! every gap-free run of samples goes to its own file, `OUT` with `-1`, `-2`, ... before the extension. `t` keeps
 //! counting from the recording's first sample in every segment, so the segments keep their place in time.
+//!
+//! **The board's tuning.** The recording's tuning lines ([`nanopos_id::record::write_tuning_line`]: every key's
+//! values, exact) go to a TOML file beside the output, `OUT` with `.tuning.toml` for its extension, which `identify
+//! --tuning` reads: a replay then runs the estimators as the board ran them. Their damage refuses nothing (the
+//! samples are whole without them): the file is not written, and a note says why; so for a capture without them
+//! (a firmware before them), and for a tuning changed while the recording ran (the file holds the tuning at its
+//! start; the board's estimators restarted at the change, which a replay does not).
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
+use nanopos_id::estimators::TuningKey;
 use nanopos_id::record::{
-    checked_body, decode_frame, RawSample, RecordHeader, END_TAG, FRAME_SAMPLES, HEADER_TAG, HEADER_TAG_V1,
+    checked_body, decode_frame, read_tuning_line, RawSample, RecordHeader, TuningLineError, END_TAG, FRAME_SAMPLES,
+    HEADER_TAG, HEADER_TAG_V1, TUNING_TAG,
 };
 use std::io::{BufRead, Write};
 use std::path::Path;
@@ -42,6 +51,10 @@ pub struct Recording {
     /// Whether the header and the end line carried their CRC (the format's `v2`; `v1` did not, and its header's
     /// rate and scalings are taken as they are).
     pub checked: bool,
+    /// The TOML file the board's tuning at the recording's start went to (see the module's doc), if it did.
+    pub tuning_file: Option<std::path::PathBuf>,
+    /// Why it did not, or that the tuning changed while the recording ran: one line each.
+    pub tuning_notes: Vec<String>,
 }
 
 impl Recording {
@@ -176,6 +189,7 @@ pub fn run(
     let mut bytes = Vec::new();
     // The end line's count of the samples recorded, when it has one.
     let mut end_samples = None;
+    let mut tuning = TuningLines::default();
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
@@ -213,7 +227,15 @@ pub fn run(
                     ))
                 })?;
                 let header = parse_header(&name, line_no, body)?;
-                let rec = Recording { header, segments: Vec::new(), damage: Vec::new(), ended: None, checked };
+                let rec = Recording {
+                    header,
+                    segments: Vec::new(),
+                    damage: Vec::new(),
+                    ended: None,
+                    checked,
+                    tuning_file: None,
+                    tuning_notes: Vec::new(),
+                };
                 chosen = Some((rec, Sink::new(input, out, damage, header)));
             }
             continue;
@@ -237,6 +259,10 @@ pub fn run(
                 )?,
             }
             break;
+        }
+        if line.starts_with(TUNING_TAG) {
+            tuning.read(line, line_no, r, &name);
+            continue;
         }
         if !line.starts_with('R') {
             continue;
@@ -302,12 +328,134 @@ pub fn run(
         }
         None => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     };
+    let (mut rec, sink) = (rec, sink);
+    let tuning_file = tuning.file(&mut rec, input, out, damage)?;
     let (files, written) = sink.finish();
     // Every file is complete before any is moved into place.
-    for file in files {
+    for file in files.into_iter().chain(tuning_file) {
         file.commit()?;
     }
     Ok((rec, written))
+}
+
+/// Where the board's tuning of a decode into `out` goes: `run.csv` -> `run.tuning.toml`.
+pub fn tuning_path(out: &Path) -> std::path::PathBuf {
+    out.with_extension("tuning.toml")
+}
+
+/// The chosen recording's tuning lines, as they come.
+#[derive(Default)]
+struct TuningLines {
+    /// Each key's values, the last line of it before the first frame.
+    keys: Vec<(TuningKey, [f64; 5])>,
+    /// A tuning line was damaged or of an unknown key (its note is in the recording's).
+    bad: bool,
+    /// A tuning line came after the first frame (noted once).
+    changed: bool,
+}
+
+impl TuningLines {
+    /// Take tuning line `line` (the capture's line `line_no`) of recording `r`.
+    fn read(&mut self, line: &str, line_no: usize, r: &mut Recording, name: &str) {
+        if !r.segments.is_empty() {
+            if !self.changed {
+                let at = r.segments.last().map_or(0, |s| s.first_index + s.len);
+                r.tuning_notes.push(format!(
+                    "{name}:{line_no}: the board's tuning changed while the recording ran (a `tune` or `tuning`, near \
+                     board sample {at}; its estimators restarted there): the tuning file holds the tuning at the \
+                     recording's start, and a replay of the samples after the change is not the board's"
+                ));
+                self.changed = true;
+            }
+            return;
+        }
+        match read_tuning_line(line) {
+            Ok((key, values)) => match self.keys.iter_mut().find(|(k, _)| *k == key) {
+                Some(known) => known.1 = values,
+                None => self.keys.push((key, values)),
+            },
+            Err(e) => {
+                self.bad = true;
+                r.tuning_notes.push(match e {
+                    TuningLineError::Damaged => {
+                        format!("{name}:{line_no}: a tuning line damaged in transfer (its checksum does not match)")
+                    }
+                    TuningLineError::Unknown => format!(
+                        "{name}:{line_no}: '{}': a tuning line of a key this decoder does not know (a later \
+                         firmware's)",
+                        clip(line, 40)
+                    ),
+                });
+            }
+        }
+    }
+
+    /// The tuning file of `rec` decoded into `out`, to commit with the samples' files, when the recording carried
+    /// every key intact; else a note in `rec` says why there is none.
+    fn file(
+        self,
+        rec: &mut Recording,
+        input: &Path,
+        out: &Path,
+        damage: Damage,
+    ) -> Result<Option<OutputFile>, CliError> {
+        let missing = TuningKey::ALL.iter().filter(|k| !self.keys.iter().any(|(known, _)| known == *k)).count();
+        let give = "identify replays the tuning it is given (--tuning), which must be the board's for its estimates";
+        let why_not = if self.bad {
+            Some(format!("the board's tuning is not written: {give}"))
+        } else if self.keys.is_empty() {
+            Some(format!("the recording carries no tuning (from a firmware before the tuning lines): {give}"))
+        } else if missing > 0 {
+            Some(format!(
+                "the board's tuning is not written: {missing} of its {} keys are missing (lines lost in the capture): \
+                 {give}",
+                TuningKey::ALL.len()
+            ))
+        } else if std::fs::metadata(out).is_ok_and(|m| !m.is_file() && !m.is_dir()) && damage == Damage::Refuse {
+            Some(format!("--out {} is not a file: the board's tuning is not written beside it", out.display()))
+        } else {
+            None
+        };
+        if let Some(msg) = why_not {
+            rec.tuning_notes.push(msg);
+            return Ok(None);
+        }
+        let path = tuning_path(out);
+        super::check_distinct(&[("--input", input)], &[("the tuning file", &path)])?;
+        let mut file = OutputFile::create(&path)?;
+        let text = tuning_toml(&self.keys, &input.display().to_string());
+        file.writer().write_all(text.as_bytes()).map_err(|e| file.write_error(e))?;
+        rec.tuning_file = Some(path);
+        Ok(Some(file))
+    }
+}
+
+/// The TOML of `identify --tuning` (`crate::tuning`) holding every key of `keys`, values as Rust writes an `f64`:
+/// the shortest decimal that reads back to the same bits.
+pub fn tuning_toml(keys: &[(TuningKey, [f64; 5])], source: &str) -> String {
+    let mut text = format!(
+        "# The board's estimator tuning at the start of its recording in {source} (nanopos-sim decode), exact.\n\
+         # Replay with it: nanopos-sim identify --input <the decoded CSV> --tuning <this file>\n"
+    );
+    let mut section = "";
+    for key in TuningKey::ALL {
+        let Some((_, values)) = keys.iter().find(|(k, _)| *k == key) else { continue };
+        let (sec, name) = key.path();
+        if sec != section {
+            text.push_str(&format!("\n[{sec}]\n"));
+            section = sec;
+        }
+        let whole = matches!(key, TuningKey::EkfSubsteps | TuningKey::EkfChangeSamples);
+        let v: Vec<String> = values[..key.len()]
+            .iter()
+            .map(|v| if whole { format!("{}", *v as u64) } else { format!("{v:?}") })
+            .collect();
+        match key.len() {
+            1 => text.push_str(&format!("{name} = {}\n", v[0])),
+            _ => text.push_str(&format!("{name} = [{}]\n", v.join(", "))),
+        }
+    }
+    text
 }
 
 /// A header or end line without its CRC if it is intact (`checked`: the format has one), or as it is (v1).
@@ -421,11 +569,23 @@ mod tests {
     use super::*;
     use nanopos_id::record::{encode_frame, write_checked_line, FRAME_MAX_BYTES};
 
-    /// A capture of `n` samples from board sample 1000 with replies around it, as lines.
+    /// The tuning lines of the PRBS preset with `[ekf] r` at 2.2e-6.
+    fn tuning_lines() -> Vec<Vec<u8>> {
+        let mut t = nanopos_id::estimators::Tuning::of(nanopos_id::control::TuningPreset::Prbs);
+        t.set(TuningKey::EkfR, &[2.2e-6]).unwrap();
+        let mut text = String::new();
+        nanopos_id::record::write_tuning_lines(&mut text, &t).unwrap();
+        text.split_inclusive('\n').map(|l| l.as_bytes().to_vec()).collect()
+    }
+
+    /// A capture of `n` samples from board sample 1000 with replies around it, as lines: the header, `ok`, the
+    /// tuning lines, the frames, the end line.
     fn capture(n: usize) -> Vec<Vec<u8>> {
         let mut h = nanopos_id::text::TextBuf::<256>::default();
         RecordHeader::EXAMPLE.write(&mut h).unwrap();
         let mut lines = vec![b"ok status samples=12\n".to_vec(), h.as_str().as_bytes().to_vec()];
+        lines.push(b"ok record on\n".to_vec());
+        lines.extend(tuning_lines());
         let samples: Vec<RawSample> =
             (0..n).map(|k| RawSample { u_code: 2000 + (k % 97) as u16, y_code: 30_000 + (k % 1013) as u16 }).collect();
         let mut buf = [0u8; FRAME_MAX_BYTES];
@@ -439,6 +599,51 @@ mod tests {
         lines
     }
 
+    /// The board's tuning goes beside the output, or a note says why it does not: none in the capture, a damaged or
+    /// lost tuning line; and a change of the tuning after the first frame is noted, the file holding the first.
+    #[test]
+    fn the_boards_tuning_goes_beside_the_output_or_a_note_says_why_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cap, out) = (dir.path().join("cap.txt"), dir.path().join("run.csv"));
+        let decode = |lines: &[Vec<u8>]| {
+            std::fs::write(&cap, lines.concat()).unwrap();
+            let _ = std::fs::remove_file(tuning_path(&out));
+            let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
+            let written = tuning_path(&out).exists();
+            assert_eq!(rec.tuning_file.is_some(), written);
+            (rec.tuning_file.is_some(), rec.tuning_notes.join(" | "))
+        };
+        let good = capture(500);
+        let (written, notes) = decode(&good);
+        assert!(written && notes.is_empty(), "{notes}");
+        let first = good.iter().position(|l| l.starts_with(TUNING_TAG.as_bytes())).unwrap();
+        let n = TuningKey::ALL.len();
+        // None: a firmware before the tuning lines.
+        let mut none = good.clone();
+        none.drain(first..first + n);
+        let (written, notes) = decode(&none);
+        assert!(!written && notes.contains("the recording carries no tuning"), "{notes}");
+        // One lost.
+        let mut lost = good.clone();
+        lost.remove(first + 7);
+        let (written, notes) = decode(&lost);
+        assert!(!written && notes.contains("1 of its 18 keys are missing"), "{notes}");
+        // One damaged.
+        let mut damaged = good.clone();
+        damaged[first + 3][20] ^= 1;
+        let (written, notes) = decode(&damaged);
+        assert!(!written && notes.contains(&format!("cap.txt:{}: a tuning line damaged", first + 4)), "{notes}");
+        // Changed after the first frame (a `tune` while recording): the file holds the tuning at the start.
+        let mut changed = good.clone();
+        let frame = changed.iter().position(|l| l.starts_with(b"R")).unwrap();
+        let mut l = nanopos_id::text::TextBuf::<256>::default();
+        nanopos_id::record::write_tuning_line(&mut l, TuningKey::EkfR, &[9e-6]).unwrap();
+        changed.insert(frame + 2, l.as_str().as_bytes().to_vec());
+        let (written, notes) = decode(&changed);
+        assert!(written && notes.contains("near board sample 1096"), "{notes}");
+        assert!(std::fs::read_to_string(tuning_path(&out)).unwrap().contains("\nr = 2.2e-6\n"));
+    }
+
     /// A capture mangled at random (bytes changed, lines lost, repeated, swapped, cut short, noise added) never makes
     /// `decode` panic or leave a temporary file: refusing, it writes nothing; decoding, each file holds its segment's
     /// samples, each the intact capture's at that board sample, a sample period apart.
@@ -449,6 +654,12 @@ mod tests {
         let (input, whole) = (dir.path().join("good.txt"), dir.path().join("whole.csv"));
         std::fs::write(&input, good.concat()).unwrap();
         run(&input, &whole, 1, Damage::Refuse).unwrap();
+        // The tuning file without its comments (which name the capture).
+        let settings = |path: &Path| {
+            let text = std::fs::read_to_string(path).unwrap();
+            text.lines().filter(|l| !l.starts_with('#')).collect::<Vec<_>>().join("\n")
+        };
+        let tuning = settings(&tuning_path(&whole));
         let whole = std::fs::read_to_string(&whole).unwrap();
         // `u,y` of board sample 1000 + k.
         let intact: Vec<&str> = whole.lines().skip(1).map(|r| r.split_once(',').unwrap().1).collect();
@@ -514,6 +725,11 @@ mod tests {
                                 last_t = Some(t);
                             }
                         }
+                        // A tuning file holds the board's tuning exactly, or there is none and a note says why.
+                        match &rec.tuning_file {
+                            Some(path) => assert_eq!(settings(path), tuning, "case {case}"),
+                            None => assert!(!rec.tuning_notes.is_empty(), "case {case}"),
+                        }
                         segmented += (rec.segments.len() > 1) as usize;
                         for name in names.iter().filter(|n| *n != "cap.txt") {
                             std::fs::remove_file(dir.path().join(name)).unwrap();
@@ -523,6 +739,7 @@ mod tests {
             }
         }
         eprintln!("mangled captures: {refused} refusals, {segmented} decodes into several segments (of {})", 2 * CASES);
+        assert!(tuning.contains("\nr = 2.2e-6\n"), "{tuning}");
         assert!(refused > 50 && segmented > 20, "the cases reach both ways: {refused} {segmented}");
     }
 }

@@ -222,6 +222,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 let _ = write_record_end(&status, &mut reply);
                 let _ = tx.write_all(reply.as_bytes()).await;
                 recording = false;
+                ctl.record_ended();
             }
             if n == 0 {
                 break;
