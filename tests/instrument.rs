@@ -859,6 +859,8 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     assert!(reply.ends_with(" crc=29b1\n"), "{reply}");
     let keys: Vec<_> = tuning.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap().0).collect();
     assert_eq!(keys, nanopos_id::estimators::TuningKey::ALL);
+    // 13 ms of the link at 921 600 baud before the first frame, inside the board's 0.1 s buffer (src/record.rs).
+    assert_eq!(tuning.len(), 1220);
     // `send` ran the sample that applied the change: the first recorded sample is that one.
     let first_index = lab.isr.status().samples - 1;
     let mut outputs = Vec::new();
