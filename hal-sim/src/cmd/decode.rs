@@ -320,7 +320,7 @@ pub fn run(
             }
         }
     }
-    let (rec, sink) = match chosen {
+    let (mut rec, sink) = match chosen {
         Some((r, s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
         Some(_) => return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
         None if found == 0 => {
@@ -328,7 +328,6 @@ pub fn run(
         }
         None => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
     };
-    let (mut rec, sink) = (rec, sink);
     let tuning_file = tuning.file(&mut rec, input, out, damage)?;
     let (files, written) = sink.finish();
     // Every file is complete before any is moved into place.
@@ -416,11 +415,15 @@ impl TuningLines {
         } else {
             None
         };
+        let path = tuning_path(out);
         if let Some(msg) = why_not {
             rec.tuning_notes.push(msg);
+            if path.exists() {
+                rec.tuning_notes
+                    .push(format!("{} is from an earlier decode, not this capture: left as it was", path.display()));
+            }
             return Ok(None);
         }
-        let path = tuning_path(out);
         super::check_distinct(&[("--input", input)], &[("the tuning file", &path)])?;
         let mut file = OutputFile::create(&path)?;
         let text = tuning_toml(&self.keys, &input.display().to_string());
@@ -623,6 +626,12 @@ mod tests {
         none.drain(first..first + n);
         let (written, notes) = decode(&none);
         assert!(!written && notes.contains("the recording carries no tuning"), "{notes}");
+        // Not taken for this capture's: a tuning file an earlier decode left.
+        std::fs::write(tuning_path(&out), "# another capture's\n").unwrap();
+        std::fs::write(&cap, none.concat()).unwrap();
+        let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
+        assert!(rec.tuning_notes[1]
+            .ends_with("run.tuning.toml is from an earlier decode, not this capture: left as it was"));
         // One lost.
         let mut lost = good.clone();
         lost.remove(first + 7);
