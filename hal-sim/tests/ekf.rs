@@ -128,15 +128,19 @@ fn a_prefilter_placed_for_the_boards_second_mode_meets_the_b0_goal_in_both_windo
             *p = p.with_prefilter(moved)
         }
     };
+    let hekf_at = |f_p_hz: f64, zeta_p: f64| {
+        let (d64, d32) = (design.design(), design.design());
+        run(
+            hal_sim::sim::Scenario::Prbs,
+            200.0,
+            1,
+            || Hekf::<f64>::new(d64),
+            || Hekf::<f32>::new(d32),
+            at(f_p_hz, zeta_p),
+        )
+    };
     // f_p alone: one window or the other.
-    let h = run(
-        hal_sim::sim::Scenario::Prbs,
-        200.0,
-        1,
-        || Hekf::<f64>::new(design.design()),
-        || Hekf::<f32>::new(design.design()),
-        at(512.0, 0.1),
-    );
+    let h = hekf_at(512.0, 0.1);
     for (name, hist) in h.both() {
         let [with, without] = errors(hist);
         eprintln!("hekf {name}, f_p 512 Hz: a0, a1, b0 with payload {with:+.4?}, without {without:+.4?}");
@@ -144,14 +148,7 @@ fn a_prefilter_placed_for_the_boards_second_mode_meets_the_b0_goal_in_both_windo
         assert!(with[2] < -2e-3, "with the payload the moved pre-filter is off its resonance: {with:?}");
     }
     // f_p and zeta_p: both windows, both filters, both precisions.
-    let hekf = run(
-        hal_sim::sim::Scenario::Prbs,
-        200.0,
-        1,
-        || Hekf::<f64>::new(design.design()),
-        || Hekf::<f32>::new(design.design()),
-        at(525.0, 0.22),
-    );
+    let hekf = hekf_at(525.0, 0.22);
     let cekf = run(
         hal_sim::sim::Scenario::Prbs,
         200.0,
