@@ -29,21 +29,18 @@ use core::fmt::{self, Write};
 /// is about 300.
 pub const REPLY_BYTES: usize = 512;
 
-/// What remains of a reply once [`Controller::execute`] wrote its first part, written one line at a time by
-/// [`Rest::write_next`]: for `status`, its lines from the snapshot taken when the command ran; for `record on` or
-/// `record burst`, and for a change of the tuning while a recording runs, the tuning's lines for the recording
-/// ([`crate::record::write_tuning_line`]).
+/// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
+/// at a time by [`Rest::write_next`] from the snapshot taken when the command ran.
 #[derive(Clone, Copy, Debug)]
 pub struct Rest<T> {
     status: Option<Status<T>>,
-    tuning: bool,
     next: usize,
 }
 
 impl<T> Rest<T> {
     /// Nothing more.
     pub const fn none() -> Self {
-        Rest { status: None, tuning: false, next: 0 }
+        Rest { status: None, next: 0 }
     }
 }
 
@@ -51,12 +48,6 @@ impl<T: Real> Rest<T> {
     /// Write the next part into `reply` (emptied by the caller): `false`, writing nothing, when the reply is complete.
     #[inline(never)]
     pub fn write_next(&mut self, ctl: &Controller, reply: &mut impl Write) -> bool {
-        if self.tuning {
-            let Some(&key) = TuningKey::ALL.get(self.next) else { return false };
-            let _ = crate::record::write_tuning_line(reply, key, &ctl.tuning.get(key)[..key.len()]);
-            self.next += 1;
-            return true;
-        }
         let Some(s) = &self.status else { return false };
         if self.next > s.estimates.len() {
             return false;
@@ -86,6 +77,8 @@ pub struct Controller {
     /// Since `record on` or `record burst`, until `record off` or [`Controller::record_ended`]: a change of the
     /// tuning then goes into the recording too.
     recording: bool,
+    /// The recording stream owes the tuning's lines ([`Controller::take_tuning_due`]).
+    tuning_due: bool,
 }
 
 impl Controller {
@@ -105,6 +98,7 @@ impl Controller {
             tuned: tuning != Tuning::of(TuningPreset::Prbs),
             frozen: EstimatorSet(0),
             recording: false,
+            tuning_due: false,
         };
         c.design::<f32>(&c.settings, running)?;
         Ok(c)
@@ -144,6 +138,22 @@ impl Controller {
     /// The recording stopped by itself (a burst's end, or an overflow): its end line went out.
     pub fn record_ended(&mut self) {
         self.recording = false;
+    }
+
+    /// Whether the recording stream owes the tuning's lines, once: after the reply to `record on` or `record burst`
+    /// (the header is in the reply), and to a change of the tuning while a recording runs. They are the
+    /// recording's, as its frames are, not the reply's, which ends with its verdict: write them after it, before any
+    /// frame that follows, with [`Controller::write_tuning_line`].
+    pub fn take_tuning_due(&mut self) -> bool {
+        core::mem::take(&mut self.tuning_due)
+    }
+
+    /// Write the recording's tuning line `k` (from 0; [`crate::record::write_tuning_line`]) into `out`: `false`,
+    /// writing nothing, after the last.
+    pub fn write_tuning_line(&self, k: usize, out: &mut impl Write) -> bool {
+        let Some(&key) = TuningKey::ALL.get(k) else { return false };
+        let _ = crate::record::write_tuning_line(out, key, &self.tuning.get(key)[..key.len()]);
+        true
     }
 
     /// The recording header of the current settings.
@@ -277,7 +287,7 @@ impl Controller {
         reply: &mut impl Write,
     ) -> (Option<Change<T>>, Rest<T>) {
         if matches!(cmd, Command::Status) {
-            return (None, Rest { status: Some(status()), tuning: false, next: 0 });
+            return (None, Rest { status: Some(status()), next: 0 });
         }
         // For the notes of `excite multisine` and `tune prefilter`: the resonance as the interrupt estimates it now.
         let resonance = matches!(
@@ -290,9 +300,9 @@ impl Controller {
         match self.try_execute(cmd, resonance, reply) {
             Ok(change) => {
                 // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
-                let tuning =
+                self.tuning_due |=
                     self.recording && change.as_ref().is_some_and(|c| c.tuning.is_some() || c.record.is_some());
-                (change, Rest { status: None, tuning, next: 0 })
+                (change, Rest::none())
             }
             Err(e) => {
                 let _ = writeln!(reply, "error: {e}");

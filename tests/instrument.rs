@@ -43,9 +43,9 @@ impl Lab {
     }
 
     /// Type `text` on the link; every completed line is executed, its change posted and applied by one sample.
-    /// Returns the replies.
+    /// Returns the replies (the link has them, and the recording's tuning lines after them when due).
     fn send(&mut self, text: &str) -> String {
-        let start = self.link.len();
+        let mut replies = String::new();
         // As the firmware reads its receive buffer, on a link that loses nothing.
         for parsed in self.line.read(text.as_bytes(), false, usize::MAX) {
             // The firmware's buffer: every part of every reply must fit it.
@@ -68,13 +68,24 @@ impl Lab {
             loop {
                 assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
                 self.link.push_str(reply.as_str());
+                replies.push_str(reply.as_str());
                 reply.clear();
                 if !rest.write_next(&self.ctl, &mut reply) {
                     break;
                 }
             }
+            // As the firmware: the recording's tuning lines after the reply.
+            if self.ctl.take_tuning_due() {
+                for k in 0.. {
+                    reply.clear();
+                    if !self.ctl.write_tuning_line(k, &mut reply) {
+                        break;
+                    }
+                    self.link.push_str(reply.as_str());
+                }
+            }
         }
-        self.link[start..].to_string()
+        replies
     }
 
     fn sample(&mut self) -> SampleOutput<f32> {
@@ -852,7 +863,9 @@ fn drain(lab: &mut Lab, link: &mut String, finished: bool) {
 fn a_recording_carries_exactly_what_the_interrupt_saw() {
     let mut lab = Lab::new();
     lab.run(777);
-    let mut link = lab.send("record burst 3000\n");
+    let start = lab.link.len();
+    lab.send("record burst 3000\n");
+    let mut link = lab.link[start..].to_string();
     assert!(link.starts_with("# nanopos-record v2 rate_hz=10000 delay=1 u_v_per_code=0.0048828125 u_v_offset=-10 y_um_per_code=0.00152587890625 y_um_offset=-50 crc=29b1\n"), "{link}");
     // Then the tuning the estimators run, a line per key.
     let (reply, tuning) = link.split_once("ok record burst 3000\n").unwrap();
@@ -967,8 +980,10 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
 /// after the 20 000th (`identify`'s last row), the decoded recording, and the folder of the capture and what
 /// `decode` wrote (to remove).
 fn record_from_the_start(lab: &mut Lab, name: &str) -> (Recorded, hal_sim::cmd::decode::Recording, PathBuf) {
-    // `record on` applies on the recording's first sample.
-    let mut link = lab.send("record on\n");
+    // `record on` applies on the recording's first sample; its reply, then the tuning's lines.
+    let start = lab.link.len();
+    lab.send("record on\n");
+    let mut link = lab.link[start..].to_string();
     let mut at_last_row = Vec::new();
     for k in 0..20_000 {
         lab.sample();
@@ -1059,6 +1074,34 @@ fn a_recorded_run_decodes_on_the_host_and_replays_to_the_interrupts_estimates() 
     for (i, h) in at_last_row.expect("a row").iter().enumerate() {
         assert_eq!(row[i], StageParams { a0: h.a0 as f64, a1: h.a1 as f64, b0: h.b0 as f64 }, "{}", ESTIMATOR_NAMES[i]);
     }
+}
+
+/// The tuning's lines go into the recording after the reply to `record on` and to each change of the tuning while
+/// it runs, and only then; the reply still ends with its verdict.
+#[test]
+fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in_it() {
+    let mut lab = Lab::new();
+    let tuning_lines = |lab: &mut Lab, command: &str| {
+        let start = lab.link.len();
+        let reply = lab.send(command);
+        let after = lab.link[start..].strip_prefix(reply.as_str()).unwrap().to_string();
+        assert!(verdict(&reply).starts_with("ok"), "{command}: {reply}");
+        let lines: Vec<_> = after.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap()).collect();
+        assert!(lines.is_empty() || lines.len() == 18, "{command}: {after}");
+        lines.iter().find(|(k, _)| *k == nanopos_id::estimators::TuningKey::EkfR).map(|(_, v)| v[0])
+    };
+    assert_eq!(tuning_lines(&mut lab, "tune ekf r 2e-6\n"), None, "not recording");
+    assert_eq!(tuning_lines(&mut lab, "record on\n"), Some(2e-6));
+    assert_eq!(tuning_lines(&mut lab, "tune ekf r 3e-6\n"), Some(3e-6));
+    assert_eq!(tuning_lines(&mut lab, "tuning triangle\n"), Some(1.5e-6), "a preset: every key");
+    assert_eq!(tuning_lines(&mut lab, "excite prbs 1\n"), None, "not a change of the tuning");
+    assert_eq!(tuning_lines(&mut lab, "tune ekf r\n"), None, "a question");
+    assert_eq!(tuning_lines(&mut lab, "record off\n"), None);
+    assert_eq!(tuning_lines(&mut lab, "tune ekf r 4e-6\n"), None, "stopped");
+    assert_eq!(tuning_lines(&mut lab, "record burst 10\n"), Some(4e-6));
+    lab.run(20);
+    lab.ctl.record_ended();
+    assert_eq!(tuning_lines(&mut lab, "tune ekf r 5e-6\n"), None, "the burst ended");
 }
 
 /// The largest relative difference between an estimate and the board's, over the estimators and the parameters.

@@ -200,6 +200,16 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                     break;
                 }
             }
+            // The recording's tuning lines, after the reply's verdict and before the frames that follow.
+            if ctl.take_tuning_due() {
+                for k in 0.. {
+                    reply.clear();
+                    if !ctl.write_tuning_line(k, &mut reply) {
+                        break;
+                    }
+                    let _ = tx.write_all(reply.as_bytes()).await;
+                }
+            }
         }
         // The recording: whole frames while it runs; the rest, and the end line, once it stopped.
         while recording {
