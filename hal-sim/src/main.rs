@@ -46,9 +46,10 @@ enum Command {
         /// Estimators to run.
         #[arg(long, default_value = "rls,ekf,hekf,arx")]
         estimators: String,
-        /// Tuning: a preset, prbs (the paper's Q2, default) or triangle (Q1), or a TOML file overriding one.
-        #[arg(long, default_value = "prbs")]
-        tuning: String,
+        /// Tuning: a preset, prbs (the paper's Q2) or triangle (Q1), or a TOML file overriding one (`decode` writes
+        /// the board's beside its CSV) [default: prbs].
+        #[arg(long)]
+        tuning: Option<String>,
         /// Averaging window T0:T1 in seconds (repeatable) [default: the last quarter of each half].
         #[arg(long = "window", value_name = "T0:T1")]
         windows: Vec<hal_sim::cmd::identify::Window>,
@@ -165,7 +166,17 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step, precision } => {
             use hal_sim::cmd::identify;
-            let tuning = hal_sim::tuning::resolve(&tuning)?;
+            // A decoded board recording has the board's tuning beside it: a replay without it runs the preset.
+            let beside = hal_sim::cmd::decode::tuning_path(&input);
+            if tuning.is_none() && beside.is_file() {
+                eprintln!(
+                    "nanopos-sim: note: {} beside the input holds the board's tuning (decode wrote it); without \
+                     --tuning {} the replay runs the prbs preset, not the board's estimators",
+                    beside.display(),
+                    beside.display()
+                );
+            }
+            let tuning = hal_sim::tuning::resolve(tuning.as_deref().unwrap_or("prbs"))?;
             let args = identify::IdentifyArgs {
                 input: &input,
                 estimators: identify::parse_estimators(&estimators)?,

@@ -468,7 +468,14 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
         &["identify", "--input", "new.csv", "--tuning", "new.tuning.toml", "--estimators", "arx"],
         dir.path(),
     );
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !stderr.contains("beside the input"), "{stderr}");
+    // Without --tuning, a note says what is beside it.
+    let out = nanopos_sim(&["identify", "--input", "new.csv", "--estimators", "arx"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let note = "note: new.tuning.toml beside the input holds the board's tuning (decode wrote it); without --tuning \
+                new.tuning.toml the replay runs the prbs preset";
+    assert!(out.status.success() && stderr.contains(note), "{stderr}");
     let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
     assert_eq!(read("old.csv"), read("new.csv"));
 
