@@ -148,11 +148,12 @@ impl Controller {
         core::mem::take(&mut self.tuning_due)
     }
 
-    /// Write the recording's tuning line `k` (from 0; [`crate::record::write_tuning_line`]) into `out`: `false`,
-    /// writing nothing, after the last.
-    pub fn write_tuning_line(&self, k: usize, out: &mut impl Write) -> bool {
+    /// Write the recording's tuning line `k` (from 0; [`crate::record::write_tuning_line`]) into `out`, the tuning in
+    /// effect from sample `at` (the interrupt's [`crate::instrument::Instrument::changed_at`] after the change that
+    /// made them due): `false`, writing nothing, after the last.
+    pub fn write_tuning_line(&self, k: usize, at: u64, out: &mut impl Write) -> bool {
         let Some(&key) = TuningKey::ALL.get(k) else { return false };
-        let _ = crate::record::write_tuning_line(out, key, &self.tuning.get(key)[..key.len()]);
+        let _ = crate::record::write_tuning_line(out, at, key, &self.tuning.get(key)[..key.len()]);
         true
     }
 

@@ -99,6 +99,8 @@ pub struct Instrument<T: Real> {
     /// Sample index of the oldest sample in the ring.
     ring_first: u64,
     record: RecordStatus,
+    /// Index of the first sample the last change applied to.
+    changed_at: u64,
 }
 
 impl<T: Real> Instrument<T> {
@@ -116,6 +118,7 @@ impl<T: Real> Instrument<T> {
             ring_len: 0,
             ring_first: 0,
             record: RecordStatus::default(),
+            changed_at: 0,
         }
     }
 
@@ -138,6 +141,12 @@ impl<T: Real> Instrument<T> {
     /// Whether a posted change is still waiting for a sample.
     pub fn change_pending(&self) -> bool {
         self.pending.is_some()
+    }
+
+    /// The index (samples since the start, from 0) of the first sample the last change applied to: where a new
+    /// tuning took over, or a recording started (its first sample).
+    pub fn changed_at(&self) -> u64 {
+        self.changed_at
     }
 
     /// One sample: apply a waiting change, run the pipeline on the board, record.
@@ -186,6 +195,7 @@ impl<T: Real> Instrument<T> {
     fn apply_pending(&mut self) {
         // Read in place, not taken out of the mailbox: `take` copied the whole change (1 KiB) first.
         let Some(c) = &self.pending else { return };
+        self.changed_at = self.pipeline.samples();
         if let Some(cfg) = &c.config {
             self.config = *cfg;
         }

@@ -24,12 +24,13 @@
 //!   as the header's. The count tells a capture that lost frames at the recording's start or end, where no
 //!   frame's index shows the gap.
 //! - **Tuning:** after the header, before the first frame, one line per tuning key ([`TuningKey::ALL`]) with the
-//!   values the estimators run, `# nanopos-tuning ekf q 3d719799812dea11 ... crc=XXXX` (the words of the console's
-//!   `tune`, then each value as the 16 hex digits of its f64 bits: exact, so that a replay with them is the board's
-//!   to the bit), and again, all of them, after each change of the tuning while the recording runs (the estimators
-//!   restarted there, which a replay from the start does not do). `decode` turns them into the TOML file
-//!   `identify --tuning` reads. Their tag is not `# nanopos-record`: a decoder of the first v2 firmware takes every
-//!   line that starts so for the next recording's header, and skips these.
+//!   values the estimators run, `# nanopos-tuning at=1000 ekf q 3d719799812dea11 ... crc=XXXX`: the index of the
+//!   first sample they ran on (here the recording's first), the words of the console's `tune`, then each value as
+//!   the 16 hex digits of its f64 bits (exact, so that a replay with them is the board's to the bit); and again, all
+//!   of them, after each change of the tuning while the recording runs, with the sample the change applied to (the
+//!   estimators restarted there, which a replay from the start does not do). `decode` turns the recording's first
+//!   into the TOML file `identify --tuning` reads. Their tag is not `# nanopos-record`: a decoder of the first v2
+//!   firmware takes every line that starts so for the next recording's header, and skips these.
 //!
 //! Any other line (command replies, `ok ...`) is not part of the recording: a capture of the whole serial stream
 //! converts as is.
@@ -37,10 +38,10 @@
 //! **Throughput.** 48 samples take 64 base64 characters per 12 bytes, 256 for the frame's 192, plus 20 of framing:
 //! 276 bytes per 4.8 ms, 57.5 kB/s, 575 kbit/s with start and stop bits. Continuous recording at 10 kHz needs the
 //! link at 921 600 baud (62 % of it); at 115 200 baud only bursts that fit the board's buffer
-//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete. The tuning lines, 1 220 bytes with the
-//! PRBS preset, hold the frames back by 13 ms at 921 600 baud (at the start, and at a change of the tuning),
-//! which the buffer covers and the link's 38 % to spare catches up in 22 ms; a burst that fits the buffer is
-//! complete at any rate, as before.
+//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete. The tuning lines, 1 346 bytes with the
+//! PRBS preset at sample 777 (18 more for each further digit of the sample index), hold the frames back by 15 ms
+//! at 921 600 baud (at the start, and at a change of the tuning), which the buffer covers and the link's 38 % to
+//! spare catches up in 24 ms; a burst that fits the buffer is complete at any rate, as before.
 
 use crate::estimators::TuningKey;
 
@@ -58,8 +59,14 @@ pub const END_TAG: &str = "# nanopos-record end";
 /// A tuning line's first words (see the module's doc).
 pub const TUNING_TAG: &str = "# nanopos-tuning";
 
-/// Write the tuning line of `key` with `values` (its [`TuningKey::len`] values), with its CRC and `\n`.
-pub fn write_tuning_line(out: &mut impl core::fmt::Write, key: TuningKey, values: &[f64]) -> core::fmt::Result {
+/// Write the tuning line of `key` with `values` (its [`TuningKey::len`] values), in effect from sample `at`, with its
+/// CRC and `\n`.
+pub fn write_tuning_line(
+    out: &mut impl core::fmt::Write,
+    at: u64,
+    key: TuningKey,
+    values: &[f64],
+) -> core::fmt::Result {
     struct Bits<'a>(&'a [f64]);
     impl core::fmt::Display for Bits<'_> {
         fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
@@ -77,12 +84,28 @@ pub fn write_tuning_line(out: &mut impl core::fmt::Write, key: TuningKey, values
         ("", name) => ("", "", name),
         (section, name) => (section, " ", name),
     };
-    write_checked_line(out, format_args!("{TUNING_TAG} {}{}{}{}", words.0, words.1, words.2, Bits(values)))
+    write_checked_line(out, format_args!("{TUNING_TAG} at={at} {}{}{}{}", words.0, words.1, words.2, Bits(values)))
 }
 
-/// Write every tuning line of `tuning`, in [`TuningKey::ALL`]'s order (the console writes them a line at a time).
-pub fn write_tuning_lines(out: &mut impl core::fmt::Write, tuning: &crate::estimators::Tuning) -> core::fmt::Result {
-    TuningKey::ALL.into_iter().try_for_each(|key| write_tuning_line(out, key, &tuning.get(key)[..key.len()]))
+/// Write every tuning line of `tuning` in effect from sample `at`, in [`TuningKey::ALL`]'s order (the console writes
+/// them a line at a time).
+pub fn write_tuning_lines(
+    out: &mut impl core::fmt::Write,
+    at: u64,
+    tuning: &crate::estimators::Tuning,
+) -> core::fmt::Result {
+    TuningKey::ALL.into_iter().try_for_each(|key| write_tuning_line(out, at, key, &tuning.get(key)[..key.len()]))
+}
+
+/// A tuning line read back.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TuningLine {
+    /// The first sample the values were in effect for.
+    pub at: u64,
+    /// Which.
+    pub key: TuningKey,
+    /// Its [`TuningKey::len`] values, then zeros.
+    pub values: [f64; 5],
 }
 
 /// Why a tuning line was not read.
@@ -94,11 +117,12 @@ pub enum TuningLineError {
     Unknown,
 }
 
-/// The key and the values of a tuning line (without its `\n`), the values after the key's [`TuningKey::len`] zero.
-pub fn read_tuning_line(line: &str) -> Result<(TuningKey, [f64; 5]), TuningLineError> {
+/// A tuning line (without its `\n`).
+pub fn read_tuning_line(line: &str) -> Result<TuningLine, TuningLineError> {
     use TuningLineError::{Damaged, Unknown};
     let body = checked_body(line).ok_or(Damaged)?;
     let mut words = body.strip_prefix(TUNING_TAG).ok_or(Unknown)?.split_ascii_whitespace();
+    let at = words.next().and_then(|w| w.strip_prefix("at=")).and_then(|n| n.parse().ok()).ok_or(Unknown)?;
     let first = words.next().ok_or(Unknown)?;
     let key = match TuningKey::parse("", first) {
         Some(key) => key,
@@ -114,7 +138,7 @@ pub fn read_tuning_line(line: &str) -> Result<(TuningKey, [f64; 5]), TuningLineE
     if n != key.len() {
         return Err(Unknown);
     }
-    Ok((key, values))
+    Ok(TuningLine { at, key, values })
 }
 
 /// One recorded sample: the converter codes.
@@ -398,10 +422,10 @@ mod tests {
         for key in TuningKey::ALL {
             let values = tuning.get(key);
             let mut text = crate::text::TextBuf::<256>::default();
-            write_tuning_line(&mut text, key, &values[..key.len()]).unwrap();
+            write_tuning_line(&mut text, 0x0123_4567_89ab, key, &values[..key.len()]).unwrap();
             let line = text.as_str().strip_suffix('\n').unwrap();
-            let (read, got) = read_tuning_line(line).unwrap();
-            assert_eq!(read, key, "{line}");
+            let TuningLine { at, key: read, values: got } = read_tuning_line(line).unwrap();
+            assert_eq!((at, read), (0x0123_4567_89ab, key), "{line}");
             assert_eq!(
                 got[..key.len()].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
                 values[..key.len()].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
@@ -414,14 +438,16 @@ mod tests {
             }
         }
         let mut text = crate::text::TextBuf::<256>::default();
-        write_tuning_line(&mut text, TuningKey::EkfR, &[1.5e-6]).unwrap();
-        assert_eq!(text.as_str(), "# nanopos-tuning ekf r 3eb92a737110e454 crc=2a23\n");
+        write_tuning_line(&mut text, 1000, TuningKey::EkfR, &[1.5e-6]).unwrap();
+        assert_eq!(text.as_str(), "# nanopos-tuning at=1000 ekf r 3eb92a737110e454 crc=CRC\n");
         for (body, why) in [
-            ("# nanopos-tuning ekf r", "no value"),
-            ("# nanopos-tuning ekf r 3eb92a737110e454 3eb92a737110e454", "two values for one"),
-            ("# nanopos-tuning ekf q 3eb92a737110e454", "one value for five"),
-            ("# nanopos-tuning ekf gain 3eb92a737110e454", "a key this tuning lacks"),
-            ("# nanopos-tuning ekf r 3eb92a737110e45", "15 digits"),
+            ("# nanopos-tuning at=1000 ekf r", "no value"),
+            ("# nanopos-tuning at=1000 ekf r 3eb92a737110e454 3eb92a737110e454", "two values for one"),
+            ("# nanopos-tuning at=1000 ekf q 3eb92a737110e454", "one value for five"),
+            ("# nanopos-tuning at=1000 ekf gain 3eb92a737110e454", "a key this tuning lacks"),
+            ("# nanopos-tuning at=1000 ekf r 3eb92a737110e45", "15 digits"),
+            ("# nanopos-tuning ekf r 3eb92a737110e454", "no sample"),
+            ("# nanopos-tuning at=-1 ekf r 3eb92a737110e454", "a sample before the start"),
         ] {
             let mut line = crate::text::TextBuf::<256>::default();
             write_checked_line(&mut line, format_args!("{body}")).unwrap();

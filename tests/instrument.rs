@@ -78,7 +78,7 @@ impl Lab {
             if self.ctl.take_tuning_due() {
                 for k in 0.. {
                     reply.clear();
-                    if !self.ctl.write_tuning_line(k, &mut reply) {
+                    if !self.ctl.write_tuning_line(k, self.isr.changed_at(), &mut reply) {
                         break;
                     }
                     self.link.push_str(reply.as_str());
@@ -870,10 +870,12 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     // Then the tuning the estimators run, a line per key.
     let (reply, tuning) = link.split_once("ok record burst 3000\n").unwrap();
     assert!(reply.ends_with(" crc=29b1\n"), "{reply}");
-    let keys: Vec<_> = tuning.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap().0).collect();
-    assert_eq!(keys, nanopos_id::estimators::TuningKey::ALL);
-    // 13 ms of the link at 921 600 baud before the first frame, inside the board's 0.1 s buffer (src/record.rs).
-    assert_eq!(tuning.len(), 1220);
+    let lines: Vec<_> = tuning.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap()).collect();
+    assert_eq!(lines.iter().map(|l| l.key).collect::<Vec<_>>(), nanopos_id::estimators::TuningKey::ALL);
+    // In effect from the recording's first sample, the 778th.
+    assert!(lines.iter().all(|l| l.at == 777), "{tuning}");
+    // 15 ms of the link at 921 600 baud before the first frame, inside the board's 0.1 s buffer (src/record.rs).
+    assert_eq!(tuning.len(), 1346);
     // `send` ran the sample that applied the change: the first recorded sample is that one.
     let first_index = lab.isr.status().samples - 1;
     let mut outputs = Vec::new();
@@ -1088,7 +1090,9 @@ fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in
         assert!(verdict(&reply).starts_with("ok"), "{command}: {reply}");
         let lines: Vec<_> = after.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap()).collect();
         assert!(lines.is_empty() || lines.len() == 18, "{command}: {after}");
-        lines.iter().find(|(k, _)| *k == nanopos_id::estimators::TuningKey::EkfR).map(|(_, v)| v[0])
+        // From the sample the change applied to: the one the command's sample ran.
+        assert!(lines.iter().all(|l| l.at == lab.isr.pipeline.samples() - 1), "{command}: {after}");
+        lines.iter().find(|l| l.key == nanopos_id::estimators::TuningKey::EkfR).map(|l| l.values[0])
     };
     assert_eq!(tuning_lines(&mut lab, "tune ekf r 2e-6\n"), None, "not recording");
     assert_eq!(tuning_lines(&mut lab, "record on\n"), Some(2e-6));

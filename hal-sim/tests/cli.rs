@@ -294,12 +294,12 @@ fn capture_with(n: usize, first: u64, header: nanopos_id::record::RecordHeader) 
     text
 }
 
-/// `text` (a [`capture`]) with the tuning lines of the PRBS preset after `record burst`'s reply, as the firmware
-/// sends them (a capture without them is a firmware's before them).
+/// `text` (a [`capture`] from board sample 0) with the tuning lines of the PRBS preset after `record burst`'s reply,
+/// as the firmware sends them (a capture without them is a firmware's before them).
 fn with_tuning(text: &str) -> String {
     let mut lines = String::new();
     let tuning = nanopos_id::estimators::Tuning::of(nanopos_id::control::TuningPreset::Prbs);
-    nanopos_id::record::write_tuning_lines(&mut lines, &tuning).unwrap();
+    nanopos_id::record::write_tuning_lines(&mut lines, 0, &tuning).unwrap();
     text.replacen("ok record burst 100\n", &format!("ok record burst 100\n{lines}"), 1)
 }
 

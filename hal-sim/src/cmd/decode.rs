@@ -22,8 +22,8 @@
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
 use nanopos_id::estimators::TuningKey;
 use nanopos_id::record::{
-    checked_body, decode_frame, read_tuning_line, RawSample, RecordHeader, TuningLineError, END_TAG, FRAME_SAMPLES,
-    HEADER_TAG, HEADER_TAG_V1, TUNING_TAG,
+    checked_body, decode_frame, read_tuning_line, RawSample, RecordHeader, TuningLine, TuningLineError, END_TAG,
+    FRAME_SAMPLES, HEADER_TAG, HEADER_TAG_V1, TUNING_TAG,
 };
 use std::io::{BufRead, Write};
 use std::path::Path;
@@ -345,34 +345,17 @@ pub fn tuning_path(out: &Path) -> std::path::PathBuf {
 /// The chosen recording's tuning lines, as they come.
 #[derive(Default)]
 struct TuningLines {
-    /// Each key's values, the last line of it before the first frame.
-    keys: Vec<(TuningKey, [f64; 5])>,
-    /// A tuning line was damaged or of an unknown key (its note is in the recording's).
+    /// Every intact one, in the capture's order.
+    lines: Vec<TuningLine>,
+    /// One was damaged or of an unknown key (its note is in the recording's).
     bad: bool,
-    /// A tuning line came after the first frame (noted once).
-    changed: bool,
 }
 
 impl TuningLines {
     /// Take tuning line `line` (the capture's line `line_no`) of recording `r`.
     fn read(&mut self, line: &str, line_no: usize, r: &mut Recording, name: &str) {
-        if !r.segments.is_empty() {
-            if !self.changed {
-                let at = r.segments.last().map_or(0, |s| s.first_index + s.len);
-                r.tuning_notes.push(format!(
-                    "{name}:{line_no}: the board's tuning changed while the recording ran (a `tune` or `tuning`, near \
-                     board sample {at}; its estimators restarted there): the tuning file holds the tuning at the \
-                     recording's start, and a replay of the samples after the change is not the board's"
-                ));
-                self.changed = true;
-            }
-            return;
-        }
         match read_tuning_line(line) {
-            Ok((key, values)) => match self.keys.iter_mut().find(|(k, _)| *k == key) {
-                Some(known) => known.1 = values,
-                None => self.keys.push((key, values)),
-            },
+            Ok(t) => self.lines.push(t),
             Err(e) => {
                 self.bad = true;
                 r.tuning_notes.push(match e {
@@ -390,7 +373,8 @@ impl TuningLines {
     }
 
     /// The tuning file of `rec` decoded into `out`, to commit with the samples' files, when the recording carried
-    /// every key intact; else a note in `rec` says why there is none.
+    /// every key intact: each key's last line in effect at the recording's first decoded sample. Else a note in
+    /// `rec` says why there is none; and a change of the tuning inside the recording is noted with its sample.
     fn file(
         self,
         rec: &mut Recording,
@@ -398,16 +382,29 @@ impl TuningLines {
         out: &Path,
         damage: Damage,
     ) -> Result<Option<OutputFile>, CliError> {
-        let missing = TuningKey::ALL.iter().filter(|k| !self.keys.iter().any(|(known, _)| known == *k)).count();
+        let (first, end) = (rec.first_index(), rec.segments.last().map_or(0, |s| s.first_index + s.len));
+        if let Some(at) = self.lines.iter().map(|l| l.at).filter(|&at| at > first && at < end).min() {
+            rec.tuning_notes.push(format!(
+                "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording, its \
+                 estimators restarted there): the tuning file holds the tuning at the recording's start, and a \
+                 replay of the samples from there on is not the board's",
+                show((at - first) as f64 / rec.header.rate_hz)
+            ));
+        }
+        let keys: Vec<(TuningKey, [f64; 5])> = TuningKey::ALL
+            .into_iter()
+            .filter_map(|key| self.lines.iter().rev().find(|l| l.key == key && l.at <= first).map(|l| (key, l.values)))
+            .collect();
+        let missing = TuningKey::ALL.len() - keys.len();
         let give = "identify replays the tuning it is given (--tuning), which must be the board's for its estimates";
         let why_not = if self.bad {
             Some(format!("the board's tuning is not written: {give}"))
-        } else if self.keys.is_empty() {
+        } else if self.lines.is_empty() {
             Some(format!("the recording carries no tuning (from a firmware before the tuning lines): {give}"))
         } else if missing > 0 {
             Some(format!(
-                "the board's tuning is not written: {missing} of its {} keys are missing (lines lost in the capture): \
-                 {give}",
+                "the board's tuning is not written: {missing} of its {} keys are missing at the recording's start \
+                 (lines lost in the capture): {give}",
                 TuningKey::ALL.len()
             ))
         } else if std::fs::metadata(out).is_ok_and(|m| !m.is_file() && !m.is_dir()) && damage == Damage::Refuse {
@@ -426,7 +423,7 @@ impl TuningLines {
         }
         super::check_distinct(&[("--input", input)], &[("the tuning file", &path)])?;
         let mut file = OutputFile::create(&path)?;
-        let text = tuning_toml(&self.keys, &input.display().to_string());
+        let text = tuning_toml(&keys, &input.display().to_string());
         file.writer().write_all(text.as_bytes()).map_err(|e| file.write_error(e))?;
         rec.tuning_file = Some(path);
         Ok(Some(file))
@@ -577,7 +574,7 @@ mod tests {
         let mut t = nanopos_id::estimators::Tuning::of(nanopos_id::control::TuningPreset::Prbs);
         t.set(TuningKey::EkfR, &[2.2e-6]).unwrap();
         let mut text = String::new();
-        nanopos_id::record::write_tuning_lines(&mut text, &t).unwrap();
+        nanopos_id::record::write_tuning_lines(&mut text, 1000, &t).unwrap();
         text.split_inclusive('\n').map(|l| l.as_bytes().to_vec()).collect()
     }
 
@@ -603,7 +600,9 @@ mod tests {
     }
 
     /// The board's tuning goes beside the output, or a note says why it does not: none in the capture, a damaged or
-    /// lost tuning line; and a change of the tuning after the first frame is noted, the file holding the first.
+    /// lost tuning line; and a change of the tuning inside the recording is noted at its sample, the file holding
+    /// the tuning at the start, wherever the change's lines come in the capture (before the first frame, too: the
+    /// board writes its frames after its replies).
     #[test]
     fn the_boards_tuning_goes_beside_the_output_or_a_note_says_why_not() {
         let dir = tempfile::tempdir().unwrap();
@@ -636,21 +635,28 @@ mod tests {
         let mut lost = good.clone();
         lost.remove(first + 7);
         let (written, notes) = decode(&lost);
-        assert!(!written && notes.contains("1 of its 18 keys are missing"), "{notes}");
+        assert!(!written && notes.contains("1 of its 18 keys are missing at the recording's start"), "{notes}");
         // One damaged.
         let mut damaged = good.clone();
         damaged[first + 3][20] ^= 1;
         let (written, notes) = decode(&damaged);
         assert!(!written && notes.contains(&format!("cap.txt:{}: a tuning line damaged", first + 4)), "{notes}");
-        // Changed after the first frame (a `tune` while recording): the file holds the tuning at the start.
-        let mut changed = good.clone();
-        let frame = changed.iter().position(|l| l.starts_with(b"R")).unwrap();
-        let mut l = nanopos_id::text::TextBuf::<256>::default();
-        nanopos_id::record::write_tuning_line(&mut l, TuningKey::EkfR, &[9e-6]).unwrap();
-        changed.insert(frame + 2, l.as_str().as_bytes().to_vec());
-        let (written, notes) = decode(&changed);
-        assert!(written && notes.contains("near board sample 1096"), "{notes}");
-        assert!(std::fs::read_to_string(tuning_path(&out)).unwrap().contains("\nr = 2.2e-6\n"));
+        // Changed while recording (a `tune`), its lines after the first frame or before it: the file holds the
+        // tuning at the start, the note the change's sample. A change after the recording's end is none of it.
+        let frame = good.iter().position(|l| l.starts_with(b"R")).unwrap();
+        let r_at = |at: u64| {
+            let mut l = nanopos_id::text::TextBuf::<256>::default();
+            nanopos_id::record::write_tuning_line(&mut l, at, TuningKey::EkfR, &[9e-6]).unwrap();
+            l.as_str().as_bytes().to_vec()
+        };
+        for (at, place) in [(1096, frame + 2), (1003, frame), (1500, good.len() - 1)] {
+            let mut changed = good.clone();
+            changed.insert(place, r_at(at));
+            let (written, notes) = decode(&changed);
+            let note = format!("the board's tuning changed at board sample {at} (t = {} s;", (at - 1000) as f64 / 1e4);
+            assert!(written && notes.contains(&note) == (at < 1500), "{at}: {notes}");
+            assert!(std::fs::read_to_string(tuning_path(&out)).unwrap().contains("\nr = 2.2e-6\n"), "{at}");
+        }
     }
 
     /// A capture mangled at random (bytes changed, lines lost, repeated, swapped, cut short, noise added) never makes

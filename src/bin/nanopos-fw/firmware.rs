@@ -200,11 +200,13 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                     break;
                 }
             }
-            // The recording's tuning lines, after the reply's verdict and before the frames that follow.
+            // The recording's tuning lines, after the reply's verdict and before the frames that follow, with the
+            // sample the change applied to.
             if ctl.take_tuning_due() {
+                let at = with_task(|t| t.instrument.changed_at()).unwrap_or(0);
                 for k in 0.. {
                     reply.clear();
-                    if !ctl.write_tuning_line(k, &mut reply) {
+                    if !ctl.write_tuning_line(k, at, &mut reply) {
                         break;
                     }
                     let _ = tx.write_all(reply.as_bytes()).await;
