@@ -439,7 +439,7 @@ mod tests {
         }
         let mut text = crate::text::TextBuf::<256>::default();
         write_tuning_line(&mut text, 1000, TuningKey::EkfR, &[1.5e-6]).unwrap();
-        assert_eq!(text.as_str(), "# nanopos-tuning at=1000 ekf r 3eb92a737110e454 crc=CRC\n");
+        assert_eq!(text.as_str(), "# nanopos-tuning at=1000 ekf r 3eb92a737110e454 crc=34da\n");
         for (body, why) in [
             ("# nanopos-tuning at=1000 ekf r", "no value"),
             ("# nanopos-tuning at=1000 ekf r 3eb92a737110e454 3eb92a737110e454", "two values for one"),
