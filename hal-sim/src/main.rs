@@ -101,7 +101,8 @@ enum Command {
         /// The capture (everything the board sent; replies and other lines are skipped).
         #[arg(long)]
         input: PathBuf,
-        /// Output CSV file, for `identify --input`.
+        /// Output CSV file, for `identify --input`; the board's tuning goes beside it, OUT with the extension
+        /// .tuning.toml, for `identify --tuning`.
         #[arg(long)]
         out: PathBuf,
         /// Which recording of the capture, counting from 1.
