@@ -1140,12 +1140,7 @@ fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
     let board = recorded.at_last_row;
     let csv = dir.join("run.csv");
     let toml = hal_sim::cmd::decode::tuning_path(&csv);
-    assert_eq!(
-        (rec.tuning_file.as_deref(), rec.tuning_notes.len()),
-        (Some(toml.as_path()), 0),
-        "{:?}",
-        rec.tuning_notes
-    );
+    assert_eq!((rec.tuning_file.as_deref(), rec.notes.len()), (Some(toml.as_path()), 0), "{:?}", rec.notes);
     let text = std::fs::read_to_string(&toml).unwrap();
     assert!(text.contains("\ninitial = [650000.0, 72.5, 6300000.0]\n") && text.contains("\nsubsteps = 3\n"), "{text}");
     let from_file = hal_sim::tuning::resolve(toml.to_str().unwrap()).unwrap();

@@ -264,7 +264,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                      --tuning {path}"
                 );
             }
-            for msg in &rec.tuning_notes {
+            for msg in &rec.notes {
                 eprintln!("nanopos-sim: note: {msg}");
             }
             match rec.ended {

@@ -53,8 +53,9 @@ pub struct Recording {
     pub checked: bool,
     /// The TOML file the board's tuning at the recording's start went to (see the module's doc), if it did.
     pub tuning_file: Option<std::path::PathBuf>,
-    /// Why it did not, or that the tuning changed while the recording ran: one line each.
-    pub tuning_notes: Vec<String>,
+    /// Why it did not, that the tuning changed while the recording ran, and frames seen outside any recording
+    /// before it: one line each.
+    pub notes: Vec<String>,
 }
 
 impl Recording {
@@ -88,6 +89,10 @@ pub enum Damage {
 
 /// The fewest samples a segment needs to be written (`identify` needs at least a sample period).
 pub const MIN_SAMPLES: usize = 2;
+
+/// What frames outside any recording mean.
+const ORPHANS: &str = "their header was lost or damaged in transfer, or the capture began after it (start the \
+                       capture before `record on`)";
 
 const SEGMENTS_HINT: &str = "(`decode --segments` keeps the undamaged parts, one file per gap-free run)";
 
@@ -190,6 +195,9 @@ pub fn run(
     // The end line's count of the samples recorded, when it has one.
     let mut end_samples = None;
     let mut tuning = TuningLines::default();
+    // Between a recording's header and its end line; and the first intact frame seen outside any (before the
+    // chosen recording): its header was lost, or the capture began after it.
+    let (mut inside, mut orphan) = (false, None);
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
@@ -209,7 +217,7 @@ pub fn run(
             if chosen.is_some() {
                 break;
             }
-            found += 1;
+            (found, inside) = (found + 1, true);
             if found == which {
                 let Some(checked) = version else {
                     return fail(format!(
@@ -234,13 +242,20 @@ pub fn run(
                     ended: None,
                     checked,
                     tuning_file: None,
-                    tuning_notes: Vec::new(),
+                    notes: Vec::new(),
                 };
                 chosen = Some((rec, Sink::new(input, out, damage, header)));
             }
             continue;
         }
-        let Some((r, sink)) = chosen.as_mut() else { continue };
+        let Some((r, sink)) = chosen.as_mut() else {
+            if line.starts_with(END_TAG) {
+                inside = false;
+            } else if !inside && orphan.is_none() && decode_frame(line.as_bytes(), &mut frame).is_ok() {
+                orphan = Some(line_no);
+            }
+            continue;
+        };
         if line.starts_with(END_TAG) {
             match intact(line, r.checked) {
                 Some(body) => {
@@ -324,10 +339,22 @@ pub fn run(
         Some((r, s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
         Some(_) => return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
         None if found == 0 => {
-            return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line)"))
+            return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line){}", {
+                orphan.map_or(String::new(), |l| format!("; frames from line {l} on: {ORPHANS}"))
+            }))
         }
-        None => return fail(format!("{name}: recording {which} asked for, the capture holds {found}")),
+        None => {
+            return fail(format!("{name}: recording {which} asked for, the capture holds {found}{}", {
+                orphan.map_or(String::new(), |l| format!(" and frames from line {l} outside any: {ORPHANS}"))
+            }))
+        }
     };
+    if let Some(l) = orphan {
+        rec.notes.push(format!(
+            "{name}:{l}: frames outside any recording before this one: {ORPHANS}, so this one may be numbered one \
+             lower than the board's"
+        ));
+    }
     let tuning_file = tuning.file(&mut rec, input, out, damage)?;
     let (files, written) = sink.finish();
     // Every file is complete before any is moved into place.
@@ -358,7 +385,7 @@ impl TuningLines {
             Ok(t) => self.lines.push(t),
             Err(e) => {
                 self.bad = true;
-                r.tuning_notes.push(match e {
+                r.notes.push(match e {
                     TuningLineError::Damaged => {
                         format!("{name}:{line_no}: a tuning line damaged in transfer (its checksum does not match)")
                     }
@@ -384,7 +411,7 @@ impl TuningLines {
     ) -> Result<Option<OutputFile>, CliError> {
         let (first, end) = (rec.first_index(), rec.segments.last().map_or(0, |s| s.first_index + s.len));
         if let Some(at) = self.lines.iter().map(|l| l.at).filter(|&at| at > first && at < end).min() {
-            rec.tuning_notes.push(format!(
+            rec.notes.push(format!(
                 "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording, its \
                  estimators restarted there): the tuning file holds the tuning at the recording's start, and a \
                  replay of the samples from there on is not the board's",
@@ -414,9 +441,9 @@ impl TuningLines {
         };
         let path = tuning_path(out);
         if let Some(msg) = why_not {
-            rec.tuning_notes.push(msg);
+            rec.notes.push(msg);
             if path.exists() {
-                rec.tuning_notes
+                rec.notes
                     .push(format!("{} is from an earlier decode, not this capture: left as it was", path.display()));
             }
             return Ok(None);
@@ -613,7 +640,7 @@ mod tests {
             let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
             let written = tuning_path(&out).exists();
             assert_eq!(rec.tuning_file.is_some(), written);
-            (rec.tuning_file.is_some(), rec.tuning_notes.join(" | "))
+            (rec.tuning_file.is_some(), rec.notes.join(" | "))
         };
         let good = capture(500);
         let (written, notes) = decode(&good);
@@ -629,8 +656,7 @@ mod tests {
         std::fs::write(tuning_path(&out), "# another capture's\n").unwrap();
         std::fs::write(&cap, none.concat()).unwrap();
         let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
-        assert!(rec.tuning_notes[1]
-            .ends_with("run.tuning.toml is from an earlier decode, not this capture: left as it was"));
+        assert!(rec.notes[1].ends_with("run.tuning.toml is from an earlier decode, not this capture: left as it was"));
         // One lost.
         let mut lost = good.clone();
         lost.remove(first + 7);
@@ -657,6 +683,49 @@ mod tests {
             assert!(written && notes.contains(&note) == (at < 1500), "{at}: {notes}");
             assert!(std::fs::read_to_string(tuning_path(&out)).unwrap().contains("\nr = 2.2e-6\n"), "{at}");
         }
+    }
+
+    /// Frames outside any recording (a header lost or damaged beyond recognition, or a capture begun after it) are
+    /// said: in the refusal when no recording is left to decode, in a note when the one decoded may be numbered one
+    /// lower than the board's.
+    #[test]
+    fn frames_outside_any_recording_are_said() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cap, out) = (dir.path().join("cap.txt"), dir.path().join("run.csv"));
+        let good = capture(200);
+        let header = good.iter().position(|l| l.starts_with(HEADER_TAG.as_bytes())).unwrap();
+        let frame = good.iter().position(|l| l.starts_with(b"R")).unwrap();
+        // Begun after the header.
+        std::fs::write(&cap, good[header + 1..].concat()).unwrap();
+        let e = run(&cap, &out, 1, Damage::Refuse).unwrap_err().0;
+        let lost =
+            format!("no '{HEADER_PREFIX}' header line); frames from line {} on: their header was lost", frame - header);
+        assert!(e.contains(&lost), "{e}");
+        // The first of two recordings lost its header: the second is recording 1 in the capture, and said to be.
+        let mut two = good.clone();
+        two[header] = b"# nanopos-recorX v2 rate_hz=10000\n".to_vec();
+        two.extend(good.iter().cloned());
+        std::fs::write(&cap, two.concat()).unwrap();
+        let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
+        assert_eq!(rec.len(), 200);
+        let note = format!("cap.txt:{}: frames outside any recording before this one", frame + 1);
+        assert!(
+            rec.notes.iter().any(|n| n.contains(&note) && n.ends_with("numbered one lower than the board's")),
+            "{:?}",
+            rec.notes
+        );
+        let e = run(&cap, &out, 2, Damage::Refuse).unwrap_err().0;
+        assert!(
+            e.contains(&format!(
+                "recording 2 asked for, the capture holds 1 and frames from line {} outside any",
+                frame + 1
+            )),
+            "{e}"
+        );
+        // Intact, no such note.
+        std::fs::write(&cap, good.concat()).unwrap();
+        let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
+        assert!(rec.notes.is_empty(), "{:?}", rec.notes);
     }
 
     /// A capture mangled at random (bytes changed, lines lost, repeated, swapped, cut short, noise added) never makes
@@ -743,7 +812,7 @@ mod tests {
                         // A tuning file holds the board's tuning exactly, or there is none and a note says why.
                         match &rec.tuning_file {
                             Some(path) => assert_eq!(settings(path), tuning, "case {case}"),
-                            None => assert!(!rec.tuning_notes.is_empty(), "case {case}"),
+                            None => assert!(!rec.notes.is_empty(), "case {case}"),
                         }
                         segmented += (rec.segments.len() > 1) as usize;
                         for name in names.iter().filter(|n| *n != "cap.txt") {
