@@ -71,11 +71,8 @@ pub fn write_tuning_line(
     impl core::fmt::Display for Bits<'_> {
         fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
             self.0.iter().try_for_each(|v| {
-                let bits = v.to_bits();
                 let mut word = *b" 0000000000000000";
-                for (i, c) in word[1..].iter_mut().enumerate() {
-                    *c = hex_digit(bits >> (60 - 4 * i));
-                }
+                write_hex(v.to_bits(), &mut word[1..]);
                 f.write_str(core::str::from_utf8(&word).unwrap_or_default())
             })
         }
@@ -131,7 +128,7 @@ pub fn read_tuning_line(line: &str) -> Result<TuningLine, TuningLineError> {
     let mut values = [0.0; 5];
     let mut n = 0;
     for word in words {
-        let bits = u64::from_str_radix(word, 16).ok().filter(|_| word.len() == 16 && n < key.len()).ok_or(Unknown)?;
+        let bits = parse_hex(word.as_bytes()).filter(|_| word.len() == 16 && n < key.len()).ok_or(Unknown)?;
         values[n] = f64::from_bits(bits);
         n += 1;
     }
@@ -197,8 +194,12 @@ pub fn checked_body(line: &str) -> Option<&str> {
     (crc16(body.as_bytes()) == crc).then_some(body)
 }
 
-fn hex_digit(v: u64) -> u8 {
-    b"0123456789abcdef"[(v & 0xF) as usize]
+/// `v`'s low `out.len()` hex digits into `out`, most significant first.
+fn write_hex(v: u64, out: &mut [u8]) {
+    let n = out.len();
+    for (i, c) in out.iter_mut().enumerate() {
+        *c = b"0123456789abcdef"[((v >> (4 * (n - 1 - i))) & 0xF) as usize];
+    }
 }
 
 /// Write the frame of `samples` (at most [`FRAME_SAMPLES`]) starting at sample `first_index` into `out`; returns its
@@ -206,9 +207,7 @@ fn hex_digit(v: u64) -> u8 {
 pub fn encode_frame(first_index: u64, samples: &[RawSample], out: &mut [u8; FRAME_MAX_BYTES]) -> usize {
     let samples = &samples[..samples.len().min(FRAME_SAMPLES)];
     out[0] = b'R';
-    for i in 0..12 {
-        out[1 + i] = hex_digit(first_index >> (4 * (11 - i)));
-    }
+    write_hex(first_index, &mut out[1..13]);
     out[13] = b' ';
     let mut n = 14;
     let (mut acc, mut bits) = (0u32, 0u32);
@@ -229,9 +228,7 @@ pub fn encode_frame(first_index: u64, samples: &[RawSample], out: &mut [u8; FRAM
     }
     let crc = crc16(&out[..n]);
     out[n] = b' ';
-    for i in 0..4 {
-        out[n + 1 + i] = hex_digit((crc >> (4 * (3 - i))) as u64);
-    }
+    write_hex(crc as u64, &mut out[n + 1..n + 5]);
     out[n + 5] = b'\n';
     n + 6
 }

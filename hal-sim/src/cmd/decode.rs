@@ -434,7 +434,7 @@ impl TuningLines {
                  (lines lost in the capture): {give}",
                 TuningKey::ALL.len()
             ))
-        } else if std::fs::metadata(out).is_ok_and(|m| !m.is_file() && !m.is_dir()) && damage == Damage::Refuse {
+        } else if std::fs::metadata(out).is_ok_and(|m| super::is_stream(&m)) && damage == Damage::Refuse {
             Some(format!("--out {} is not a file: the board's tuning is not written beside it", out.display()))
         } else {
             None
@@ -457,16 +457,15 @@ impl TuningLines {
     }
 }
 
-/// The TOML of `identify --tuning` (`crate::tuning`) holding every key of `keys`, values as Rust writes an `f64`:
-/// the shortest decimal that reads back to the same bits.
+/// The TOML of `identify --tuning` (`crate::tuning`) holding every key of `keys` (in [`TuningKey::ALL`]'s order, its
+/// sections'), values as Rust writes an `f64`: the shortest decimal that reads back to the same bits.
 pub fn tuning_toml(keys: &[(TuningKey, [f64; 5])], source: &str) -> String {
     let mut text = format!(
         "# The board's estimator tuning at the start of its recording in {source} (nanopos-sim decode), exact.\n\
          # Replay with it: nanopos-sim identify --input <the decoded CSV> --tuning <this file>\n"
     );
     let mut section = "";
-    for key in TuningKey::ALL {
-        let Some((_, values)) = keys.iter().find(|(k, _)| *k == key) else { continue };
+    for &(key, values) in keys {
         let (sec, name) = key.path();
         if sec != section {
             text.push_str(&format!("\n[{sec}]\n"));

@@ -79,7 +79,7 @@ pub struct OutputFile {
 }
 
 /// Whether what a path names is a device, a pipe or a socket: a stream, written directly, with no file to replace.
-fn is_stream(m: &std::fs::Metadata) -> bool {
+pub(crate) fn is_stream(m: &std::fs::Metadata) -> bool {
     !m.is_file() && !m.is_dir()
 }
 
