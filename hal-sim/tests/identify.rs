@@ -230,7 +230,12 @@ fn identify_notes_a_prefilter_far_from_the_resonance() {
     let d = dir.path();
     simulate_prbs(d, "8");
     std::fs::write(d.join("wide.toml"), "prefilter = [100, 900, 0.1]\n").unwrap();
-    let out = nanopos_sim(&["identify", "--input", "run.csv", "--tuning", "wide.toml", "--summary", "s.json"], d);
+    // The EKFs only: in 8 s the RLS-type estimators have not converged, which another note says.
+    let ekfs = ["--estimators", "ekf,hekf"];
+    let out = nanopos_sim(
+        &[&["identify", "--input", "run.csv", "--tuning", "wide.toml", "--summary", "s.json"], &ekfs[..]].concat(),
+        d,
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert_eq!(
@@ -239,8 +244,48 @@ fn identify_notes_a_prefilter_far_from_the_resonance() {
          mean): the estimates can come out biased by several %; give --tuning a pre-filter near the resonance \
          (prefilter = [F_LC, F_P, ZETA])\n"
     );
-    let out = nanopos_sim(&["identify", "--input", "run.csv", "--summary", "s.json"], d);
+    let out = nanopos_sim(&[&["identify", "--input", "run.csv", "--summary", "s.json"], &ekfs[..]].concat(), d);
     assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// One wild sample in a record (a glitch, or a logger's overflow value): the pre-filter spreads it over tenths of a
+/// second and the estimators take it for data. At 10^4 um (10^4 times the PRBS record's level) the continuous EKF
+/// diverged for the rest of the record with exit 0 and not a word: now a note names the sample, and another the
+/// estimator whose model no longer fits the record. The same record without it gets no such note; nor does one
+/// spike a hundred times smaller, below the bound (`Spread::WILD`).
+#[test]
+fn wild_samples_are_noted() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "8");
+    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
+    let with = |column: usize, line: usize, value: &str| {
+        let mut lines: Vec<String> = run.lines().map(str::to_string).collect();
+        let mut fields: Vec<&str> = lines[line - 1].split(',').collect();
+        fields[column] = value;
+        lines[line - 1] = fields.join(",");
+        lines.join("\n") + "\n"
+    };
+    let notes = |csv: &str| {
+        std::fs::write(d.join("wild.csv"), csv).unwrap();
+        let out =
+            nanopos_sim(&["identify", "--input", "wild.csv", "--estimators", "ekf,hekf", "--summary", "s.json"], d);
+        let stderr = String::from_utf8(out.stderr).unwrap();
+        assert!(out.status.success(), "{stderr}");
+        stderr
+    };
+    let stderr = notes(&with(2, 1000, "1e4"));
+    eprintln!("{stderr}");
+    assert!(stderr.contains("note: y reaches 10000 um at 0.0998 s, "), "{stderr}");
+    assert!(stderr.contains("times the level 90 % of the record stays within"), "{stderr}");
+    for w in ["3:4", "7:8"] {
+        assert!(stderr.contains(&format!("note: ekf's model fits window {w} ")), "{stderr}");
+    }
+    assert!(!stderr.contains("hekf's model"), "{stderr}");
+    let stderr = notes(&with(1, 5000, "-9.9e37"));
+    assert!(stderr.contains("note: u reaches 9.90e37 V at 0.4998 s, "), "{stderr}");
+    assert!(notes(&with(2, 1000, "1e2")).is_empty(), "a spike under the bound");
+    assert!(notes(&run).is_empty(), "the record as simulated");
 }
 
 /// A record no stage could produce (the probe pinned at 1e30 um under a PRBS) drives estimates where the derived
