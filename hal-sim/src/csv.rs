@@ -365,8 +365,8 @@ impl Reader {
                             format!(
                                 "time {} breaks the uniform sampling (expected {}, step {})",
                                 show(now),
-                                show(expected),
-                                show(step)
+                                show_within(expected, 1e-6 * step),
+                                show_within(step, 1e-6 * step)
                             ),
                         ));
                     }
@@ -468,6 +468,17 @@ fn line_ends(bytes: &[u8]) -> usize {
     bytes.iter().filter(|&&b| b == b'\n').count()
 }
 
+/// `x` with the fewest decimals that stay within `tol` of it (a time computed as `t0 + k step` is shown as `4.9998`,
+/// not `4.9998000000000005`).
+fn show_within(x: f64, tol: f64) -> String {
+    // Beyond 1e15 the decimals are not the question (and `{:.0}` would spell out every digit).
+    let most = if x.abs() < 1e15 { 18 } else { 0 };
+    (0..most)
+        .map(|digits| format!("{x:.digits$}"))
+        .find(|text| text.parse::<f64>().is_ok_and(|v| (v - x).abs() <= tol))
+        .unwrap_or_else(|| show(x))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -554,6 +565,11 @@ mod tests {
         let path = file("jump.csv", &(lines.join("\n") + "\n"));
         let e = read_columns_in(&path, &["u"], &[], Time::Required, TINY).unwrap_err();
         assert!(e.0.contains(&format!("jump.csv:{jump}: time 9 breaks the uniform sampling")), "{}", e.0);
+        // The expected time and the step as the file would write them, not as the sum `t0 + k step` rounds.
+        assert_eq!(show_within(0.1 + 0.2, 1e-10), "0.3");
+        assert_eq!(show_within(4.9998000000000005, 1e-10), "4.9998");
+        assert_eq!(show_within(1e-4, 1e-10), "0.0001");
+        assert_eq!(show_within(1e300, 1.0), "1e300");
     }
 
     #[test]
