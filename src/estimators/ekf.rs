@@ -44,7 +44,9 @@
 //! (15 entries); `F` has two non-zero rows, so `F P` costs 2 x 5 dot products instead of 25; `H = e1` makes the
 //! update a rank-one correction from column 0 of `P`. After each step a state variance below zero is repaired (that
 //! state decorrelated, its variance floored; a parameter variance is floored anyway), and a non-finite value resets
-//! the estimator (counted). Cost per update: hybrid, about 560 flops for the prediction and 120 for the update;
+//! the estimator (counted), as does an innovation whose running mean square leaves f32's range (in f64 a filter
+//! could run on there for good, its state finite and its innovation's square overflowing, where the board's f32
+//! would have reset). Cost per update: hybrid, about 560 flops for the prediction and 120 for the update;
 //! continuous, 4 derivatives of about 110 flops, 120 of stage arguments and 120 of the RK4 sum: about 680.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
@@ -844,10 +846,10 @@ impl<T: Real> EkfCore<T> {
     }
 
     /// Called after [`Self::bound_covariance`], which leaves no finite diagonal below zero: finiteness is all that
-    /// is left to check.
-    fn healthy(&self) -> bool {
+    /// is left to check, of the state, the covariance and `levels` (the health logic's own).
+    fn healthy(&self, levels: T) -> bool {
         // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
-        let sum = self.z.iter().chain(self.p.iter()).fold(T::zero(), |acc, &x| acc + x);
+        let sum = self.z.iter().chain(self.p.iter()).fold(levels, |acc, &x| acc + x);
         sum.is_finite()
     }
 }
@@ -921,7 +923,15 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
             self.core.widen_parameters();
         }
         self.core.bound_covariance(&mut self.health.covariance_repairs);
-        if !self.core.healthy() {
+        // The innovation's levels too: they are state of the health logic, and one non-finite (an innovation whose
+        // square overflowed) would stay in the report for good and blind the gate and the drift test. Its mean
+        // square counts against f32's range in either scalar (in f64 scaled by f64's range over f32's, so that it
+        // overflows the sum where f32 would; in f32 the scale is 1 and folds away), so that the f64 reference resets
+        // where the board would. Legitimate transients stay far below: 1e8 um^2 with `R` 100 times below the
+        // paper's, at start-up.
+        let to_f32_range = T::max_value() / T::of(f32::MAX as f64);
+        let levels = self.innovation_ms * to_f32_range + self.nis_mean + self.nis_long;
+        if !self.core.healthy(levels) {
             self.reset_state();
             self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);
         }
