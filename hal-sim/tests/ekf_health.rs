@@ -103,8 +103,8 @@ fn a_nan_resets_the_filter_counts_it_and_the_filter_carries_on() {
 /// One reading of 10^4 um (a glitch; the PRBS's reading stays within 0.3 um): the pre-filter spreads it over tenths
 /// of a second, the gate sees a change and opens, and the continuous filter follows the ring until its innovation's
 /// square overflows. Its state stayed finite, so it was not reset: it ran on for good with `a0` 60 times the truth, a
-/// change detected every 20 samples and an innovation RMS of NaN. Now an innovation whose mean square leaves f32's
-/// range (in f64 too, as on the board) resets it (counted) until the ring has passed, and it converges again.
+/// change detected every 20 samples and an innovation RMS of NaN. Now an innovation RMS beyond a metre
+/// (`INNOVATION_CEILING_UM`) resets it (counted) until the ring has passed, and it converges again.
 #[test]
 fn a_glitch_that_throws_the_continuous_filter_off_resets_it() {
     let mut est = Cekf::new(EkfDesign::default().design());

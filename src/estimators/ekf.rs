@@ -44,9 +44,8 @@
 //! (15 entries); `F` has two non-zero rows, so `F P` costs 2 x 5 dot products instead of 25; `H = e1` makes the
 //! update a rank-one correction from column 0 of `P`. After each step a state variance below zero is repaired (that
 //! state decorrelated, its variance floored; a parameter variance is floored anyway), and a non-finite value resets
-//! the estimator (counted), as does an innovation whose running mean square leaves f32's range (in f64 a filter
-//! could run on there for good, its state finite and its innovation's square overflowing, where the board's f32
-//! would have reset). Cost per update: hybrid, about 560 flops for the prediction and 120 for the update;
+//! the estimator (counted), as does an innovation RMS beyond a metre ([`INNOVATION_CEILING_UM`]: a filter thrown off
+//! by a glitch could otherwise run on for good, its state finite and its prediction astray). Cost per update: hybrid, about 560 flops for the prediction and 120 for the update;
 //! continuous, 4 derivatives of about 110 flops, 120 of stage arguments and 120 of the RK4 sum: about 680.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
@@ -269,6 +268,13 @@ impl Default for EkfHealthDesign {
         }
     }
 }
+
+/// The innovation RMS, um, beyond which an EKF is taken for diverged and reset (counted), as for a non-finite value:
+/// a metre, which no nanopositioning stage moves. Without it a filter thrown off by a glitch could run on for good
+/// with its state finite and its prediction astray: the continuous EKF, after one reading of 10^4 um on the board's
+/// PRBS, at an innovation RMS of 10^17 um and `a0` 20 times the truth (`tests/ekf_health.rs`). In f32 the bound is
+/// met long before the innovation's square overflows; in f64 it keeps the reference resetting where the board does.
+pub const INNOVATION_CEILING_UM: f64 = 1e6;
 
 /// The normalised configuration.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -924,13 +930,11 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
         }
         self.core.bound_covariance(&mut self.health.covariance_repairs);
         // The innovation's levels too: they are state of the health logic, and one non-finite (an innovation whose
-        // square overflowed) would stay in the report for good and blind the gate and the drift test. Its mean
-        // square counts against f32's range in either scalar (in f64 scaled by f64's range over f32's, so that it
-        // overflows the sum where f32 would; in f32 the scale is 1 and folds away), so that the f64 reference resets
-        // where the board would. Legitimate transients stay far below: 1e8 um^2 with `R` 100 times below the
-        // paper's, at start-up.
-        let to_f32_range = T::max_value() / T::of(f32::MAX as f64);
-        let levels = self.innovation_ms * to_f32_range + self.nis_mean + self.nis_long;
+        // square overflowed) would stay in the report for good and blind the gate and the drift test. And an
+        // innovation RMS beyond [`INNOVATION_CEILING_UM`] is no stage's: scaled so that it overflows the sum there,
+        // in either scalar.
+        let to_range = T::max_value() / T::of(INNOVATION_CEILING_UM * INNOVATION_CEILING_UM);
+        let levels = self.innovation_ms * to_range + self.nis_mean + self.nis_long;
         if !self.core.healthy(levels) {
             self.reset_state();
             self.health.numeric_resets = self.health.numeric_resets.saturating_add(1);

@@ -17,7 +17,7 @@
 //!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
 //!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
 //!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `resets`, the
-//!   times in the window the estimator met a non-finite value and went back to its initial parameters (a tuning that
+//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre) and went back to its initial parameters (a tuning that
 //!   does not suit the record resets it over and over, and its mean is then of runs that diverged). Above 10 %
 //!   starved, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
 //!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
@@ -138,9 +138,11 @@ impl Default for Spread {
 
 impl Spread {
     /// How many times the level 90 % of the samples stay within a sample may reach before [`Self::wild`] says so.
-    /// One sample of `y` at 10^4 times the PRBS record's level (0.2 um) made the continuous EKF diverge for the rest
-    /// of the record, one at 10^5 the hybrid one; at 10^3 both kept their estimates, their innovation RMS inflated
-    /// for a while (`wild_samples_are_noted`). A record's own peaks reach a few times its level.
+    /// One sample of `y` at 10^5 times the PRBS record's level (under 1 um) left the hybrid EKF with a model 200-300
+    /// times worse than the data for the rest of the record (`wild_samples_are_noted`; the continuous EKF, which
+    /// did at 10^4 until its health logic reset on an innovation beyond a metre, now resets and relocks); at 10^3
+    /// both kept their estimates, their innovation RMS inflated for a while. A record's own peaks reach a few times
+    /// its level.
     pub const WILD: f64 = 1e3;
 
     /// Count `x`, the sample at `t_s`.
@@ -775,7 +777,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             }
             if f.resets > 0 {
                 notes.push(format!(
-                    "{name} met a non-finite value and went back to its initial parameters {} times in window {}:{} \
+                    "{name} met a non-finite value (or an innovation beyond a metre) and went back to its initial parameters {} times in window {}:{} \
                      (a tuning that does not suit this record): its means there are of runs that diverged",
                     f.resets, w.t0, w.t1
                 ));
