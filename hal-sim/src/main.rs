@@ -279,6 +279,9 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Fit { input, arx, zero_initial, weight } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;
+            for note in &fit.notes {
+                eprintln!("nanopos-sim: note: {note}");
+            }
             hal_sim::cmd::write_stdout(&format!("{}\n", fit.to_json()))
         }
     }

@@ -97,6 +97,42 @@ fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
     }
 }
 
+/// One wild sample (a glitch, or a logger's overflow value) decides a least-squares fit, which weighs each sample by
+/// its square: the noise-free ARX above, recovered to 1e-9, is lost with one `y` 10^4 times the record's level. The
+/// fit cannot tell; a note on standard error names the sample. The record without it gets none.
+#[test]
+fn a_wild_sample_is_noted() {
+    let n = 400;
+    let u: Vec<f64> = (0..n).map(|k| ((k * 7919) % 13) as f64 / 6.0 - 1.0).collect();
+    let mut y = vec![0.0; n];
+    for k in 3..n {
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.3 * u[k - 2] + 0.1 * u[k - 3];
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let fit = |glitch: f64| {
+        let mut text = String::from("t,u,y\n");
+        for k in 0..n {
+            let y = if k == 200 { glitch } else { y[k] };
+            text += &format!("{},{:?},{y:?}\n", k as f64 * 1e-4, u[k]);
+        }
+        write(dir.path(), "arx.csv", &text);
+        let out = nanopos_sim(&["fit", "--input", "arx.csv", "--arx", "2,2,2"], dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let (a, _, _, _) = parse(&String::from_utf8(out.stdout).unwrap());
+        (a[0], String::from_utf8(out.stderr).unwrap())
+    };
+    let (a1, stderr) = fit(y[200]);
+    assert!((a1 - 1.5).abs() < 1e-9 && stderr.is_empty(), "{a1} {stderr}");
+    let level = y.iter().map(|y| y.abs()).fold(0.0, f64::max);
+    let (a1, stderr) = fit(1e4 * level);
+    eprintln!("{a1} {stderr}");
+    assert!((a1 - 1.5).abs() > 0.1, "the case this test is for: {a1}");
+    assert!(
+        stderr.starts_with("nanopos-sim: note: y reaches ") && stderr.contains(" at sample 200 (the first is 0), "),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn bad_inputs_fail_with_one_line_naming_file_and_line() {
     let dir = tempfile::tempdir().unwrap();

@@ -5,8 +5,11 @@
 //! by the core's QR solver ([`nanopos_id::estimators::lsq`]). Prints `{"a": [...], "b": [...], "sse": ..., "rows": ...}`.
 //! Rows are those with full history, or with `--zero-initial` every sample, with the signals taken as zero before
 //! the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
-//! present, must be uniformly sampled.
+//! present, must be uniformly sampled. A sample of `u` or `y` more than 1 000 times the level 90 % of the record
+//! stays within (a glitch, or a logger's overflow value, which can decide the fit alone) gets a note on standard
+//! error, as in `identify`.
 
+use super::identify::Spread;
 use super::{fail, json_number, CliError};
 use crate::csv::{Reader, Time};
 use nanopos_id::estimators::lsq::{LsError, WeightedLs};
@@ -83,6 +86,8 @@ pub struct ArxFit {
     pub sse: f64,
     /// Rows used.
     pub rows: u64,
+    /// For standard error: a wild sample in `u` or `y` ([`Spread::wild_note`]).
+    pub notes: Vec<String>,
 }
 
 impl ArxFit {
@@ -125,8 +130,12 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
     let mut row = vec![0.0; n];
     // The samples of this block, after up to `history` of the ones before it; `start` is the index of `u[0]`.
     let (mut u, mut y, mut start) = (Vec::new(), Vec::new(), 0usize);
+    let mut spread = [Spread::default(), Spread::default()];
     while let Some(block) = reader.next_block()? {
         let kept = u.len();
+        for (s, column) in spread.iter_mut().zip(&block) {
+            (0..column.len()).for_each(|i| s.add(column[i], (start + kept + i) as f64));
+        }
         u.extend_from_slice(&block[0]);
         y.extend_from_slice(&block[1]);
         // Sample k of the record is u[k - start]; a lag before the record's start reads 0 (--zero-initial).
@@ -156,7 +165,17 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
     }
     match ls.solve() {
         Ok(s) => {
-            Ok(ArxFit { a: s.theta[..orders.na].to_vec(), b: s.theta[orders.na..n].to_vec(), sse: s.sse, rows: s.rows })
+            let notes = [("u", "V"), ("y", "um")]
+                .into_iter()
+                .zip(&spread)
+                .filter_map(|((column, unit), s)| {
+                    let at = format!("sample {} (the first is 0)", s.largest_at_s);
+                    let note = s.wild_note(column, unit, &at)?;
+                    Some(note + " A least-squares fit weighs a sample by its square: one such sample can decide it")
+                })
+                .collect();
+            let (a, b) = (s.theta[..orders.na].to_vec(), s.theta[orders.na..n].to_vec());
+            Ok(ArxFit { a, b, sse: s.sse, rows: s.rows, notes })
         }
         Err(LsError::RankDeficient(r)) => {
             let others: Vec<String> =

@@ -174,6 +174,20 @@ impl Spread {
         let level = self.level(0.9);
         (level > 0.0 && self.largest > Self::WILD * level).then(|| self.largest / level)
     }
+
+    /// When [`Self::wild`], what a note says of it: the column's largest sample, `at` (where it is, as the command
+    /// can say it), and how far above the record's level.
+    pub fn wild_note(&self, column: &str, unit: &str, at: &str) -> Option<String> {
+        self.wild().map(|ratio| {
+            format!(
+                "{column} reaches {} {unit} at {at}, {} times the level 90 % of the record stays within ({} {unit}): \
+                 a glitch, or a logger's overflow value?",
+                sig(self.largest),
+                sig(ratio),
+                sig(self.level(0.9)),
+            )
+        })
+    }
 }
 
 /// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
@@ -702,16 +716,11 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
     // The resonance the pre-filter is compared with: the hybrid EKF's, else the first estimator's.
     let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
     for (column, unit, spread) in [("u", "V", &r.spread[0]), ("y", "um", &r.spread[1])] {
-        if let Some(ratio) = spread.wild() {
-            notes.push(format!(
-                "{column} reaches {} {unit} at {} s, {} times the level 90 % of the record stays within \
-                 ({} {unit}): a glitch, or a logger's overflow value? The filters spread one such sample over tenths \
-                 of a second and the estimators take it for data",
-                sig(spread.largest),
-                show(spread.largest_at_s),
-                sig(ratio),
-                sig(spread.level(0.9)),
-            ));
+        if let Some(note) = spread.wild_note(column, unit, &format!("{} s", show(spread.largest_at_s))) {
+            notes.push(
+                note
+                    + " The filters spread one such sample over tenths of a second and the estimators take it for data",
+            );
         }
     }
     for (w, figs, _) in &r.windows {
