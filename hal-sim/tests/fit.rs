@@ -58,15 +58,22 @@ fn fit_reproduces_example_13_3_from_a_csv() {
     assert_eq!(rows, 21);
 }
 
-#[test]
-fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
-    // y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.3 u(k-2) + 0.1 u(k-3), driven by a deterministic, rich input.
+/// `u`, `y` of y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.3 u(k-2) + 0.1 u(k-3), driven by a deterministic, rich input, 400
+/// samples.
+fn noise_free_arx() -> (Vec<f64>, Vec<f64>) {
     let n = 400;
     let u: Vec<f64> = (0..n).map(|k| ((k * 7919) % 13) as f64 / 6.0 - 1.0).collect();
     let mut y = vec![0.0; n];
     for k in 3..n {
         y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.3 * u[k - 2] + 0.1 * u[k - 3];
     }
+    (u, y)
+}
+
+#[test]
+fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
+    let (u, y) = noise_free_arx();
+    let n = u.len();
     let dir = tempfile::tempdir().unwrap();
     // Also in units 1e200 times larger: the same coefficients (the fit is scale-free). The rank test once took
     // the columns' norms from a running sum of squares, which overflowed and called every column dependent.
@@ -102,12 +109,8 @@ fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
 /// fit cannot tell; a note on standard error names the sample. The record without it gets none.
 #[test]
 fn a_wild_sample_is_noted() {
-    let n = 400;
-    let u: Vec<f64> = (0..n).map(|k| ((k * 7919) % 13) as f64 / 6.0 - 1.0).collect();
-    let mut y = vec![0.0; n];
-    for k in 3..n {
-        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.3 * u[k - 2] + 0.1 * u[k - 3];
-    }
+    let (u, y) = noise_free_arx();
+    let n = u.len();
     let dir = tempfile::tempdir().unwrap();
     let fit = |glitch: f64| {
         let mut text = String::from("t,u,y\n");
