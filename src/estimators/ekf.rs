@@ -45,8 +45,9 @@
 //! update a rank-one correction from column 0 of `P`. After each step a state variance below zero is repaired (that
 //! state decorrelated, its variance floored; a parameter variance is floored anyway), and a non-finite value resets
 //! the estimator (counted), as does an innovation RMS beyond a metre ([`INNOVATION_CEILING_UM`]: a filter thrown off
-//! by a glitch could otherwise run on for good, its state finite and its prediction astray). Cost per update: hybrid, about 560 flops for the prediction and 120 for the update;
-//! continuous, 4 derivatives of about 110 flops, 120 of stage arguments and 120 of the RK4 sum: about 680.
+//! by a glitch could otherwise run on for good, its state finite and its prediction astray). Cost per update:
+//! hybrid, about 560 flops for the prediction and 120 for the update; continuous, 4 derivatives of about 110 flops,
+//! 120 of stage arguments and 120 of the RK4 sum: about 680.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
 
