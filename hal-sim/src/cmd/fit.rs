@@ -169,7 +169,7 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
                 .into_iter()
                 .zip(&spread)
                 .filter_map(|((column, unit), s)| {
-                    let at = format!("sample {} (the first is 0)", s.largest_at_s);
+                    let at = format!("sample {} (the first is 0)", s.largest_at);
                     let note = s.wild_note(column, unit, &at)?;
                     Some(note + " A least-squares fit weighs a sample by its square: one such sample can decide it")
                 })

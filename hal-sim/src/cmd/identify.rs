@@ -17,8 +17,9 @@
 //!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
 //!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
 //!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `resets`, the
-//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre) and went back to its initial parameters (a tuning that
-//!   does not suit the record resets it over and over, and its mean is then of runs that diverged). Above 10 %
+//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre) and went back
+//!   to its initial parameters (a tuning that does not suit the record resets it over and over, and its mean is then
+//!   of runs that diverged). Above 10 %
 //!   starved, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
 //!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
 //!   of an estimator whose means are not of a stage (`a0 <= 0` or not finite: it diverged) or whose validation RMSE
@@ -126,13 +127,14 @@ pub struct Spread {
     by_exponent: Box<[u64; 1 << 13]>,
     /// The largest `|x|`.
     pub largest: f64,
-    /// The time of the first sample that reached it, s.
-    pub largest_at_s: f64,
+    /// Where the first sample that reached it is: the `at` it was added with (`identify` gives the time, s; `fit`
+    /// the sample's index).
+    pub largest_at: f64,
 }
 
 impl Default for Spread {
     fn default() -> Self {
-        Spread { by_exponent: Box::new([0; 1 << 13]), largest: 0.0, largest_at_s: f64::NAN }
+        Spread { by_exponent: Box::new([0; 1 << 13]), largest: 0.0, largest_at: f64::NAN }
     }
 }
 
@@ -145,12 +147,12 @@ impl Spread {
     /// its level.
     pub const WILD: f64 = 1e3;
 
-    /// Count `x`, the sample at `t_s`.
-    pub fn add(&mut self, x: f64, t_s: f64) {
+    /// Count `x`, the sample at `at`.
+    pub fn add(&mut self, x: f64, at: f64) {
         let m = x.abs();
         self.by_exponent[(m.to_bits() >> 50) as usize & 0x1fff] += 1;
         if m > self.largest {
-            (self.largest, self.largest_at_s) = (m, t_s);
+            (self.largest, self.largest_at) = (m, at);
         }
     }
 
@@ -716,7 +718,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
     // The resonance the pre-filter is compared with: the hybrid EKF's, else the first estimator's.
     let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
     for (column, unit, spread) in [("u", "V", &r.spread[0]), ("y", "um", &r.spread[1])] {
-        if let Some(note) = spread.wild_note(column, unit, &format!("{} s", show(spread.largest_at_s))) {
+        if let Some(note) = spread.wild_note(column, unit, &format!("{} s", show(spread.largest_at))) {
             notes.push(
                 note
                     + " The filters spread one such sample over tenths of a second and the estimators take it for data",
@@ -786,8 +788,9 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             }
             if f.resets > 0 {
                 notes.push(format!(
-                    "{name} met a non-finite value (or an innovation beyond a metre) and went back to its initial parameters {} times in window {}:{} \
-                     (a tuning that does not suit this record): its means there are of runs that diverged",
+                    "{name} met a non-finite value (or an innovation beyond a metre) and went back to its initial \
+                     parameters {} times in window {}:{} (a tuning that does not suit this record): its means there \
+                     are of runs that diverged",
                     f.resets, w.t0, w.t1
                 ));
             }
@@ -946,7 +949,7 @@ mod tests {
         s.add(999.0, 1000.0);
         assert_eq!(s.wild(), None, "999 is not more than 1 000 times the level");
         s.add(-2000.0, 1001.0);
-        assert_eq!((s.largest, s.largest_at_s, s.wild()), (2000.0, 1001.0, Some(2000.0)));
+        assert_eq!((s.largest, s.largest_at, s.wild()), (2000.0, 1001.0, Some(2000.0)));
         // A record of zeros has no level to compare with.
         let mut z = Spread::default();
         (0..10).for_each(|k| z.add(0.0, k as f64));
