@@ -9,8 +9,7 @@
 //! stays within (a glitch, or a logger's overflow value, which can decide the fit alone) gets a note on standard
 //! error, as in `identify`.
 
-use super::identify::Spread;
-use super::{fail, json_number, CliError};
+use super::{fail, json_number, CliError, Spread};
 use crate::csv::{Reader, Time};
 use nanopos_id::estimators::lsq::{LsError, WeightedLs};
 use std::path::Path;
@@ -134,7 +133,7 @@ pub fn run(path: &Path, orders: ArxOrders, zero_initial: bool, weight: Option<We
     while let Some(block) = reader.next_block()? {
         let kept = u.len();
         for (s, column) in spread.iter_mut().zip(&block) {
-            (0..column.len()).for_each(|i| s.add(column[i], (start + kept + i) as f64));
+            column.iter().enumerate().for_each(|(i, &x)| s.add(x, (start + kept + i) as f64));
         }
         u.extend_from_slice(&block[0]);
         y.extend_from_slice(&block[1]);
