@@ -250,9 +250,10 @@ pub struct Health {
     /// decorrelated, its variance floored) instead of resetting the estimator. Rare and harmless one by one; a
     /// steady count means the integration of the covariance is marginal for this tuning and input.
     pub covariance_repairs: u32,
-    /// Running RMS of the innovations (output minus the model's prediction), um; `NaN` if the estimator has no
-    /// such notion. With a right model it is the measurement noise; far above it, the model does not fit the data
-    /// (wrong tuning for the input, a plant the model cannot describe).
+    /// RMS of the innovations (output minus the model's prediction) over the last second, um (the EKFs': see
+    /// [`crate::estimators::ekf::INNOVATION_WINDOW_S`]); `NaN` if the estimator has no such notion. With a right
+    /// model it is the measurement noise; far above it, the model does not fit the data (wrong tuning for the input,
+    /// a plant the model cannot describe). A transient (the payload change) shows in it for one to two seconds.
     pub innovation_rms_um: f32,
 }
 

@@ -13,7 +13,7 @@
 //! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and
 //!   the validation RMSE of SPEC section 7: model (1) with those means, simulated exactly (zero-order hold) on the
 //!   replica input `u'` from zero state one second before the window (the transient of the wrong start has decayed
-//!   by e^-38 by then), against `y'`; and the estimator's own running innovation RMS averaged over the window
+//!   by e^-38 by then), against `y'`; and the estimator's own innovation RMS (of the last second) averaged over the window
 //!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
 //!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
 //!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `resets`, the
