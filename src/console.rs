@@ -11,7 +11,6 @@
 //! ([`Rest`]).
 
 use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Recording, TuningPreset, ESTIMATOR_NAMES};
-use crate::estimator::Adaptation;
 use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey, Unrunnable};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
@@ -471,15 +470,7 @@ impl Controller {
                 f(p.damping_ratio()),
                 f(p.dc_gain())
             )?;
-            let state = if !s.selected.contains(line) {
-                "off"
-            } else {
-                match h.adaptation {
-                    Adaptation::Adapting => "adapting",
-                    Adaptation::Frozen => "frozen",
-                    Adaptation::Starved => "starved",
-                }
-            };
+            let state = if !s.selected.contains(line) { "off" } else { h.adaptation.name() };
             return writeln!(
                 w,
                 "{state} rejected={} changes={} resets={} repairs={} innovation_rms_um={}",

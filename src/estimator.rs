@@ -224,6 +224,15 @@ pub enum Adaptation {
 }
 
 impl Adaptation {
+    /// The word the console's `status` and `identify --health` give it: `adapting`, `frozen` or `starved`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Adaptation::Adapting => "adapting",
+            Adaptation::Frozen => "frozen",
+            Adaptation::Starved => "starved",
+        }
+    }
+
     /// What the user's `set_adapting(on)` asks for: adapting or frozen.
     pub fn asked(on: bool) -> Self {
         if on {
