@@ -1056,6 +1056,7 @@ fn identify_f32(csv: &Path, tuning: hal_sim::tuning::TuningArg) -> hal_sim::cmd:
         out: None,
         summary: None,
         plot: None,
+        health: None,
         dac_step_v: None,
         precision: Precision::F32,
     };

@@ -62,6 +62,10 @@ enum Command {
         /// Every estimate against time (and the truth when present), SVG.
         #[arg(long)]
         plot: Option<PathBuf>,
+        /// Health at 100 Hz: t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um (counts since the
+        /// record's start, as the board's status gives them; no innovation for rls and arx).
+        #[arg(long)]
+        health: Option<PathBuf>,
         /// The input's step for one DAC code, V, which the excitation monitor does not take for excitation (0: an
         /// input that is not rounded) [default: the board's, 3.3 V / 4096 / 0.165 = 4.88 mV].
         #[arg(long, value_name = "V", allow_negative_numbers = true)]
@@ -165,7 +169,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
             };
             simulate::run(&args).map(|_| ())
         }
-        Command::Identify { input, estimators, tuning, windows, out, summary, plot, dac_step, precision } => {
+        Command::Identify { input, estimators, tuning, windows, out, summary, plot, health, dac_step, precision } => {
             use hal_sim::cmd::identify;
             // A decoded board recording has the board's tuning beside it: a replay without it runs the preset.
             let beside = hal_sim::cmd::decode::tuning_path(&input);
@@ -186,6 +190,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 out: out.as_deref(),
                 summary: summary.as_deref(),
                 plot: plot.as_deref(),
+                health: health.as_deref(),
                 dac_step_v: dac_step,
                 precision: precision.into(),
             };

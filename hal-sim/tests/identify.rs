@@ -73,6 +73,43 @@ fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
 /// A record whose input is one sinusoid (1 V at 100 Hz, in the board's DAC steps) identifies nothing: every
 /// estimator is held by the excitation monitor, the summary says so (`starved` 1 over a window after the first
 /// second), and a note on standard error per estimator and window tells the user the means are held values.
+/// `--health`: each estimator's health on the rows of `EST.csv`, as the board's `status` gives it. On the simulated
+/// PRBS record with the payload removed at 2 s both EKFs detect the change (their counts go from 0 to 1 there), and
+/// their innovation RMS, of the last second, shows it and is back at the record's level 2 s later (measured: 6.2-6.3
+/// nm before, 56-58 nm 0.5 s after, 6.7-6.8 nm at the end); the ARX has no innovation.
+#[test]
+fn identify_writes_the_estimators_health_over_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "4");
+    let args =
+        ["identify", "--input", "run.csv", "--estimators", "ekf,hekf,arx", "--health", "h.csv", "--out", "e.csv"];
+    let out = nanopos_sim(&args, d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let health = std::fs::read_to_string(d.join("h.csv")).unwrap();
+    let est = std::fs::read_to_string(d.join("e.csv")).unwrap();
+    let lines: Vec<&str> = health.lines().collect();
+    assert_eq!(lines[0], "t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um");
+    // The rows of EST.csv: the same times and estimators.
+    let keys = |text: &str| {
+        text.lines().skip(1).map(|l| l.split(',').take(2).collect::<Vec<_>>().join(",")).collect::<Vec<_>>()
+    };
+    assert_eq!(keys(&health), keys(&est));
+    assert_eq!(lines.len() - 1, 400 * 3);
+    let row = |t: &str, name: &str| -> Vec<String> {
+        let l = lines.iter().find(|l| l.starts_with(&format!("{t},{name},"))).unwrap_or_else(|| panic!("{t} {name}"));
+        l.split(',').map(String::from).collect()
+    };
+    let innovation = |t: &str, name: &str| row(t, name)[7].parse::<f64>().unwrap();
+    for name in ["ekf", "hekf"] {
+        assert_eq!(row("1.9999", name)[2..7], ["adapting", "0", "0", "0", "0"], "{name}");
+        assert_eq!(row("3.9999", name)[4], "1", "{name}: the change, detected");
+        let (before, after, end) = (innovation("1.9999", name), innovation("2.4999", name), innovation("3.9999", name));
+        assert!(before < 0.01 && after > 5.0 * before && end < 1.2 * before, "{name}: {before} {after} {end}");
+    }
+    assert_eq!(row("3.9999", "arx")[2..], ["adapting", "0", "0", "0", "0", ""]);
+}
+
 #[test]
 fn identify_reports_a_window_the_excitation_monitor_held() {
     let dir = tempfile::tempdir().unwrap();
@@ -444,6 +481,8 @@ fn an_output_never_replaces_an_input_or_another_output() {
             &["--out", "e.csv", "--summary", "s.json", "--plot", "sub/../e.csv"],
             format!("--plot sub/../e.csv: the same file as --out e.csv: {own}"),
         ),
+        (&["--health", "prbs.csv"], format!("--health prbs.csv: the same file as --input prbs.csv: {same}")),
+        (&["--out", "e.csv", "--health", "e.csv"], format!("--health e.csv: the same file as --out e.csv: {own}")),
     ];
     #[cfg(unix)]
     cases.push((&["--out", "soft.csv"], format!("--out soft.csv: the same file as --input prbs.csv: {same}")));

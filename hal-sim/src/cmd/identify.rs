@@ -1,6 +1,6 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
-//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--dac-step V]
-//! [--precision f64|f32]`
+//! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--health HEALTH.csv]
+//! [--dac-step V] [--precision f64|f32]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
 //! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
@@ -8,6 +8,10 @@
 //! truth and are reported next to the estimates.
 //!
 //! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
+//! - `HEALTH.csv`: on the same rows, `t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um`: each
+//!   estimator's health as the board's `status` gives it (the counts since the record's start; the innovation RMS of
+//!   the last second, empty for `rls` and `arx`): when an EKF saw the change, whether the monitor held it, how well
+//!   its model followed the data.
 //! - `--precision`: the scalar of the pipeline and the estimators, f64 (the reference, default) or f32 (the
 //!   firmware's: the board's results on the same samples, and its refusal of a tuning f32 cannot hold).
 //! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and
@@ -558,6 +562,8 @@ pub struct IdentifyArgs<'a> {
     pub summary: Option<&'a Path>,
     /// `FIG.svg`.
     pub plot: Option<&'a Path>,
+    /// `HEALTH.csv`.
+    pub health: Option<&'a Path>,
     /// The input's step for one DAC code, V (0: not rounded; `None`: the simulated board's, as the firmware's).
     pub dac_step_v: Option<DacStep>,
     /// The scalar the pipeline and the estimators run in.
@@ -595,13 +601,13 @@ impl std::str::FromStr for DacStep {
 pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let tuning = args.tuning.file.as_deref().map(|f| ("--tuning", f));
     let inputs: Vec<_> = [Some(("--input", args.input)), tuning].into_iter().flatten().collect();
-    let outputs = [("--out", args.out), ("--summary", args.summary), ("--plot", args.plot)];
+    let outputs = [("--out", args.out), ("--summary", args.summary), ("--plot", args.plot), ("--health", args.health)];
     let outputs: Vec<_> = outputs.into_iter().filter_map(|(option, p)| Some((option, p?))).collect();
     super::check_distinct(&inputs, &outputs)?;
     // The outputs are opened (under their temporary names) before the run, so that a directory that is not there
     // or not writable is said at once, not after the whole record.
     let open = |p: Option<&Path>| p.map(OutputFile::create).transpose();
-    let (est, sum, fig) = (open(args.out)?, open(args.summary)?, open(args.plot)?);
+    let (est, sum, fig, health) = (open(args.out)?, open(args.summary)?, open(args.plot)?, open(args.health)?);
     let source = args.input.display().to_string();
     let mut reader = Reader::open(args.input, &["u", "y"], &["a0", "a1", "b0"], Time::Required)?;
     let record = Stream {
@@ -625,7 +631,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let est = est.map(|f| write_estimates(f, &result)).transpose()?;
     let sum = sum.map(|f| write_summary(f, &result)).transpose()?;
     let fig = fig.map(|f| crate::plot::write(f, &result)).transpose()?;
-    for f in est.into_iter().chain(sum).chain(fig) {
+    let health = health.map(|f| write_health(f, &result)).transpose()?;
+    for f in est.into_iter().chain(sum).chain(fig).chain(health) {
         f.commit()?;
     }
     Ok(result)
@@ -739,6 +746,37 @@ fn misfit(figs: &[WindowFigures], f: &WindowFigures) -> Option<usize> {
 /// paper's records the four stay within 1.3 times each other once converged (PRBS: 4.8 to 6.0 nm; triangle: 3.3 to
 /// 3.6 nm).
 const MISFIT: f64 = 3.0;
+
+/// `HEALTH.csv`: each estimator's health on the rows of `EST.csv`, in the words and counts of the board's `status`
+/// (the counts since the record's start); the innovation RMS, of the last second, empty for the estimators without
+/// one (`rls`, `arx`).
+fn write_health(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
+    let res = (|| -> std::io::Result<()> {
+        let w = f.writer();
+        w.write_all(b"t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um\n")?;
+        for (i, t) in r.times.iter().enumerate() {
+            for (name, h) in r.names.iter().zip(&r.healths[i]) {
+                write!(
+                    w,
+                    "{t},{name},{},{},{},{},{},",
+                    h.adaptation.name(),
+                    h.rejected_samples,
+                    h.changes_detected,
+                    h.numeric_resets,
+                    h.covariance_repairs
+                )?;
+                if h.innovation_rms_um.is_nan() {
+                    writeln!(w)?;
+                } else {
+                    writeln!(w, "{}", h.innovation_rms_um)?;
+                }
+            }
+        }
+        Ok(())
+    })();
+    res.map_err(|e| f.write_error(e))?;
+    Ok(f)
+}
 
 fn write_estimates(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
     let res = (|| -> std::io::Result<()> {
@@ -990,6 +1028,7 @@ mod tests {
             out: None,
             summary: None,
             plot: None,
+            health: None,
             dac_step_v: None,
             precision: Precision::F64,
         };
