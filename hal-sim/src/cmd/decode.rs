@@ -10,7 +10,9 @@
 //! name the capture's line: `identify` needs uniformly sampled data, and a hole must not be bridged silently. With
 //! `--segments` nothing is refused and nothing good is thrown away: damaged frames are skipped (each reported), and
 //! every gap-free run of samples goes to its own file, `OUT` with `-1`, `-2`, ... before the extension. `t` keeps
-//! counting from the recording's first sample in every segment, so the segments keep their place in time.
+//! counting from the recording's first sample in every segment, so the segments keep their place in time (from the
+//! first intact frame's, when the recording's first frames were damaged: the message names the board sample at
+//! `t = 0`).
 //!
 //! **The board's tuning.** The recording's tuning lines ([`nanopos_id::record::write_tuning_line`]: every key's
 //! values, exact) go to a TOML file beside the output, `OUT` with `.tuning.toml` for its extension, which `identify
