@@ -2,102 +2,30 @@
 //! logic, on the simulated board through the HAL trait: the same calls the firmware makes, in the same order.
 
 use hal_sim::board::SimBoard;
+use hal_sim::lab::Lab;
 use hal_sim::sim::Scenario;
-use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
-use nanopos_id::control::{LineBuffer, ESTIMATOR_NAMES};
+use nanopos_id::console::{write_record_end, REPLY_BYTES};
+use nanopos_id::control::ESTIMATOR_NAMES;
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER};
-use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline, SampleOutput};
+use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
 use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
 use std::path::{Path, PathBuf};
 
-/// The board, the interrupt's state and the command side, wired as in the firmware.
-struct Lab {
-    board: SimBoard,
-    isr: Instrument<f32>,
-    ctl: Controller,
-    line: LineBuffer,
-    /// Everything sent back on the serial link.
-    link: String,
-}
-
-impl Lab {
-    fn new() -> Self {
-        Self::with_stage(None)
-    }
-
-    /// On the simulated board, its stage (payload on and off alike) `stage` instead of the paper's.
-    fn with_stage(stage: Option<StageParams<f64>>) -> Self {
-        let (mut board_settings, settings) = Scenario::Prbs.settings(200.0, 1);
-        if let Some(p) = stage {
-            (board_settings.plant.before, board_settings.plant.after) = (p, p);
-        }
-        let board = SimBoard::new(board_settings);
-        let ctl = Controller::new(settings, board.description(), true).unwrap();
-        let isr = Instrument::new(ctl.config(), &ctl.tuning());
-        Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new() }
-    }
-
-    /// Type `text` on the link; every completed line is executed, its change posted and applied by one sample.
-    /// Returns the replies (the link has them, and the recording's tuning lines after them when due).
-    fn send(&mut self, text: &str) -> String {
-        let mut replies = String::new();
-        // As the firmware reads its receive buffer, on a link that loses nothing.
-        for parsed in self.line.read(text.as_bytes(), false, usize::MAX) {
-            // The firmware's buffer: every part of every reply must fit it.
-            let mut reply = TextBuf::<REPLY_BYTES>::default();
-            let (change, mut rest) = match parsed {
-                Ok(cmd) => {
-                    let isr = &self.isr;
-                    self.ctl.execute(cmd, || isr.status(), &mut reply)
-                }
-                Err(e) => {
-                    self.ctl.refuse(e, &mut reply);
-                    (None, Rest::none())
-                }
-            };
-            if let Some(c) = change {
-                assert!(self.isr.post(c).is_ok());
-                self.isr.sample(&mut self.board);
-                assert!(!self.isr.change_pending());
-            }
-            loop {
-                assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
-                self.link.push_str(reply.as_str());
-                replies.push_str(reply.as_str());
-                reply.clear();
-                if !rest.write_next(&self.ctl, &mut reply) {
-                    break;
-                }
-            }
-            // As the firmware: the recording's tuning lines after the reply.
-            if self.ctl.take_tuning_due() {
-                for k in 0.. {
-                    reply.clear();
-                    if !self.ctl.write_tuning_line(k, self.isr.changed_at(), &mut reply) {
-                        break;
-                    }
-                    self.link.push_str(reply.as_str());
-                }
-            }
-        }
-        replies
-    }
-
-    fn sample(&mut self) -> SampleOutput<f32> {
-        self.isr.sample(&mut self.board)
-    }
-
-    fn run(&mut self, n: usize) -> Vec<SampleOutput<f32>> {
-        (0..n).map(|_| self.sample()).collect()
-    }
-
+/// What these tests read of the firmware on the simulated board ([`Lab`]).
+trait Measure {
     /// 20 s on the paper's stage with the payload on; over the last 10 s, every 10 ms, each estimator's samples
     /// starved (of 1 000) and the relative errors `(a0, a1, b0)` of its mean parameters against the truth.
+    fn run_measuring(&mut self) -> ([usize; 4], [[f64; 3]; 4]);
+    /// Estimator `i`'s parameters (`rls`, `ekf`, `hekf`, `arx`).
+    fn params(&self, i: usize) -> StageParams<f32>;
+}
+
+impl Measure for Lab {
     fn run_measuring(&mut self) -> ([usize; 4], [[f64; 3]; 4]) {
         let truth = StageParams::PAYLOAD;
         let (mut starved, mut sums) = ([0usize; 4], [[0.0f64; 3]; 4]);

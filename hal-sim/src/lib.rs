@@ -11,6 +11,7 @@ pub mod board;
 pub mod cmd;
 pub mod csv;
 pub mod experiment;
+pub mod lab;
 pub mod noise;
 pub mod plant;
 pub mod plot;

@@ -1,0 +1,151 @@
+//! The firmware on the simulated board: its interrupt body ([`Instrument`]), its command side ([`Controller`]) and
+//! its console's loop (lines in, replies, the recording's tuning lines and frames out), wired as in
+//! `src/bin/nanopos-fw/firmware.rs`, with the board behind the same HAL trait. `nanopos-sim console` runs it on a
+//! terminal; the host tests (`tests/instrument.rs`) drive it sample by sample.
+
+use crate::board::SimBoard;
+use crate::sim::Scenario;
+use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
+use nanopos_id::control::LineBuffer;
+use nanopos_id::hal::StageBoard;
+use nanopos_id::instrument::Instrument;
+use nanopos_id::pipeline::SampleOutput;
+use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
+use nanopos_id::text::TextBuf;
+use nanopos_id::StageParams;
+
+/// The board, the interrupt's state and the command side.
+pub struct Lab {
+    /// The simulated board.
+    pub board: SimBoard,
+    /// The interrupt's state, in the firmware's f32.
+    pub isr: Instrument<f32>,
+    /// The command side (the console task's).
+    pub ctl: Controller,
+    /// The console's line assembly.
+    pub line: LineBuffer,
+    /// Everything sent back on the serial link: replies, the recording's tuning lines (not its frames: see
+    /// [`Lab::drain_recording`]).
+    pub link: String,
+    /// A recording started and its end line has not gone out (the firmware's console keeps the same flag).
+    recording: bool,
+}
+
+impl Default for Lab {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Lab {
+    /// The paper's stage and board ([`Scenario::Prbs`] over 200 s: the payload comes off at 100 s), the PRBS
+    /// running from the start, as the firmware starts.
+    pub fn new() -> Self {
+        Self::with_stage(None)
+    }
+
+    /// [`Lab::new`], with the stage `stage` (payload on and off alike) instead of the paper's.
+    pub fn with_stage(stage: Option<StageParams<f64>>) -> Self {
+        let (mut board_settings, settings) = Scenario::Prbs.settings(200.0, 1);
+        if let Some(p) = stage {
+            (board_settings.plant.before, board_settings.plant.after) = (p, p);
+        }
+        let board = SimBoard::new(board_settings);
+        let ctl = Controller::new(settings, board.description(), true).expect("the paper's settings design");
+        let isr = Instrument::new(ctl.config(), &ctl.tuning());
+        Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new(), recording: false }
+    }
+
+    /// Bytes typed on the link (lines ended by `\n`, `\r` or both, as a terminal sends them): every line they
+    /// complete is executed, its change posted and applied by one sample, as the firmware's console does. Returns
+    /// the replies; [`Lab::link`] has them too, each followed by the recording's tuning lines when due.
+    pub fn send_bytes(&mut self, bytes: &[u8]) -> String {
+        let mut replies = String::new();
+        // As the firmware reads its receive buffer, on a link that loses nothing.
+        for parsed in self.line.read(bytes, false, usize::MAX) {
+            // The firmware's buffer: every part of every reply fits it (the widest, `status`'s, is tested).
+            let mut reply = TextBuf::<REPLY_BYTES>::default();
+            let (change, mut rest) = match parsed {
+                Ok(cmd) => {
+                    let isr = &self.isr;
+                    self.ctl.execute(cmd, || isr.status(), &mut reply)
+                }
+                Err(e) => {
+                    self.ctl.refuse(e, &mut reply);
+                    (None, Rest::none())
+                }
+            };
+            if let Some(c) = change {
+                self.recording |= c.record.is_some_and(|r| r != Some(0));
+                // Nothing else posts, and each change is applied at once: the slot is free.
+                assert!(self.isr.post(c).is_ok(), "a change was left pending");
+                self.isr.sample(&mut self.board);
+            }
+            loop {
+                assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
+                self.link.push_str(reply.as_str());
+                replies.push_str(reply.as_str());
+                reply.clear();
+                if !rest.write_next(&self.ctl, &mut reply) {
+                    break;
+                }
+            }
+            // As the firmware: the recording's tuning lines after the reply, stamped with the sample the change
+            // applied to.
+            if self.ctl.take_tuning_due() {
+                for k in 0.. {
+                    reply.clear();
+                    if !self.ctl.write_tuning_line(k, self.isr.changed_at(), &mut reply) {
+                        break;
+                    }
+                    self.link.push_str(reply.as_str());
+                }
+            }
+        }
+        replies
+    }
+
+    /// [`Lab::send_bytes`] of a text.
+    pub fn send(&mut self, text: &str) -> String {
+        self.send_bytes(text.as_bytes())
+    }
+
+    /// One sample of the interrupt.
+    pub fn sample(&mut self) -> SampleOutput<f32> {
+        self.isr.sample(&mut self.board)
+    }
+
+    /// `n` samples.
+    pub fn run(&mut self, n: usize) -> Vec<SampleOutput<f32>> {
+        (0..n).map(|_| self.sample()).collect()
+    }
+
+    /// The recording's frames the firmware's console would send now: every whole frame while it records; once it
+    /// stopped, the rest and its end line (and the command side learns that it ended). Empty when nothing is due.
+    pub fn drain_recording(&mut self) -> String {
+        let mut out = String::new();
+        let (mut samples, mut frame) = ([RawSample::default(); FRAME_SAMPLES], [0u8; FRAME_MAX_BYTES]);
+        loop {
+            let st = self.isr.record_status();
+            if st.active && st.buffered < FRAME_SAMPLES {
+                break;
+            }
+            if st.buffered > 0 {
+                let (first, n) = self.isr.drain_recorded(&mut samples);
+                let len = encode_frame(first, &samples[..n], &mut frame);
+                out.push_str(core::str::from_utf8(&frame[..len]).expect("frames are ASCII"));
+                continue;
+            }
+            if !st.active && self.recording {
+                self.recording = false;
+                let mut end = TextBuf::<80>::default();
+                // The end line fits its buffer (`tests/instrument.rs` writes the longest).
+                let _ = write_record_end(&st, &mut end);
+                out.push_str(end.as_str());
+                self.ctl.record_ended();
+            }
+            break;
+        }
+        out
+    }
+}
