@@ -6,7 +6,7 @@
 use crate::board::SimBoard;
 use crate::sim::Scenario;
 use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
-use nanopos_id::control::LineBuffer;
+use nanopos_id::control::{parse, Command, LineBuffer, ParseError};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::instrument::Instrument;
 use nanopos_id::pipeline::SampleOutput;
@@ -62,44 +62,62 @@ impl Lab {
     pub fn send_bytes(&mut self, bytes: &[u8]) -> String {
         let mut replies = String::new();
         // As the firmware reads its receive buffer, on a link that loses nothing.
-        for parsed in self.line.read(bytes, false, usize::MAX) {
-            // The firmware's buffer: every part of every reply fits it (the widest, `status`'s, is tested).
-            let mut reply = TextBuf::<REPLY_BYTES>::default();
-            let (change, mut rest) = match parsed {
-                Ok(cmd) => {
-                    let isr = &self.isr;
-                    self.ctl.execute(cmd, || isr.status(), &mut reply)
-                }
-                Err(e) => {
-                    self.ctl.refuse(e, &mut reply);
-                    (None, Rest::none())
-                }
-            };
-            if let Some(c) = change {
-                self.recording |= c.record.is_some_and(|r| r != Some(0));
-                // Nothing else posts, and each change is applied at once: the slot is free.
-                assert!(self.isr.post(c).is_ok(), "a change was left pending");
-                self.isr.sample(&mut self.board);
+        let mut line = core::mem::take(&mut self.line);
+        for parsed in line.read(bytes, false, usize::MAX) {
+            replies.push_str(&self.execute(parsed));
+        }
+        self.line = line;
+        replies
+    }
+
+    /// The reply to `status`, not sent on the link (what the firmware's log shows, at 10 Hz), whatever part of a
+    /// line the link has received.
+    pub fn status_reply(&mut self) -> String {
+        let at = self.link.len();
+        let reply = self.execute(parse(b"status"));
+        self.link.truncate(at);
+        reply
+    }
+
+    /// One line, parsed: executed and answered, as the firmware's console does.
+    fn execute(&mut self, parsed: Result<Command, ParseError>) -> String {
+        let mut replies = String::new();
+        // The firmware's buffer: every part of every reply fits it (the widest, `status`'s, is tested).
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        let (change, mut rest) = match parsed {
+            Ok(cmd) => {
+                let isr = &self.isr;
+                self.ctl.execute(cmd, || isr.status(), &mut reply)
             }
-            loop {
-                assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
-                self.link.push_str(reply.as_str());
-                replies.push_str(reply.as_str());
+            Err(e) => {
+                self.ctl.refuse(e, &mut reply);
+                (None, Rest::none())
+            }
+        };
+        if let Some(c) = change {
+            self.recording |= c.record.is_some_and(|r| r != Some(0));
+            // Nothing else posts, and each change is applied at once: the slot is free.
+            assert!(self.isr.post(c).is_ok(), "a change was left pending");
+            self.isr.sample(&mut self.board);
+        }
+        loop {
+            assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());
+            self.link.push_str(reply.as_str());
+            replies.push_str(reply.as_str());
+            reply.clear();
+            if !rest.write_next(&self.ctl, &mut reply) {
+                break;
+            }
+        }
+        // As the firmware: the recording's tuning lines after the reply, stamped with the sample the change
+        // applied to.
+        if self.ctl.take_tuning_due() {
+            for k in 0.. {
                 reply.clear();
-                if !rest.write_next(&self.ctl, &mut reply) {
+                if !self.ctl.write_tuning_line(k, self.isr.changed_at(), &mut reply) {
                     break;
                 }
-            }
-            // As the firmware: the recording's tuning lines after the reply, stamped with the sample the change
-            // applied to.
-            if self.ctl.take_tuning_due() {
-                for k in 0.. {
-                    reply.clear();
-                    if !self.ctl.write_tuning_line(k, self.isr.changed_at(), &mut reply) {
-                        break;
-                    }
-                    self.link.push_str(reply.as_str());
-                }
+                self.link.push_str(reply.as_str());
             }
         }
         replies

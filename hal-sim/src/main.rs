@@ -100,6 +100,13 @@ enum Command {
         #[arg(long, value_name = "A,GAMMA", allow_hyphen_values = true)]
         weight: Option<hal_sim::cmd::fit::Weight>,
     },
+    /// The firmware's console on the simulated board: commands on standard input, the board's replies and recording
+    /// stream on standard output (what `decode` reads), at the board's pace.
+    Console {
+        /// Write the `status` reply to standard error every S seconds of simulated time.
+        #[arg(long, value_name = "S", allow_negative_numbers = true)]
+        status_every: Option<f64>,
+    },
     /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
     Decode {
         /// The capture (everything the board sent; replies and other lines are skipped).
@@ -281,6 +288,11 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 None => eprintln!("nanopos-sim: note: the capture ends before the recording's end line"),
             }
             Ok(())
+        }
+        Command::Console { status_every } => {
+            let args = hal_sim::cmd::console::ConsoleArgs { status_every_s: status_every };
+            let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
+            hal_sim::cmd::console::run(args, std::io::stdin(), &mut link, &mut log).map(|_| ())
         }
         Command::Fit { input, arx, zero_initial, weight } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;

@@ -1,0 +1,107 @@
+//! `nanopos-sim console [--status-every S]`: the firmware's console on the simulated board, without a board.
+//!
+//! Standard input is the link's receive side, standard output its transmit side: type the README's commands (or pipe
+//! a script) and read the replies, the recording's header, tuning lines, frames and end line exactly as the
+//! NUCLEO-G474RE sends them over its virtual COM port, so that `nanopos-sim decode` takes the output as it takes a
+//! capture of the board's. The board runs the firmware's interrupt body ([`Lab`]: the same pipeline, estimators,
+//! limits and fault logic) on the paper's stage, the payload removed after 100 s, the PRBS running from the start.
+//!
+//! Time runs at the board's pace, 10 000 samples a second of the wall clock, in steps of 10 ms (a line is taken at
+//! the next step), so a script with pauses (`sleep 5` between commands) sees what it would see on the board: the
+//! estimators converge while it sleeps. `--status-every S` writes the `status` reply every `S` s to standard error,
+//! where the firmware's defmt log would go.
+//!
+//! At the end of the input (Ctrl-D, or a script's end) the session ends: a burst recording runs to its end first, a
+//! recording `record on` started is stopped (`record off`, its reply written), and the recording's end line goes
+//! out. Every line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
+
+use super::CliError;
+use crate::lab::Lab;
+use std::io::{Read, Write};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// Samples in a step of the session: 10 ms at 10 kHz (the recording's ring holds 0.1 s).
+const STEP_SAMPLES: u64 = 100;
+
+/// The command line's options.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ConsoleArgs {
+    /// Write the `status` reply to the log every this many seconds of simulated time.
+    pub status_every_s: Option<f64>,
+}
+
+/// Run the session: `input` is what the link receives, `link` what it sends back, `log` where the periodic status
+/// goes. Returns the samples the board ran.
+pub fn run(
+    args: ConsoleArgs,
+    input: impl Read + Send + 'static,
+    link: &mut dyn Write,
+    log: &mut dyn Write,
+) -> Result<u64, CliError> {
+    if let Some(s) = args.status_every_s {
+        if !(s.is_finite() && s >= 0.01) {
+            return Err(CliError(format!("--status-every {s}: at least 0.01 s")));
+        }
+    }
+    let link_error = |e: std::io::Error| CliError(format!("standard output: cannot write: {}", super::io_reason(&e)));
+    let log_error = |e: std::io::Error| CliError(format!("standard error: cannot write: {}", super::io_reason(&e)));
+    // The receive side on a thread of its own, so that the board runs on while nothing is typed.
+    let (to_board, received) = mpsc::channel::<Vec<u8>>();
+    std::thread::spawn(move || {
+        let mut input = input;
+        let mut buf = [0u8; 256];
+        while let Ok(n @ 1..) = input.read(&mut buf) {
+            if to_board.send(buf[..n].to_vec()).is_err() {
+                break;
+            }
+        }
+    });
+    let rate_hz = 1.0 / crate::board::BoardSettings::default().plant.sample_period_s;
+    let status_every = args.status_every_s.map(|s| ((s * rate_hz).round() as u64).max(1));
+    let mut lab = Lab::new();
+    let start = Instant::now();
+    let mut samples = 0u64;
+    let mut ended = false;
+    loop {
+        // What arrived: every line it completes is executed (its change applied by one sample) and answered.
+        loop {
+            match received.try_recv() {
+                Ok(bytes) => {
+                    lab.send_bytes(&bytes);
+                }
+                Err(mpsc::TryRecvError::Empty) => break,
+                Err(mpsc::TryRecvError::Disconnected) => {
+                    if !ended {
+                        ended = true;
+                        // A recording until stopped would never end: stopped as the user would.
+                        let st = lab.isr.record_status();
+                        if st.active && st.remaining.is_none() {
+                            lab.send("record off\n");
+                        }
+                    }
+                    break;
+                }
+            }
+        }
+        link.write_all(lab.link.as_bytes()).map_err(link_error)?;
+        lab.link.clear();
+        for _ in 0..STEP_SAMPLES {
+            lab.sample();
+            samples += 1;
+            if status_every.is_some_and(|n| samples % n == 0) {
+                let status = lab.status_reply();
+                log.write_all(status.as_bytes()).map_err(log_error)?;
+            }
+        }
+        let frames = lab.drain_recording();
+        link.write_all(frames.as_bytes()).map_err(link_error)?;
+        link.flush().map_err(link_error)?;
+        if ended && !lab.isr.record_status().active {
+            // The end line went out with the last frames (`Lab::drain_recording`).
+            return Ok(samples);
+        }
+        let due = start + Duration::from_secs_f64(samples as f64 / rate_hz);
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+}

@@ -1,0 +1,93 @@
+//! `nanopos-sim console`: the firmware's console on the simulated board, as a user or a script meets it through
+//! standard input and output, and what `decode` and `identify` make of its recording.
+
+use std::io::Write;
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+
+fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
+}
+
+/// A console session with `input` typed, then the input's end.
+fn console(args: &[&str], input: &[u8]) -> Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .arg("console")
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run nanopos-sim console");
+    child.stdin.take().expect("stdin").write_all(input).expect("type");
+    child.wait_with_output().expect("the session ends with its input")
+}
+
+/// Each command answered as on the board, a malformed one with an `error:` reply; a burst recorded and ended; the
+/// output decodes to the burst's samples, with the board's tuning, and `identify` replays it.
+#[test]
+fn a_console_session_is_the_boards_and_its_recording_decodes() {
+    let out = console(&[], b"status\nexcite prbs 1\nfrob\nlimits 5 -5 0 100\nrecord burst 2000\n");
+    let (link, log) = (String::from_utf8(out.stdout).unwrap(), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{log}");
+    assert!(log.is_empty(), "{log}");
+    let replies: Vec<&str> = link.lines().filter(|l| l.starts_with("ok ") || l.starts_with("error: ")).collect();
+    assert_eq!(replies.len(), 5, "{link}");
+    assert!(replies[0].starts_with("ok status samples="), "{link}");
+    assert_eq!(replies[1], "ok excite prbs 1 V (running)");
+    assert!(replies[2].starts_with("error: unknown command"), "{link}");
+    assert_eq!(replies[3], "error: word 3: expected the highest command in V, above the lowest, at most 10");
+    assert_eq!(replies[4], "ok record burst 2000");
+    assert_eq!(link.lines().filter(|l| l.starts_with("est ")).count(), 4, "status: a line per estimator");
+    assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples=2000 overflow=0 "), "{link}");
+
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cap.txt"), &link).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("2000 samples (0.2 s at 10000 Hz)"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(dir.path().join("run.csv")).unwrap().lines().count(), 2001);
+    let out = nanopos_sim(
+        &["identify", "--input", "run.csv", "--tuning", "run.tuning.toml", "--estimators", "hekf", "--window", "0:0.2"],
+        dir.path(),
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// At the input's end a recording `record on` started is stopped, as the user would, and ended; bytes no terminal
+/// should send get their errors; `--status-every` logs the status on standard error.
+#[test]
+fn the_session_ends_cleanly_whatever_it_was_sent() {
+    let mut input = b"record on\n".to_vec();
+    input.extend_from_slice(&[b'x'; 200]);
+    input.extend_from_slice(b"\n\xff\xfe status\n");
+    let out = console(&["--status-every", "0.01"], &input);
+    let (link, log) = (String::from_utf8(out.stdout).unwrap(), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{log}");
+    let replies: Vec<&str> = link.lines().filter(|l| l.starts_with("ok ") || l.starts_with("error: ")).collect();
+    assert_eq!(
+        replies,
+        ["ok record on", "error: line longer than 96 bytes", "error: byte 0 is not printable ASCII", "ok record off"],
+        "{link}"
+    );
+    assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples="), "{link}");
+    assert!(log.lines().filter(|l| l.starts_with("ok status samples=")).count() >= 1, "{log}");
+    assert!(!log.contains("ok record"), "the log has the status only: {log}");
+
+    let out = console(&["--status-every", "0"], b"");
+    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(String::from_utf8_lossy(&out.stderr).trim_end(), "nanopos-sim: --status-every 0: at least 0.01 s");
+}
+
+/// The status the session logs is taken between samples, not typed on the link: a line half received stays whole.
+#[test]
+fn the_logged_status_leaves_a_half_received_line_alone() {
+    let mut lab = hal_sim::lab::Lab::new();
+    assert_eq!(lab.send("excite o"), "");
+    let status = lab.status_reply();
+    assert!(status.starts_with("est rls ") && status.lines().last().unwrap().starts_with("ok status "), "{status}");
+    let reply = lab.send("ff\n");
+    assert!(reply.starts_with("ok excite off"), "{reply}");
+    assert_eq!(lab.link, reply, "the link carried the reply only");
+}
