@@ -750,50 +750,41 @@ const MISFIT: f64 = 3.0;
 /// `HEALTH.csv`: each estimator's health on the rows of `EST.csv`, in the words and counts of the board's `status`
 /// (the counts since the record's start); the innovation RMS, of the last second, empty for the estimators without
 /// one (`rls`, `arx`).
-fn write_health(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
-    let res = (|| -> std::io::Result<()> {
-        let w = f.writer();
-        w.write_all(b"t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um\n")?;
-        for (i, t) in r.times.iter().enumerate() {
-            for (name, h) in r.names.iter().zip(&r.healths[i]) {
-                write!(
-                    w,
-                    "{t},{name},{},{},{},{},{},",
-                    h.adaptation.name(),
-                    h.rejected_samples,
-                    h.changes_detected,
-                    h.numeric_resets,
-                    h.covariance_repairs
-                )?;
-                if h.innovation_rms_um.is_nan() {
-                    writeln!(w)?;
-                } else {
-                    writeln!(w, "{}", h.innovation_rms_um)?;
-                }
-            }
+fn write_health(f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
+    write_rows(f, r, "state,rejected,changes,resets,repairs,innovation_rms_um", |w, i, j| {
+        let h = &r.healths[i][j];
+        let (state, counts) = (h.adaptation.name(), [h.rejected_samples, h.changes_detected, h.numeric_resets]);
+        write!(w, "{state},{},{},{},{},", counts[0], counts[1], counts[2], h.covariance_repairs)?;
+        if h.innovation_rms_um.is_nan() {
+            writeln!(w)
+        } else {
+            writeln!(w, "{}", h.innovation_rms_um)
         }
-        Ok(())
-    })();
-    res.map_err(|e| f.write_error(e))?;
-    Ok(f)
+    })
 }
 
-fn write_estimates(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
+fn write_estimates(f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
+    write_rows(f, r, "a0,a1,b0,f0_hz,zeta,dc_gain", |w, i, j| {
+        let p = &r.estimates[i][j];
+        writeln!(w, "{},{},{},{},{},{}", p.a0, p.a1, p.b0, p.f0_hz(), p.damping_ratio(), p.dc_gain())
+    })
+}
+
+/// A file of the 100 Hz rows: the header `t,estimator,` and `columns`, then per row and estimator its time and name
+/// and what `fields(w, row, estimator)` writes, its line end included.
+fn write_rows(
+    mut f: OutputFile,
+    r: &Identified,
+    columns: &str,
+    fields: impl Fn(&mut dyn Write, usize, usize) -> std::io::Result<()>,
+) -> Result<OutputFile, CliError> {
     let res = (|| -> std::io::Result<()> {
         let w = f.writer();
-        w.write_all(b"t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain\n")?;
+        writeln!(w, "t,estimator,{columns}")?;
         for (i, t) in r.times.iter().enumerate() {
-            for (name, p) in r.names.iter().zip(&r.estimates[i]) {
-                writeln!(
-                    w,
-                    "{t},{name},{},{},{},{},{},{}",
-                    p.a0,
-                    p.a1,
-                    p.b0,
-                    p.f0_hz(),
-                    p.damping_ratio(),
-                    p.dc_gain()
-                )?;
+            for (j, name) in r.names.iter().enumerate() {
+                write!(w, "{t},{name},")?;
+                fields(w, i, j)?;
             }
         }
         Ok(())
