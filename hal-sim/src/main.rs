@@ -291,6 +291,12 @@ fn run(cli: Cli) -> Result<(), CliError> {
         }
         Command::Console { status_every } => {
             let args = hal_sim::cmd::console::ConsoleArgs { status_every_s: status_every };
+            if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+                eprintln!(
+                    "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (status, excite, \
+                     tune, record, ... as in the README), Ctrl-D ends the session"
+                );
+            }
             let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
             hal_sim::cmd::console::run(args, std::io::stdin(), &mut link, &mut log).map(|_| ())
         }
