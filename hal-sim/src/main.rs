@@ -106,6 +106,10 @@ enum Command {
         /// Write the `status` reply to standard error every S seconds of simulated time.
         #[arg(long, value_name = "S", allow_negative_numbers = true)]
         status_every: Option<f64>,
+        /// A stage of y'' = -a0 y - a1 y' + b0 u instead of the paper's (its payload change too) [default: the
+        /// paper's, 8.08e5,77.6,7.06e6, payload removed after 100 s].
+        #[arg(long, value_name = "B0,A1,A0", allow_hyphen_values = true)]
+        stage: Option<hal_sim::cmd::console::StageArg>,
     },
     /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
     Decode {
@@ -289,8 +293,8 @@ fn run(cli: Cli) -> Result<(), CliError> {
             }
             Ok(())
         }
-        Command::Console { status_every } => {
-            let args = hal_sim::cmd::console::ConsoleArgs { status_every_s: status_every };
+        Command::Console { status_every, stage } => {
+            let args = hal_sim::cmd::console::ConsoleArgs { status_every_s: status_every, stage };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
                     "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (status, excite, \

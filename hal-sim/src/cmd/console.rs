@@ -1,10 +1,13 @@
-//! `nanopos-sim console [--status-every S]`: the firmware's console on the simulated board, without a board.
+//! `nanopos-sim console [--status-every S] [--stage B0,A1,A0]`: the firmware's console on the simulated board,
+//! without a board.
 //!
 //! Standard input is the link's receive side, standard output its transmit side: type the README's commands (or pipe
 //! a script) and read the replies, the recording's header, tuning lines, frames and end line exactly as the
 //! NUCLEO-G474RE sends them over its virtual COM port, so that `nanopos-sim decode` takes the output as it takes a
 //! capture of the board's. The board runs the firmware's interrupt body ([`Lab`]: the same pipeline, estimators,
-//! limits and fault logic) on the paper's stage, the payload removed after 100 s, the PRBS running from the start.
+//! limits and fault logic) on the paper's stage, the payload removed after 100 s, the PRBS running from the start;
+//! with `--stage`, on a stage of model (1) of your own, unchanging (to rehearse `tune initial`, `tune prefilter` for
+//! it, say).
 //!
 //! Time runs at the board's pace, 10 000 samples a second of the wall clock, in steps of 10 ms (a line is taken at
 //! the next step), so a script with pauses (`sleep 5` between commands) sees what it would see on the board: the
@@ -17,6 +20,7 @@
 
 use super::CliError;
 use crate::lab::Lab;
+use nanopos_id::StageParams;
 use std::io::{Read, Write};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -24,9 +28,38 @@ use std::time::{Duration, Instant};
 /// Samples in a step of the session: 10 ms at 10 kHz (the recording's ring holds 0.1 s).
 const STEP_SAMPLES: u64 = 100;
 
+/// `--stage B0,A1,A0`: the stage of `y'' = -a0 y - a1 y' + b0 u`, in the paper's units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StageArg(pub StageParams<f64>);
+
+impl std::str::FromStr for StageArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || {
+            format!(
+                "'{s}': expected B0,A1,A0 of y'' = -a0 y - a1 y' + b0 u (um/(s^2 V), 1/s, 1/s^2): b0 not 0, a1 > 0, \
+                 and 0 < a0 < (pi 10 kHz)^2, a resonance below the board's Nyquist frequency (the paper's stage: \
+                 8.08e5,77.6,7.06e6)"
+            )
+        };
+        let v: Vec<f64> = s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+        let nyquist = std::f64::consts::PI * 1e4;
+        match v[..] {
+            [b0, a1, a0]
+                if b0.is_finite() && b0 != 0.0 && a1 > 0.0 && a1.is_finite() && a0 > 0.0 && a0 < nyquist * nyquist =>
+            {
+                Ok(StageArg(StageParams { b0, a1, a0 }))
+            }
+            _ => Err(bad()),
+        }
+    }
+}
+
 /// The command line's options.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ConsoleArgs {
+    /// The stage instead of the paper's (and no payload change).
+    pub stage: Option<StageArg>,
     /// Write the `status` reply to the log every this many seconds of simulated time.
     pub status_every_s: Option<f64>,
 }
@@ -59,7 +92,7 @@ pub fn run(
     });
     let rate_hz = 1.0 / crate::board::BoardSettings::default().plant.sample_period_s;
     let status_every = args.status_every_s.map(|s| ((s * rate_hz).round() as u64).max(1));
-    let mut lab = Lab::new();
+    let mut lab = Lab::with_stage(args.stage.map(|s| s.0));
     let start = Instant::now();
     let mut samples = 0u64;
     let mut ended = false;
