@@ -4,14 +4,14 @@
 use hal_sim::board::SimBoard;
 use hal_sim::lab::Lab;
 use hal_sim::sim::Scenario;
-use nanopos_id::console::{write_record_end, REPLY_BYTES};
+use nanopos_id::console::REPLY_BYTES;
 use nanopos_id::control::ESTIMATOR_NAMES;
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER};
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
-use nanopos_id::record::{decode_frame, encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
+use nanopos_id::record::{decode_frame, RawSample, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
 use std::path::{Path, PathBuf};
@@ -793,21 +793,6 @@ fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
     assert!(gate.may_feed(lab.isr.status().samples));
 }
 
-/// Drain the recorder as the firmware does: whole frames while recording, the remainder once it stopped.
-fn drain(lab: &mut Lab, link: &mut String, finished: bool) {
-    let mut buf = [RawSample::default(); FRAME_SAMPLES];
-    let mut frame = [0u8; FRAME_MAX_BYTES];
-    loop {
-        let st = lab.isr.record_status();
-        if st.buffered == 0 || (st.active && st.buffered < FRAME_SAMPLES && !finished) {
-            return;
-        }
-        let (first, n) = lab.isr.drain_recorded(&mut buf);
-        let len = encode_frame(first, &buf[..n], &mut frame);
-        link.push_str(std::str::from_utf8(&frame[..len]).unwrap());
-    }
-}
-
 #[test]
 fn a_recording_carries_exactly_what_the_interrupt_saw() {
     let mut lab = Lab::new();
@@ -832,15 +817,14 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
         let out = lab.sample();
         outputs.push(out);
         if k % 10 == 0 {
-            drain(&mut lab, &mut link, false);
+            link.push_str(&lab.drain_recording());
         }
     }
-    drain(&mut lab, &mut link, true);
+    // The burst ended long ago: its last frames and end line went out, and nothing is left.
+    assert!(link.ends_with("# nanopos-record end samples=3000 overflow=0 crc=8f53\n"), "{link}");
+    assert_eq!(lab.drain_recording(), "");
     let st = lab.isr.record_status();
-    assert!(!st.active && !st.overflowed && st.recorded == 3000, "{st:?}");
-    let mut end = TextBuf::<80>::default();
-    write_record_end(&st, &mut end).unwrap();
-    assert_eq!(end.as_str(), "# nanopos-record end samples=3000 overflow=0 crc=8f53\n");
+    assert!(!st.active && !st.overflowed && st.recorded == 3000 && st.buffered == 0, "{st:?}");
 
     // Decode: contiguous frames from the sample the change applied on; y is each sample's probe code, u the code
     // in effect over its period (the board's delay of one sample: the code written one sample earlier).
@@ -880,10 +864,10 @@ fn the_interrupt_adds_the_excitation_to_a_command_of_its_own_and_records_the_sum
         assert_eq!(seen, out.y_um, "the command is given this sample's reading");
         outputs.push(out);
         if k % 10 == 0 {
-            drain(&mut lab, &mut link, false);
+            link.push_str(&lab.drain_recording());
         }
     }
-    drain(&mut lab, &mut link, true);
+    assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples=2000 overflow=0 crc="), "{link}");
     let cfg = lab.isr.config();
     let u: Vec<f32> = link
         .lines()
@@ -916,14 +900,15 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     assert!(!st.active && st.overflowed, "{st:?}");
     assert_eq!(st.recorded, RECORD_BUFFER as u64);
     assert!(lab.send("status\n").contains(&format!("record=overflowed recorded={RECORD_BUFFER}")));
-    let mut link = String::new();
-    drain(&mut lab, &mut link, true);
+    let link = lab.drain_recording();
     let mut total = 0;
     let mut out = [RawSample::default(); FRAME_SAMPLES];
-    for line in link.lines() {
+    for line in link.lines().filter(|l| l.starts_with('R')) {
         total += decode_frame(line.as_bytes(), &mut out).unwrap().1;
     }
     assert_eq!(total, RECORD_BUFFER);
+    let end = link.lines().last().unwrap();
+    assert!(end.starts_with(&format!("# nanopos-record end samples={RECORD_BUFFER} overflow=1 ")), "{end}");
 }
 
 /// The board's first 20 001 samples recorded (from its first sample, so that a replay starts from the same rest as
@@ -939,7 +924,7 @@ fn record_from_the_start(lab: &mut Lab, name: &str) -> (Recorded, hal_sim::cmd::
     for k in 0..20_000 {
         lab.sample();
         if k % 20 == 0 {
-            drain(lab, &mut link, false);
+            link.push_str(&lab.drain_recording());
         }
         if k == 19_998 {
             at_last_row = (0..4).map(|i| lab.params(i)).collect();
@@ -948,11 +933,8 @@ fn record_from_the_start(lab: &mut Lab, name: &str) -> (Recorded, hal_sim::cmd::
     // What the interrupt's estimators hold after the last recorded sample (`record off` applies before its sample).
     let board: Vec<_> = (0..4).map(|i| lab.params(i)).collect();
     link.push_str(&lab.send("record off\n"));
-    drain(lab, &mut link, true);
+    link.push_str(&lab.drain_recording());
     let st = lab.isr.record_status();
-    let mut end = TextBuf::<80>::default();
-    write_record_end(&st, &mut end).unwrap();
-    link.push_str(end.as_str());
     assert!(!st.overflowed && st.recorded == 20_001, "{st:?}");
 
     let dir = std::env::temp_dir().join(format!("nanopos-record-{name}-{}", std::process::id()));

@@ -156,8 +156,8 @@ impl Lab {
             }
             if !st.active && self.recording {
                 self.recording = false;
-                let mut end = TextBuf::<80>::default();
-                // The end line fits its buffer (`tests/instrument.rs` writes the longest).
+                // In the console's reply buffer, as the firmware writes it (the longest end line is 70 bytes).
+                let mut end = TextBuf::<REPLY_BYTES>::default();
                 let _ = write_record_end(&st, &mut end);
                 out.push_str(end.as_str());
                 self.ctl.record_ended();
