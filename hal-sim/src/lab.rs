@@ -99,6 +99,7 @@ impl Lab {
             // Nothing else posts, and each change is applied at once: the slot is free.
             assert!(self.isr.post(c).is_ok(), "a change was left pending");
             self.isr.sample(&mut self.board);
+            assert!(!self.isr.change_pending(), "the sample applied the change");
         }
         loop {
             assert!(!reply.truncated(), "a reply's part does not fit the console's buffer: {}", reply.as_str());

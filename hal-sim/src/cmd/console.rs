@@ -90,9 +90,9 @@ pub fn run(
             }
         }
     });
-    let rate_hz = 1.0 / crate::board::BoardSettings::default().plant.sample_period_s;
-    let status_every = args.status_every_s.map(|s| ((s * rate_hz).round() as u64).max(1));
     let mut lab = Lab::with_stage(args.stage.map(|s| s.0));
+    let rate_hz = 1.0 / lab.board.settings().plant.sample_period_s;
+    let status_every = args.status_every_s.map(|s| ((s * rate_hz).round() as u64).max(1));
     let start = Instant::now();
     let mut samples = 0u64;
     let mut ended = false;

@@ -753,8 +753,12 @@ const MISFIT: f64 = 3.0;
 fn write_health(f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
     write_rows(f, r, "state,rejected,changes,resets,repairs,innovation_rms_um", |w, i, j| {
         let h = &r.healths[i][j];
-        let (state, counts) = (h.adaptation.name(), [h.rejected_samples, h.changes_detected, h.numeric_resets]);
-        write!(w, "{state},{},{},{},{},", counts[0], counts[1], counts[2], h.covariance_repairs)?;
+        let state = h.adaptation.name();
+        write!(
+            w,
+            "{state},{},{},{},{},",
+            h.rejected_samples, h.changes_detected, h.numeric_resets, h.covariance_repairs
+        )?;
         if h.innovation_rms_um.is_nan() {
             writeln!(w)
         } else {
