@@ -270,6 +270,64 @@ impl Controller {
         }
     }
 
+    /// `tune initial ESTIMATOR`: `tune initial` with the `b0 a1 a0` that `estimator` reports in `status`, which must
+    /// be one the estimators run (the reply gives them, for the log). A stage far from the paper's initial
+    /// parameters is found by the ARX, linear in its parameters, where the EKFs, which are local, settle on a wrong
+    /// solution (README: "Another stage").
+    fn initial_from<T: Real>(
+        &mut self,
+        status: &Status<T>,
+        estimator: usize,
+        reply: &mut impl Write,
+    ) -> Result<Option<Change<T>>, Refusal> {
+        let Some(&name) = ESTIMATOR_NAMES.get(estimator) else {
+            return Err(Refusal::Text("no such estimator"));
+        };
+        if !status.selected.contains(estimator) {
+            return Err(Refusal::Seed { estimator: name, refused: None });
+        }
+        let p = status.estimates[estimator].0;
+        let values = [p.b0, p.a1, p.a0].map(|x| x.to_f64().unwrap_or(f64::NAN));
+        let mut t = self.tuning;
+        t.set(TuningKey::Initial, &values).map_err(|r| Refusal::Seed {
+            estimator: name,
+            refused: Some((["b0", "a1", "a0"][r.index], values[r.index], r.expected)),
+        })?;
+        // Its note is on the resonance of the new initial parameters, not on an estimate.
+        self.retune(t, TuningKey::Initial, &values, None, reply, name).map(Some)
+    }
+
+    /// Run the tuning `t`, which differs from the one running by `key` set to `values` (`from`: the estimator they
+    /// are the estimate of, or ""): the change to post, the notes and the reply.
+    fn retune<T: Real>(
+        &mut self,
+        t: Tuning,
+        key: TuningKey,
+        values: &[f64],
+        resonance: Option<(f64, &'static str)>,
+        reply: &mut impl Write,
+        from: &'static str,
+    ) -> Result<Change<T>, Refusal> {
+        let mut change = Change { tuning: Some(t.runnable()?), ..Change::default() };
+        // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
+        // together, in one sample.
+        if t.rls.prefilter != self.settings.prefilter {
+            let s = self.settings.with_prefilter(t.rls.prefilter);
+            change.config = Some(self.design(&s, self.running)?);
+            self.settings = s;
+        }
+        change.freeze = self.frozen;
+        self.tuning = t;
+        self.tuned = true;
+        self.prefilter_note(key, resonance, reply)?;
+        write_tune(reply, key, values)?;
+        match from {
+            "" => writeln!(reply, " (estimators restarted)")?,
+            name => writeln!(reply, " ({name}'s estimate; estimators restarted)")?,
+        }
+        Ok(change)
+    }
+
     /// Answer a line that did not parse.
     pub fn refuse(&self, e: ParseError, reply: &mut impl Write) {
         let _ = writeln!(reply, "error: {e}");
@@ -289,15 +347,21 @@ impl Controller {
         if matches!(cmd, Command::Status) {
             return (None, Rest { status: Some(status()), next: 0 });
         }
-        // For the notes of `excite multisine` and `tune prefilter`: the resonance as the interrupt estimates it now.
-        let resonance = matches!(
-            cmd,
-            Command::Excite(ExcitationChoice::Multisine { .. })
-                | Command::Tune { key: TuningKey::Prefilter, values: Some(_) }
-        )
-        .then(|| estimated_resonance(&status()))
-        .flatten();
-        match self.try_execute(cmd, resonance, reply) {
+        // For `tune initial ESTIMATOR`, that estimator's estimate; for the notes of `excite multisine` and `tune
+        // prefilter`, the resonance as the interrupt estimates it now.
+        let result = if let Command::InitialFrom { estimator } = cmd {
+            self.initial_from(&status(), estimator, reply)
+        } else {
+            let resonance = matches!(
+                cmd,
+                Command::Excite(ExcitationChoice::Multisine { .. })
+                    | Command::Tune { key: TuningKey::Prefilter, values: Some(_) }
+            )
+            .then(|| estimated_resonance(&status()))
+            .flatten();
+            self.try_execute(cmd, resonance, reply)
+        };
+        match result {
             Ok(change) => {
                 // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
                 self.tuning_due |=
@@ -321,8 +385,8 @@ impl Controller {
     ) -> Result<Option<Change<T>>, Refusal> {
         let mut change = Change::default();
         match cmd {
-            // Answered by `execute` from the snapshot, a line at a time.
-            Command::Status => return Ok(None),
+            // Answered by `execute` from the snapshot, a line at a time; carried out by `initial_from`.
+            Command::Status | Command::InitialFrom { .. } => return Ok(None),
             Command::Excite(choice) => {
                 let design = excitation(choice);
                 let mut s = self.settings;
@@ -399,21 +463,7 @@ impl Controller {
                     value: values[r.index],
                     expected: r.expected,
                 })?;
-                let designed = t.runnable()?;
-                // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
-                // together, in one sample.
-                if t.rls.prefilter != self.settings.prefilter {
-                    let s = self.settings.with_prefilter(t.rls.prefilter);
-                    change.config = Some(self.design(&s, self.running)?);
-                    self.settings = s;
-                }
-                change.tuning = Some(designed);
-                change.freeze = self.frozen;
-                self.tuning = t;
-                self.tuned = true;
-                self.prefilter_note(key, resonance, reply)?;
-                write_tune(reply, key, values)?;
-                writeln!(reply, " (estimators restarted)")?;
+                return self.retune(t, key, values, resonance, reply, "").map(Some);
             }
             Command::Limits { min_v, max_v, slew_v_per_s } => {
                 let mut s = self.settings;
@@ -523,6 +573,12 @@ enum Refusal {
         expected: Expected,
     },
     Text(&'static str),
+    /// `tune initial ESTIMATOR` from an estimator that does not run (`None`), or whose estimate has a value that
+    /// cannot be an initial one: which, its value, and what it should have been.
+    Seed {
+        estimator: &'static str,
+        refused: Option<(&'static str, f64, Expected)>,
+    },
     /// Each value in range, the whole not runnable.
     Unrunnable(Unrunnable),
     /// The reply did not fit its buffer (it was cut, and says so).
@@ -554,6 +610,12 @@ impl fmt::Display for Refusal {
             Refusal::Settings(e) => write!(f, "{e}"),
             Refusal::Value { word, value, expected } => write!(f, "word {word}: {}: {expected}", Num(*value, 6)),
             Refusal::Text(t) => f.write_str(t),
+            Refusal::Seed { estimator, refused: None } => {
+                write!(f, "{estimator} is not running: select it, and let it find the stage, first")
+            }
+            Refusal::Seed { estimator, refused: Some((name, value, expected)) } => {
+                write!(f, "{estimator}'s estimate has {name} = {}: {expected}", Num(*value, 6))
+            }
             Refusal::Unrunnable(u) => write!(f, "{u}"),
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }

@@ -126,6 +126,12 @@ pub enum Command {
     Adapt(EstimatorSet),
     /// Load a preset tuning.
     Tuning(TuningPreset),
+    /// `tune initial ESTIMATOR`: the initial parameters from that estimator's estimate (index into
+    /// [`ESTIMATOR_NAMES`]), as `tune initial` with its `b0 a1 a0` would set them.
+    InitialFrom {
+        /// Whose estimate.
+        estimator: usize,
+    },
     /// Set one tuning value by name (the first [`TuningKey::len`] of `values`), or, without values, report it.
     Tune {
         /// Which.
@@ -241,6 +247,8 @@ impl<'a> Words<'a> {
     }
 }
 
+/// The first value of `tune initial`.
+const INITIAL: &str = "3 numbers: b0 a1 a0, or an estimator whose estimate to take: rls, ekf, hekf or arx";
 const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
 const EXCITATIONS: &str = "off, constant, prbs, triangle, sine or multisine";
 const AMP: &str = "an amplitude in V, 0 to 10";
@@ -249,6 +257,8 @@ const LEVEL: &str = "a level in V, -10 to 10";
 const HZ: &str = "a frequency in Hz, above 0 and at most 1000";
 const HZ_HI: &str = "a frequency in Hz, above the lowest and at most 1000";
 
+// Not inlined, for flash (as `estimator_index`).
+#[inline(never)]
 fn estimator_set(word: usize, w: &str, allow_none: bool) -> Result<EstimatorSet, ParseError> {
     let invalid = ParseError::Invalid { word, expected: EST_LIST };
     match w {
@@ -258,13 +268,20 @@ fn estimator_set(word: usize, w: &str, allow_none: bool) -> Result<EstimatorSet,
     }
     let mut set = 0u8;
     for name in w.split(',') {
-        let i = ESTIMATOR_NAMES.iter().position(|n| *n == name).ok_or(invalid)?;
-        set |= 1 << i;
+        set |= 1 << estimator_index(name).ok_or(invalid)?;
     }
     Ok(EstimatorSet(set))
 }
 
+/// The index of the estimator `name` in [`ESTIMATOR_NAMES`].
+// Not inlined: inlined into the console task with its two callers, for 2 KiB more flash.
+#[inline(never)]
+fn estimator_index(name: &str) -> Option<usize> {
+    ESTIMATOR_NAMES.iter().position(|n| *n == name)
+}
+
 /// Parse one line (without its terminator).
+#[inline(never)]
 pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
     if line.len() > MAX_LINE {
         return Err(ParseError::TooLong);
@@ -341,13 +358,27 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
                 let (word, name) = words.next(names)?;
                 TuningKey::parse(section, name).ok_or(ParseError::Invalid { word, expected: names })?
             };
+            // `tune initial arx`: from an estimator's estimate (a name where the first value would be).
+            let from = match key {
+                TuningKey::Initial => words.it.clone().next().and_then(estimator_index),
+                _ => None,
+            };
+            if let Some(estimator) = from {
+                words.next(INITIAL)?;
+                words.end()?;
+                return Ok(Command::InitialFrom { estimator });
+            }
             // Without values: a query.
             let values = if words.is_done() {
                 None
             } else {
                 let mut values = [0.0; 5];
-                for v in values.iter_mut().take(key.len()) {
-                    *v = words.number64(key.values_hint())?;
+                for (i, v) in values.iter_mut().take(key.len()).enumerate() {
+                    *v = words.number64(if i == 0 && key == TuningKey::Initial {
+                        INITIAL
+                    } else {
+                        key.values_hint()
+                    })?;
                 }
                 Some(values)
             };
@@ -542,6 +573,8 @@ mod tests {
             Ok(Command::Tune { key: TuningKey::EkfQ, values: Some([1e-12, 1e-6, 1.5e9, 0.25, 5e8]) })
         );
         assert_eq!(p("tune ekf q"), Ok(Command::Tune { key: TuningKey::EkfQ, values: None }));
+        assert_eq!(p("tune initial arx"), Ok(Command::InitialFrom { estimator: 3 }));
+        assert_eq!(p("tune initial  rls "), Ok(Command::InitialFrom { estimator: 0 }));
         // Out of range parses: `Tuning::set` refuses it with the range (the console's test).
         assert_eq!(
             p("tune ekf reopen 5000"),
@@ -553,7 +586,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 38] = [
+        let cases: [(&[u8], ParseError); 42] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -595,6 +628,10 @@ mod tests {
             (b"tune ekf q 1 2 3", Missing { word: 7, expected: "5 numbers, for x1 x2 a0 a1 b0" }),
             (b"tune rls gamma x", Invalid { word: 4, expected: "a number" }),
             (b"tune arx lambda 0.5 1", Extra { word: 5 }),
+            (b"tune initial kalman", Invalid { word: 3, expected: INITIAL }),
+            (b"tune initial 5e5 x 6e6", Invalid { word: 4, expected: "3 numbers: b0 a1 a0" }),
+            (b"tune initial arx 1", Extra { word: 4 }),
+            (b"tune initial 5e5 arx 6e6", Invalid { word: 4, expected: "3 numbers: b0 a1 a0" }),
         ];
         for (line, err) in cases {
             assert_eq!(parse(line), Err(err), "{:?}", core::str::from_utf8(line));

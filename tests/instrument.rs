@@ -12,7 +12,7 @@ use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER};
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
 use nanopos_id::record::{decode_frame, RawSample, FRAME_SAMPLES};
-use nanopos_id::text::TextBuf;
+use nanopos_id::text::{Num, TextBuf};
 use nanopos_id::StageParams;
 use std::path::{Path, PathBuf};
 
@@ -643,7 +643,7 @@ fn the_telemetry_says_when_an_estimator_keeps_resetting() {
 
 /// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they
 /// settle on a wrong solution (`b0` of the wrong sign) and stay there; the ARX, linear in its parameters, finds the
-/// stage within 5 s, and the EKFs restarted from its estimate (`tune initial`), with the pre-filter (and so the
+/// stage within 5 s, and the EKFs restarted from its estimate (`tune initial arx`), with the pre-filter (and so the
 /// replicas' match) moved to the stage, land within 1 % on `b0`. With the replicas left matched at 450 Hz, `b0` was
 /// 6 % high in every estimator. The continuous EKF's `a1` stays about 5 % low at this `w T` (0.63).
 #[test]
@@ -664,8 +664,12 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
     lab.run(50_000);
     let arx = lab.params(3);
     assert!(err(arx).iter().all(|e| e.abs() < 0.1), "arx: {:?}", err(arx));
-    let r = lab.send(&format!("tune initial {} {} {}\n", arx.b0, arx.a1, arx.a0));
-    assert!(verdict(&r).starts_with("ok tune initial"), "{r}");
+    // The ARX's estimate as the sample before the command left it, taken as every estimator's initial parameters.
+    let r = lab.send("tune initial arx\n");
+    let seed = [arx.b0, arx.a1, arx.a0].map(|x| Num(x as f64, 6).to_string()).join(" ");
+    assert_eq!(verdict(&r), format!("ok tune initial = {seed} (arx's estimate; estimators restarted)"), "{r}");
+    assert_eq!(verdict(&lab.send("tune initial\n")), format!("ok tune initial = {seed}"));
+    assert!(lab.send("status\n").contains("+tune "));
     lab.run(50_000);
     for ekf in [1, 2] {
         let e = err(lab.params(ekf));
@@ -675,6 +679,28 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
     assert_eq!(lab.isr.config(), &lab.ctl.config(), "what the console designed is what runs");
     let s = lab.ctl.settings();
     assert_eq!([s.reconstruction.prewarp_hz, s.antialias.prewarp_hz, s.lags.match_hz], [1000.0; 3]);
+}
+
+/// `tune initial ESTIMATOR` takes an estimate only from an estimator that runs, and only one that can start the
+/// estimators: the paper's stage wired the other way round (`b0` negative), which the hybrid EKF finds within a
+/// second, cannot (`tune initial` takes positive values). A refusal names the estimator and the value, and changes
+/// nothing.
+#[test]
+fn tune_initial_from_an_estimator_refuses_what_cannot_start_the_estimators() {
+    let mut lab = Lab::with_stage(Some(StageParams { b0: -8.08e5, a1: 77.6, a0: 7.06e6 }));
+    lab.run(10_000);
+    let hekf = lab.params(2).b0;
+    assert!((hekf as f64 / -8.08e5 - 1.0).abs() < 0.1, "{hekf}");
+    let r = lab.send("tune initial hekf\n");
+    let refusal = format!("error: hekf's estimate has b0 = {}: must be a positive number", Num(hekf as f64, 6));
+    assert_eq!(verdict(&r), refusal, "{r}");
+    assert_eq!(verdict(&lab.send("select ekf,hekf\n")), "ok select ekf,hekf");
+    assert_eq!(
+        verdict(&lab.send("tune initial arx\n")),
+        "error: arx is not running: select it, and let it find the stage, first"
+    );
+    assert_eq!(verdict(&lab.send("tune initial\n")), "ok tune initial = 500000 70 6e6", "unchanged");
+    assert!(lab.send("status\n").contains("tuning=prbs "), "not tuned");
 }
 
 /// The pre-filter's centre far from the stage's resonance biases the estimates, and `tune` says so. On the stage at
