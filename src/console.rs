@@ -283,16 +283,26 @@ impl Controller {
         let Some(&name) = ESTIMATOR_NAMES.get(estimator) else {
             return Err(Refusal::Text("no such estimator"));
         };
+        let refuse = |why| Err(Refusal::Seed { estimator: name, why });
         if !status.selected.contains(estimator) {
-            return Err(Refusal::Seed { estimator: name, refused: None });
+            return refuse(Seed::NotRunning);
         }
         let p = status.estimates[estimator].0;
         let values = [p.b0, p.a1, p.a0].map(|x| x.to_f64().unwrap_or(f64::NAN));
+        // Its initial parameters, to the rounding of the working scalar (the ARX reports them through its conversion
+        // from the discrete model): an estimate that has not moved from them, or went back to them (the ARX reports
+        // its last estimate with a continuous equivalent, and on a stage far from the initial one its first has none
+        // for seconds), would restart everything where it was.
+        let t = &self.tuning;
+        let initial = [t.rls.initial, t.ekf.initial, t.ekf.initial, t.arx.initial][estimator];
+        let near = |v: f64, i: f64| (v - i).abs() <= 1e-4 * i.abs();
+        if near(values[0], initial.b0) && near(values[1], initial.a1) && near(values[2], initial.a0) {
+            return refuse(Seed::Unmoved);
+        }
         let mut t = self.tuning;
-        t.set(TuningKey::Initial, &values).map_err(|r| Refusal::Seed {
-            estimator: name,
-            refused: Some((["b0", "a1", "a0"][r.index], values[r.index], r.expected)),
-        })?;
+        if let Err(r) = t.set(TuningKey::Initial, &values) {
+            return refuse(Seed::Value(["b0", "a1", "a0"][r.index], values[r.index], r.expected));
+        }
         // Its note is on the resonance of the new initial parameters, not on an estimate.
         self.retune(t, TuningKey::Initial, &values, None, reply, name).map(Some)
     }
@@ -573,16 +583,26 @@ enum Refusal {
         expected: Expected,
     },
     Text(&'static str),
-    /// `tune initial ESTIMATOR` from an estimator that does not run (`None`), or whose estimate has a value that
-    /// cannot be an initial one: which, its value, and what it should have been.
+    /// `tune initial ESTIMATOR` refused: whose estimate, and why.
     Seed {
         estimator: &'static str,
-        refused: Option<(&'static str, f64, Expected)>,
+        why: Seed,
     },
     /// Each value in range, the whole not runnable.
     Unrunnable(Unrunnable),
     /// The reply did not fit its buffer (it was cut, and says so).
     Reply,
+}
+
+/// Why `tune initial ESTIMATOR` was refused.
+#[derive(Clone, Copy)]
+enum Seed {
+    /// The estimator is not selected.
+    NotRunning,
+    /// Its estimate is its initial parameters (within 1e-4 of each).
+    Unmoved,
+    /// A value `tune initial` refuses: which, its value, and what it should have been.
+    Value(&'static str, f64, Expected),
 }
 
 /// A tuning the estimators could not run ([`Tuning::runnable`]).
@@ -610,10 +630,13 @@ impl fmt::Display for Refusal {
             Refusal::Settings(e) => write!(f, "{e}"),
             Refusal::Value { word, value, expected } => write!(f, "word {word}: {}: {expected}", Num(*value, 6)),
             Refusal::Text(t) => f.write_str(t),
-            Refusal::Seed { estimator, refused: None } => {
+            Refusal::Seed { estimator, why: Seed::NotRunning } => {
                 write!(f, "{estimator} is not running: select it, and let it find the stage, first")
             }
-            Refusal::Seed { estimator, refused: Some((name, value, expected)) } => {
+            Refusal::Seed { estimator, why: Seed::Unmoved } => {
+                write!(f, "{estimator}'s estimate is its initial parameters: let it find the stage first (status)")
+            }
+            Refusal::Seed { estimator, why: Seed::Value(name, value, expected) } => {
                 write!(f, "{estimator}'s estimate has {name} = {}: {expected}", Num(*value, 6))
             }
             Refusal::Unrunnable(u) => write!(f, "{u}"),
