@@ -1331,7 +1331,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
         "q",
     ];
     let sets = ["all", "none", "rls", "ekf,hekf", "arx", "hekf,rls,rls", "kalman", ""];
-    let templates: [&str; 26] = [
+    let templates: [&str; 27] = [
         "excite prbs #",
         "excite prbs # #",
         "excite triangle # #",
@@ -1345,6 +1345,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
         "limits # # #",
         "limits -# # #",
         "tune initial # # #",
+        "tune initial $",
         "tune prefilter # # #",
         "tune ekf q # # # # #",
         "tune ekf @ #",
