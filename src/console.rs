@@ -287,12 +287,13 @@ impl Controller {
         if !status.selected.contains(estimator) {
             return refuse(Seed::NotRunning);
         }
-        let p = status.estimates[estimator].0;
+        let (p, health) = status.estimates[estimator];
+        if health.held {
+            return refuse(Seed::Held);
+        }
         let values = [p.b0, p.a1, p.a0].map(|x| x.to_f64().unwrap_or(f64::NAN));
         // Its initial parameters, to the rounding of the working scalar (the ARX reports them through its conversion
-        // from the discrete model): an estimate that has not moved from them, or went back to them (the ARX reports
-        // its last estimate with a continuous equivalent, and on a stage far from the initial one its first has none
-        // for seconds), would restart everything where it was.
+        // from the discrete model): an estimate that has not moved from them would restart everything where it was.
         let t = &self.tuning;
         let initial = [t.rls.initial, t.ekf.initial, t.ekf.initial, t.arx.initial][estimator];
         let near = |v: f64, i: f64| (v - i).abs() <= 1e-4 * i.abs();
@@ -530,7 +531,7 @@ impl Controller {
                 f(p.damping_ratio()),
                 f(p.dc_gain())
             )?;
-            let state = if !s.selected.contains(line) { "off" } else { h.adaptation.name() };
+            let state = if !s.selected.contains(line) { "off" } else { h.state() };
             return writeln!(
                 w,
                 "{state} rejected={} changes={} resets={} repairs={} innovation_rms_um={}",
@@ -601,6 +602,8 @@ enum Seed {
     NotRunning,
     /// Its estimate is its initial parameters (within 1e-4 of each).
     Unmoved,
+    /// Its estimate is held ([`crate::estimator::Health::held`]).
+    Held,
     /// A value `tune initial` refuses: which, its value, and what it should have been.
     Value(&'static str, f64, Expected),
 }
@@ -633,6 +636,11 @@ impl fmt::Display for Refusal {
             Refusal::Seed { estimator, why: Seed::NotRunning } => {
                 write!(f, "{estimator} is not running: select it, and let it find the stage, first")
             }
+            Refusal::Seed { estimator, why: Seed::Held } => write!(
+                f,
+                "{estimator}'s estimate is held (its model has no continuous equivalent now): let it find the stage \
+                 first (status)"
+            ),
             Refusal::Seed { estimator, why: Seed::Unmoved } => {
                 write!(f, "{estimator}'s estimate is its initial parameters: let it find the stage first (status)")
             }

@@ -249,6 +249,11 @@ impl Adaptation {
 pub struct Health {
     /// Adapting or frozen, and why.
     pub adaptation: Adaptation,
+    /// The parameters reported are not the estimator's model now but the last ones it could report: the ARX's,
+    /// when its discrete model has no continuous equivalent (real poles, or poles on or outside the unit circle,
+    /// as it can have while it converges: for its first 2.1 s on a stage at 1 kHz, where it reports the initial
+    /// parameters). Never set by the others.
+    pub held: bool,
     /// Times a non-finite value was caught and the estimator reset to its initial state.
     pub numeric_resets: u32,
     /// Samples rejected by innovation gating.
@@ -271,11 +276,23 @@ impl Health {
     pub const fn new() -> Self {
         Health {
             adaptation: Adaptation::Adapting,
+            held: false,
             numeric_resets: 0,
             rejected_samples: 0,
             changes_detected: 0,
             covariance_repairs: 0,
             innovation_rms_um: f32::NAN,
+        }
+    }
+}
+
+impl Health {
+    /// The word the console's `status`, the telemetry and `identify --health` give the state: the adaptation's
+    /// ([`Adaptation::name`]), or `held` for an estimator adapting whose parameters are [`Health::held`].
+    pub const fn state(&self) -> &'static str {
+        match (self.adaptation, self.held) {
+            (Adaptation::Adapting, true) => "held",
+            (a, _) => a.name(),
         }
     }
 }
@@ -306,6 +323,10 @@ pub trait Estimator<T: Real> {
     fn set_adapting(&mut self, on: bool);
     /// Health report.
     fn health(&self) -> Health;
+    /// [`Estimator::params`] and [`Estimator::health`] together (the ARX works both out of one conversion).
+    fn report(&self) -> (StageParams<T>, Health) {
+        (self.params(), self.health())
+    }
 }
 
 /// The pipeline's estimator slot: zero or more estimators updated together.
@@ -356,6 +377,16 @@ bank_for_tuple!(5; A.0, B.1, C.2, D.3, E.4);
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_state_says_held_only_for_parameters_held_while_adapting() {
+        let h = |adaptation, held| Health { adaptation, held, ..Health::new() }.state();
+        assert_eq!(h(Adaptation::Adapting, false), "adapting");
+        assert_eq!(h(Adaptation::Adapting, true), "held");
+        // Frozen or starved, the parameters do not move either way.
+        assert_eq!(h(Adaptation::Frozen, true), "frozen");
+        assert_eq!(h(Adaptation::Starved, true), "starved");
+    }
 
     fn at(value: f64) -> Prefiltered<f64> {
         Prefiltered { value, d1: 0.0, d2: 0.0 }

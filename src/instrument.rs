@@ -263,12 +263,7 @@ impl<T: Real> Instrument<T> {
     /// Each estimator's parameters and health.
     pub fn estimates(&self) -> [(StageParams<T>, Health); 4] {
         let e = &self.pipeline.estimators;
-        [
-            (e.0.params(), e.0.health()),
-            (e.1.params(), e.1.health()),
-            (e.2.params(), e.2.health()),
-            (e.3.params(), e.3.health()),
-        ]
+        [e.0.report(), e.1.report(), e.2.report(), e.3.report()]
     }
 
     /// A snapshot of everything status reports. The firmware takes it under the lock, holding off the sample

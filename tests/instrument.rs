@@ -693,17 +693,29 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
 /// `tune initial ESTIMATOR` takes an estimate only from an estimator that runs, and only one that can start the
 /// estimators: the paper's stage wired the other way round (`b0` negative), which the hybrid EKF finds within a
 /// second, cannot (`tune initial` takes positive values); nor can an estimate that is still the initial parameters,
-/// as the ARX's is for its first 2 s on a stage at 1 kHz (its estimate has no continuous equivalent yet, and it
-/// reports the last that had). A refusal names the estimator and the value, and changes nothing.
+/// nor one held: the ARX's on a stage at 1 kHz for its first 2.1 s, while its discrete model has no continuous
+/// equivalent and it reports the last that had, its initial parameters (`status` says `held`). A refusal names the
+/// estimator and the value, and changes nothing.
 #[test]
 fn tune_initial_from_an_estimator_refuses_what_cannot_start_the_estimators() {
     let w = 2.0 * std::f64::consts::PI * 1000.0;
     let mut lab = Lab::with_stage(Some(StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w }));
-    let unmoved = "error: arx's estimate is its initial parameters: let it find the stage first (status)";
-    assert_eq!(verdict(&lab.send("tune initial arx\n")), unmoved);
+    let arx_line =
+        |lab: &mut Lab| lab.send("status\n").lines().find(|l| l.starts_with("est arx ")).unwrap().to_string();
+    assert_eq!(
+        verdict(&lab.send("tune initial arx\n")),
+        "error: arx's estimate is its initial parameters: let it find the stage first (status)"
+    );
     lab.run(10_000);
-    assert_eq!(verdict(&lab.send("tune initial arx\n")), unmoved);
+    assert!(arx_line(&mut lab).contains(" a0=6e6 a1=70 b0=500000 ") && arx_line(&mut lab).contains(" held "));
+    assert_eq!(
+        verdict(&lab.send("tune initial arx\n")),
+        "error: arx's estimate is held (its model has no continuous equivalent now): let it find the stage first \
+         (status)"
+    );
     assert!(!lab.send("status\n").contains("+tune"), "not tuned");
+    lab.run(20_000);
+    assert!(arx_line(&mut lab).contains(" adapting "), "{}", arx_line(&mut lab));
 
     let mut lab = Lab::with_stage(Some(StageParams { b0: -8.08e5, a1: 77.6, a0: 7.06e6 }));
     lab.run(10_000);

@@ -273,10 +273,7 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
     }
 
     fn params(&self) -> StageParams<T> {
-        if let Some(p) = self.convert() {
-            self.last_valid.set(p);
-        }
-        self.last_valid.get()
+        self.report().0
     }
 
     fn param_covariance(&self) -> [[T; 3]; 3] {
@@ -326,7 +323,16 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
     }
 
     fn health(&self) -> Health {
-        self.health
+        self.report().1
+    }
+
+    /// The conversion to the stage once for both; the parameters held (and said so) while it has none.
+    fn report(&self) -> (StageParams<T>, Health) {
+        let now = self.convert();
+        if let Some(p) = now {
+            self.last_valid.set(p);
+        }
+        (self.last_valid.get(), Health { held: now.is_none(), ..self.health })
     }
 }
 

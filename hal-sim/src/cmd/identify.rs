@@ -11,7 +11,7 @@
 //! - `HEALTH.csv`: on the same rows, `t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um`: each
 //!   estimator's health as the board's `status` gives it (the counts since the record's start; the innovation RMS of
 //!   the last second, empty for `rls` and `arx`): when an EKF saw the change, whether the monitor held it, how well
-//!   its model followed the data.
+//!   its model followed the data, when the ARX's parameters were `held`.
 //! - `--precision`: the scalar of the pipeline and the estimators, f64 (the reference, default) or f32 (the
 //!   firmware's: the board's results on the same samples, and its refusal of a tuning f32 cannot hold).
 //! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and
@@ -753,7 +753,7 @@ const MISFIT: f64 = 3.0;
 fn write_health(f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
     write_rows(f, r, "state,rejected,changes,resets,repairs,innovation_rms_um", |w, i, j| {
         let h = &r.healths[i][j];
-        let state = h.adaptation.name();
+        let state = h.state();
         write!(
             w,
             "{state},{},{},{},{},",

@@ -318,7 +318,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 continue;
             }
             defmt::info!(
-                "{=str}: a0={=f32} a1={=f32} b0={=f32} | f0={=f32} Hz zeta={=f32} gain={=f32} um/V | {} rejected={=u32} changes={=u32} resets={=u32} repairs={=u32} innovation_rms={=f32} um",
+                "{=str}: a0={=f32} a1={=f32} b0={=f32} | f0={=f32} Hz zeta={=f32} gain={=f32} um/V | {=str} rejected={=u32} changes={=u32} resets={=u32} repairs={=u32} innovation_rms={=f32} um",
                 ESTIMATOR_NAMES[i],
                 p.a0,
                 p.a1,
@@ -326,7 +326,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 p.f0_hz(),
                 p.damping_ratio(),
                 p.dc_gain(),
-                h.adaptation,
+                h.state(),
                 h.rejected_samples,
                 h.changes_detected,
                 h.numeric_resets,
