@@ -132,6 +132,58 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
     }
 }
 
+/// On a stage at 1 kHz, far from the initial parameters (423 Hz), the ARX's discrete model has no continuous
+/// equivalent for most of its first 2 s, and it reports the last parameters that had, near the initial ones: the summary
+/// says the share of the window they were held (`held`), `HEALTH.csv` says `held`, and a note says what the means
+/// are; once it has converged, none.
+#[test]
+fn identify_reports_a_window_where_the_arx_held_its_parameters() {
+    use hal_sim::sim::{Scenario, Simulation};
+    let dir = tempfile::tempdir().unwrap();
+    let w = 2.0 * std::f64::consts::PI * 1000.0;
+    let stage = nanopos_id::StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w };
+    let (mut board, settings) = Scenario::Prbs.settings(200.0, 1);
+    (board.plant.before, board.plant.after) = (stage, stage);
+    let mut sim = Simulation::new(board, &settings, ()).unwrap();
+    let mut text = String::from("t,u,y\n");
+    for _ in 0..60_000 {
+        let (r, _) = sim.step();
+        text += &format!("{},{},{}\n", r.t_s, r.u_v, r.y_um);
+    }
+    std::fs::write(dir.path().join("khz.csv"), text).unwrap();
+    let args = [
+        "identify",
+        "--input",
+        "khz.csv",
+        "--estimators",
+        "arx",
+        "--window",
+        "0:1",
+        "--window",
+        "5:6",
+        "--health",
+        "h.csv",
+    ];
+    let out = nanopos_sim(&args, dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = String::from_utf8(out.stdout).unwrap();
+    let held: Vec<f64> = json
+        .match_indices("\"held\": ")
+        .map(|(i, _)| json[i + 8..].split([',', '}']).next().unwrap().parse().unwrap())
+        .collect();
+    // Measured: 0.98 (the first rows' conversion still had one) and 0.
+    assert!(held.len() == 2 && held[0] > 0.9 && held[1] == 0.0, "{json}");
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    let note = format!(
+        "note: arx's parameters were held for {:.0} % of window 0:1 (its model had no continuous equivalent",
+        100.0 * held[0]
+    );
+    assert!(stderr.contains(&note), "{note} missing in {stderr}");
+    assert!(!stderr.contains("window 5:6 (its model"), "{stderr}");
+    let health = std::fs::read_to_string(dir.path().join("h.csv")).unwrap();
+    assert!(health.contains("\n0.5099,arx,held,") && health.contains("\n5.9999,arx,adapting,"), "{health}");
+}
+
 /// A tuning that drives an estimator to non-finite values resets it over and over (each time back to its initial
 /// parameters, and adapting again): the summary counts the resets per window and a note says its means are of runs
 /// that diverged. Here `R` a million times below the paper's, which the continuous EKF cannot integrate and the

@@ -20,11 +20,13 @@
 //!   by e^-38 by then), against `y'`; and the estimator's own innovation RMS (of the last second) averaged over the window
 //!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
 //!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
-//!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `resets`, the
+//!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `held`, the
+//!   share of the window the estimator's parameters were held (the ARX's, while its discrete model had no continuous
+//!   equivalent: not yet converged), where the mean is of the last it could report; and `resets`, the
 //!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre) and went back
 //!   to its initial parameters (a tuning that does not suit the record resets it over and over, and its mean is then
 //!   of runs that diverged). Above 10 %
-//!   starved, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
+//!   starved or held, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
 //!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
 //!   of an estimator whose means are not of a stage (`a0 <= 0` or not finite: it diverged) or whose validation RMSE
 //!   is more than 3 times the best one's in the window (not yet converged, or diverged); and of a sample of `u` or `y`
@@ -91,6 +93,10 @@ pub struct WindowFigures {
     /// Share of the window's rows (0 to 1) at which the excitation monitor held the estimator (`Starved`): where it
     /// is large, the mean is of held values, not of what this input identifies (`NaN` for the truth).
     pub starved: f64,
+    /// Share of the window's rows (0 to 1) at which the estimator's parameters were held ([`Health::held`]: the
+    /// ARX's, while its discrete model had no continuous equivalent, as it can have before it converges): where it is
+    /// large, the mean is of the last parameters it could report (`NaN` for the truth).
+    pub held: f64,
     /// Numeric resets in the window (sampled with the 100 Hz rows; 0 for the truth).
     pub resets: u32,
 }
@@ -407,12 +413,15 @@ fn identify_blocks<T: Real>(
                 let health = |i: usize| &healths[i][col];
                 let innovation_rms_nm =
                     1e3 * rows.iter().map(|&i| health(i).innovation_rms_um as f64).sum::<f64>() / rows.len() as f64;
-                let held = rows.iter().filter(|&&i| health(i).adaptation == Adaptation::Starved).count();
-                let starved = held as f64 / rows.len() as f64;
+                let share = |f: &dyn Fn(&Health) -> bool| {
+                    rows.iter().filter(|&&i| f(health(i))).count() as f64 / rows.len() as f64
+                };
+                let starved = share(&|h| h.adaptation == Adaptation::Starved);
+                let held = share(&|h| h.held);
                 // Counted from the row before the window (the record's start: none yet).
                 let before = rows[0].checked_sub(1).map_or(0, |i| health(i).numeric_resets);
                 let resets = health(rows[rows.len() - 1]).numeric_resets.wrapping_sub(before);
-                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved, resets }
+                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved, held, resets }
             })
             .collect();
         let window_truth = record.has_truth.then(|| {
@@ -422,6 +431,7 @@ fn identify_blocks<T: Real>(
                 rmse_nm: validation(&mean),
                 innovation_rms_nm: f64::NAN,
                 starved: f64::NAN,
+                held: f64::NAN,
                 resets: 0,
             }
         });
@@ -697,6 +707,15 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                     w.t1
                 ));
             }
+            if f.held > 0.1 {
+                notes.push(format!(
+                    "{name}'s parameters were held for {:.0} % of window {}:{} (its model had no continuous \
+                     equivalent: not yet converged): its means there are of the last parameters it could report",
+                    100.0 * f.held,
+                    w.t0,
+                    w.t1
+                ));
+            }
             let m = &f.mean;
             if !(m.a0 > 0.0 && m.a0.is_finite() && m.a1.is_finite() && m.b0.is_finite()) {
                 notes.push(format!(
@@ -823,11 +842,12 @@ pub fn summary_json(r: &Identified) -> String {
                 .zip(figs)
                 .map(|(n, f)| {
                     format!(
-                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}, \"starved\": {}, \"resets\": {}}}",
+                        "\"{n}\": {{{}, \"rmse_nm\": {}, \"innovation_rms_nm\": {}, \"starved\": {}, \"held\": {}, \"resets\": {}}}",
                         json_params(&f.mean),
                         num(f.rmse_nm),
                         num(f.innovation_rms_nm),
                         num(f.starved),
+                        num(f.held),
                         f.resets
                     )
                 })
