@@ -738,9 +738,10 @@ fn list<'a>(f: &mut fmt::Formatter<'_>, names: impl Iterator<Item = &'a str>) ->
 }
 
 /// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is: the hybrid EKF's if it
-/// runs, else the first running estimator's; `None` if none runs or its estimate has no resonance (`a0 <= 0`).
+/// runs, else the first running estimator's whose parameters are not held ([`crate::estimator::Health::held`]: the
+/// ARX's, the last it could report); `None` if none runs or its estimate has no resonance (`a0 <= 0`).
 fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str)> {
-    let running = |i: usize| status.selected.contains(i);
+    let running = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
     let i = if running(2) { 2 } else { (0..4).find(|&i| running(i))? };
     let f0 = status.estimates[i].0.f0_hz().to_f64()?;
     (f0.is_finite() && f0 > 0.0).then_some((f0, ESTIMATOR_NAMES[i]))

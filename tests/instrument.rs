@@ -694,8 +694,9 @@ fn the_ekfs_need_a_start_near_the_stage_and_the_arx_gives_one() {
 /// estimators: the paper's stage wired the other way round (`b0` negative), which the hybrid EKF finds within a
 /// second, cannot (`tune initial` takes positive values); nor can an estimate that is still the initial parameters,
 /// nor one held: the ARX's on a stage at 1 kHz for its first 2.1 s, while its discrete model has no continuous
-/// equivalent and it reports the last that had, its initial parameters (`status` says `held`). A refusal names the
-/// estimator and the value, and changes nothing.
+/// equivalent and it reports the last that had, its initial parameters (`status` says `held`; nor do the notes on
+/// an excitation's band take it for the resonance). A refusal names the estimator and the value, and changes
+/// nothing.
 #[test]
 fn tune_initial_from_an_estimator_refuses_what_cannot_start_the_estimators() {
     let w = 2.0 * std::f64::consts::PI * 1000.0;
@@ -714,8 +715,20 @@ fn tune_initial_from_an_estimator_refuses_what_cannot_start_the_estimators() {
          (status)"
     );
     assert!(!lab.send("status\n").contains("+tune"), "not tuned");
+    // Nor is a held estimate the resonance a note judges an excitation's band by: with the ARX alone, the initial
+    // parameters' (390 Hz) are, and the note says they are.
+    lab.send("select arx\n");
+    let r = lab.send("excite multisine 1 600 1000\n");
+    assert!(notes(&r).iter().any(|n| n.contains("misses the resonance (389.8 Hz, tune initial)")), "{r}");
+    lab.send("excite prbs 1\n");
     lab.run(20_000);
     assert!(arx_line(&mut lab).contains(" adapting "), "{}", arx_line(&mut lab));
+    let r = lab.send("excite multisine 1 200 800\n");
+    let f0 = notes(&r).iter().find_map(|n| {
+        let rest = n.split_once("misses the resonance (")?.1;
+        rest.split_once(" Hz, arx's estimate)")?.0.parse::<f64>().ok()
+    });
+    assert!(f0.is_some_and(|f| (f / 1000.0 - 1.0).abs() < 0.01), "{r}");
 
     let mut lab = Lab::with_stage(Some(StageParams { b0: -8.08e5, a1: 77.6, a0: 7.06e6 }));
     lab.run(10_000);
