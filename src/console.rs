@@ -271,13 +271,15 @@ impl Controller {
     }
 
     /// `tune initial ESTIMATOR`: `tune initial` with the `b0 a1 a0` that `estimator` reports in `status`, which must
-    /// be one the estimators run (the reply gives them, for the log). A stage far from the paper's initial
-    /// parameters is found by the ARX, linear in its parameters, where the EKFs, which are local, settle on a wrong
-    /// solution (README: "Another stage").
-    fn initial_from<T: Real>(
+    /// be one the estimators run (the reply gives them, for the log); with `prefilter` (`tune stage ESTIMATOR`),
+    /// also `tune prefilter` with `f_p` at that estimate's resonance, `f_lc` and `zeta_p` kept, in the same restart.
+    /// A stage far from the paper's initial parameters is found by the ARX, linear in its parameters, where the EKFs,
+    /// which are local, settle on a wrong solution (README: "Another stage").
+    fn seed_from<T: Real>(
         &mut self,
         status: &Status<T>,
         estimator: usize,
+        prefilter: bool,
         reply: &mut impl Write,
     ) -> Result<Option<Change<T>>, Refusal> {
         let Some(&name) = ESTIMATOR_NAMES.get(estimator) else {
@@ -304,17 +306,27 @@ impl Controller {
         if let Err(r) = t.set(TuningKey::Initial, &values) {
             return refuse(Seed::Value(["b0", "a1", "a0"][r.index], values[r.index], r.expected));
         }
+        let pf = t.rls.prefilter;
+        let centred = [pf.f_lc_hz, t.ekf.initial.f0_hz(), pf.zeta_p];
+        if prefilter {
+            // `a0` was taken as positive: so is its resonance.
+            t.set(TuningKey::Prefilter, &centred).map_err(|_| Refusal::Text("the estimate has no resonance"))?;
+        }
+        let keys: &[(TuningKey, &[f64])] = if prefilter {
+            &[(TuningKey::Initial, &values), (TuningKey::Prefilter, &centred)]
+        } else {
+            &[(TuningKey::Initial, &values)]
+        };
         // Its note is on the resonance of the new initial parameters, not on an estimate.
-        self.retune(t, TuningKey::Initial, &values, None, reply, name).map(Some)
+        self.retune(t, keys, None, reply, name).map(Some)
     }
 
-    /// Run the tuning `t`, which differs from the one running by `key` set to `values` (`from`: the estimator they
-    /// are the estimate of, or ""): the change to post, the notes and the reply.
+    /// Run the tuning `t`, which differs from the one running by `keys` set to their values (`from`: the estimator
+    /// they are the estimate of, or ""): the change to post, the notes and the reply.
     fn retune<T: Real>(
         &mut self,
         t: Tuning,
-        key: TuningKey,
-        values: &[f64],
+        keys: &[(TuningKey, &[f64])],
         resonance: Option<(f64, &'static str)>,
         reply: &mut impl Write,
         from: &'static str,
@@ -330,8 +342,18 @@ impl Controller {
         change.freeze = self.frozen;
         self.tuning = t;
         self.tuned = true;
-        self.prefilter_note(key, resonance, reply)?;
-        write_tune(reply, key, values)?;
+        self.prefilter_note(keys[0].0, resonance, reply)?;
+        match keys {
+            [(key, values)] => write_tune(reply, *key, values)?,
+            // `tune stage`: both of the stage's keys.
+            _ => {
+                reply.write_str("ok tune stage =")?;
+                for (i, (key, values)) in keys.iter().enumerate() {
+                    write!(reply, "{} {key}", if i > 0 { "," } else { "" })?;
+                    values.iter().try_for_each(|v| write!(reply, " {}", Num(*v, 6)))?;
+                }
+            }
+        }
         match from {
             "" => writeln!(reply, " (estimators restarted)")?,
             name => writeln!(reply, " ({name}'s estimate; estimators restarted)")?,
@@ -358,10 +380,10 @@ impl Controller {
         if matches!(cmd, Command::Status) {
             return (None, Rest { status: Some(status()), next: 0 });
         }
-        // For `tune initial ESTIMATOR`, that estimator's estimate; for the notes of `excite multisine` and `tune
+        // For `tune initial|stage ESTIMATOR`, that estimator's estimate; for the notes of `excite multisine` and `tune
         // prefilter`, the resonance as the interrupt estimates it now.
-        let result = if let Command::InitialFrom { estimator } = cmd {
-            self.initial_from(&status(), estimator, reply)
+        let result = if let Command::FromEstimate { estimator, prefilter } = cmd {
+            self.seed_from(&status(), estimator, prefilter, reply)
         } else {
             let resonance = matches!(
                 cmd,
@@ -396,8 +418,8 @@ impl Controller {
     ) -> Result<Option<Change<T>>, Refusal> {
         let mut change = Change::default();
         match cmd {
-            // Answered by `execute` from the snapshot, a line at a time; carried out by `initial_from`.
-            Command::Status | Command::InitialFrom { .. } => return Ok(None),
+            // Answered by `execute` from the snapshot, a line at a time; carried out by `seed_from`.
+            Command::Status | Command::FromEstimate { .. } => return Ok(None),
             Command::Excite(choice) => {
                 let design = excitation(choice);
                 let mut s = self.settings;
@@ -474,7 +496,7 @@ impl Controller {
                     value: values[r.index],
                     expected: r.expected,
                 })?;
-                return self.retune(t, key, values, resonance, reply, "").map(Some);
+                return self.retune(t, &[(key, values)], resonance, reply, "").map(Some);
             }
             Command::Limits { min_v, max_v, slew_v_per_s } => {
                 let mut s = self.settings;

@@ -127,10 +127,13 @@ pub enum Command {
     /// Load a preset tuning.
     Tuning(TuningPreset),
     /// `tune initial ESTIMATOR`: the initial parameters from that estimator's estimate (index into
-    /// [`ESTIMATOR_NAMES`]), as `tune initial` with its `b0 a1 a0` would set them.
-    InitialFrom {
+    /// [`ESTIMATOR_NAMES`]), as `tune initial` with its `b0 a1 a0` would set them; `tune stage ESTIMATOR`: and the
+    /// pre-filter's centre `f_p` at its resonance, as `tune prefilter` would, in the same restart.
+    FromEstimate {
         /// Whose estimate.
         estimator: usize,
+        /// The pre-filter's centre too (`tune stage`).
+        prefilter: bool,
     },
     /// Set one tuning value by name (the first [`TuningKey::len`] of `values`), or, without values, report it.
     Tune {
@@ -249,6 +252,8 @@ impl<'a> Words<'a> {
 
 /// The first value of `tune initial`.
 const INITIAL: &str = "3 numbers: b0 a1 a0, or an estimator whose estimate to take: rls, ekf, hekf or arx";
+/// The word after `tune stage`.
+const ESTIMATOR: &str = "an estimator whose estimate to take: rls, ekf, hekf or arx";
 const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
 const EXCITATIONS: &str = "off, constant, prbs, triangle, sine or multisine";
 const AMP: &str = "an amplitude in V, 0 to 10";
@@ -351,8 +356,14 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             })
         }
         "tune" => {
-            const SECTIONS: &str = "initial, prefilter, rls, ekf or arx";
+            const SECTIONS: &str = "initial, prefilter, stage, rls, ekf or arx";
             let (word, section) = words.next(SECTIONS)?;
+            if section == "stage" {
+                let (word, name) = words.next(ESTIMATOR)?;
+                let estimator = estimator_index(name).ok_or(ParseError::Invalid { word, expected: ESTIMATOR })?;
+                words.end()?;
+                return Ok(Command::FromEstimate { estimator, prefilter: true });
+            }
             let key = if let Some(key) = TuningKey::parse("", section) {
                 key
             } else {
@@ -368,7 +379,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             if let Some(estimator) = from {
                 words.next(INITIAL)?;
                 words.end()?;
-                return Ok(Command::InitialFrom { estimator });
+                return Ok(Command::FromEstimate { estimator, prefilter: false });
             }
             // Without values: a query.
             let values = if words.is_done() {
@@ -575,8 +586,9 @@ mod tests {
             Ok(Command::Tune { key: TuningKey::EkfQ, values: Some([1e-12, 1e-6, 1.5e9, 0.25, 5e8]) })
         );
         assert_eq!(p("tune ekf q"), Ok(Command::Tune { key: TuningKey::EkfQ, values: None }));
-        assert_eq!(p("tune initial arx"), Ok(Command::InitialFrom { estimator: 3 }));
-        assert_eq!(p("tune initial  rls "), Ok(Command::InitialFrom { estimator: 0 }));
+        assert_eq!(p("tune initial arx"), Ok(Command::FromEstimate { estimator: 3, prefilter: false }));
+        assert_eq!(p("tune initial  rls "), Ok(Command::FromEstimate { estimator: 0, prefilter: false }));
+        assert_eq!(p("tune stage hekf"), Ok(Command::FromEstimate { estimator: 2, prefilter: true }));
         // Out of range parses: `Tuning::set` refuses it with the range (the console's test).
         assert_eq!(
             p("tune ekf reopen 5000"),
@@ -588,7 +600,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 42] = [
+        let cases: [(&[u8], ParseError); 45] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -624,8 +636,11 @@ mod tests {
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
             (b"status\xff", NotAscii { at: 6 }),
-            (b"tune", Missing { word: 2, expected: "initial, prefilter, rls, ekf or arx" }),
-            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, prefilter, rls, ekf or arx" }),
+            (b"tune", Missing { word: 2, expected: "initial, prefilter, stage, rls, ekf or arx" }),
+            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf or arx" }),
+            (b"tune stage", Missing { word: 3, expected: ESTIMATOR }),
+            (b"tune stage 5e5", Invalid { word: 3, expected: ESTIMATOR }),
+            (b"tune stage arx 1", Extra { word: 4 }),
             (b"tune ekf gamma 1", Invalid { word: 3, expected: EKF_KEYS }),
             (b"tune ekf q 1 2 3", Missing { word: 7, expected: "5 numbers, for x1 x2 a0 a1 b0" }),
             (b"tune rls gamma x", Invalid { word: 4, expected: "a number" }),
