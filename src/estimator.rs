@@ -284,9 +284,7 @@ impl Health {
             innovation_rms_um: f32::NAN,
         }
     }
-}
 
-impl Health {
     /// The word the console's `status`, the telemetry and `identify --health` give the state: the adaptation's
     /// ([`Adaptation::name`]), or `held` for an estimator adapting whose parameters are [`Health::held`].
     pub const fn state(&self) -> &'static str {

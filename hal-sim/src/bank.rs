@@ -35,28 +35,23 @@ impl<T: Real> Bank<T> {
         }
     }
 
-    /// The health of each estimator present, in report order.
-    pub fn healths(&self) -> impl Iterator<Item = Health> + '_ {
+    /// `(name, estimate, health)` of each estimator present, in report order ([`Estimator::report`]: the ARX's
+    /// conversion to the stage once for both).
+    pub fn reports(&self) -> impl Iterator<Item = (&'static str, StageParams<T>, Health)> + '_ {
         [
-            self.rls.as_ref().map(|e| e.health()),
-            self.ekf.as_ref().map(|e| e.health()),
-            self.hekf.as_ref().map(|e| e.health()),
-            self.arx.as_ref().map(|e| e.health()),
+            self.rls.as_ref().map(|e| ("rls", e.report())),
+            self.ekf.as_ref().map(|e| ("ekf", e.report())),
+            self.hekf.as_ref().map(|e| ("hekf", e.report())),
+            self.arx.as_ref().map(|e| ("arx", e.report())),
         ]
         .into_iter()
         .flatten()
+        .map(|(name, (p, h))| (name, p, h))
     }
 
     /// `(name, estimate)` of each estimator present, in report order.
     pub fn estimates(&self) -> impl Iterator<Item = (&'static str, StageParams<T>)> + '_ {
-        [
-            self.rls.as_ref().map(|e| ("rls", e.params())),
-            self.ekf.as_ref().map(|e| ("ekf", e.params())),
-            self.hekf.as_ref().map(|e| ("hekf", e.params())),
-            self.arx.as_ref().map(|e| ("arx", e.params())),
-        ]
-        .into_iter()
-        .flatten()
+        self.reports().map(|(name, p, _)| (name, p))
     }
 }
 

@@ -3,13 +3,13 @@
 //! `src/bin/nanopos-fw/firmware.rs`, with the board behind the same HAL trait. `nanopos-sim console` runs it on a
 //! terminal; the host tests (`tests/instrument.rs`) drive it sample by sample.
 
-use crate::board::SimBoard;
+use crate::board::{BoardSettings, SimBoard};
 use crate::sim::Scenario;
 use nanopos_id::console::{write_record_end, Controller, Rest, REPLY_BYTES};
 use nanopos_id::control::{parse, Command, LineBuffer, ParseError};
 use nanopos_id::hal::StageBoard;
 use nanopos_id::instrument::Instrument;
-use nanopos_id::pipeline::SampleOutput;
+use nanopos_id::pipeline::{PipelineSettings, SampleOutput};
 use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
@@ -46,14 +46,21 @@ impl Lab {
 
     /// [`Lab::new`], with the stage `stage` (payload on and off alike) instead of the paper's.
     pub fn with_stage(stage: Option<StageParams<f64>>) -> Self {
-        let (mut board_settings, settings) = Scenario::Prbs.settings(200.0, 1);
-        if let Some(p) = stage {
-            (board_settings.plant.before, board_settings.plant.after) = (p, p);
-        }
+        let (board_settings, settings) = Self::settings(stage);
         let board = SimBoard::new(board_settings);
         let ctl = Controller::new(settings, board.description(), true).expect("the paper's settings design");
         let isr = Instrument::new(ctl.config(), &ctl.tuning());
         Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new(), recording: false }
+    }
+
+    /// The board's and the pipeline's settings of [`Lab::with_stage`]: the paper's experiment ([`Scenario::Prbs`]
+    /// over 200 s), with `stage` (payload on and off alike) instead of the paper's stage.
+    pub fn settings(stage: Option<StageParams<f64>>) -> (BoardSettings, PipelineSettings) {
+        let (mut board, settings) = Scenario::Prbs.settings(200.0, 1);
+        if let Some(p) = stage {
+            (board.plant.before, board.plant.after) = (p, p);
+        }
+        (board, settings)
     }
 
     /// Bytes typed on the link (lines ended by `\n`, `\r` or both, as a terminal sends them): every line they

@@ -138,12 +138,11 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
 /// are; once it has converged, none.
 #[test]
 fn identify_reports_a_window_where_the_arx_held_its_parameters() {
-    use hal_sim::sim::{Scenario, Simulation};
+    use hal_sim::{lab::Lab, sim::Simulation};
     let dir = tempfile::tempdir().unwrap();
     let w = 2.0 * std::f64::consts::PI * 1000.0;
     let stage = nanopos_id::StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w };
-    let (mut board, settings) = Scenario::Prbs.settings(200.0, 1);
-    (board.plant.before, board.plant.after) = (stage, stage);
+    let (board, settings) = Lab::settings(Some(stage));
     let mut sim = Simulation::new(board, &settings, ()).unwrap();
     let mut text = String::from("t,u,y\n");
     for _ in 0..60_000 {

@@ -328,8 +328,7 @@ impl<T: Real> InnovationLevel<T> {
     /// The RMS over the last `block` samples, um; over the samples so far before the first block is complete, 0
     /// before any.
     fn rms(&self, block: u32) -> T {
-        let to_t = |n: u32| <T as num_traits::NumCast>::from(n).unwrap_or_else(T::one);
-        let (n, b) = (to_t(self.count), to_t(block));
+        let (n, b) = (T::of(self.count as f64), T::of(block as f64));
         let ms = if self.last >= T::zero() {
             (self.last * ((b - n) / b) + self.sum) / b
         } else if self.count > 0 {

@@ -521,8 +521,9 @@ fn run_group<T: Real>(
             bank.update(s);
             k += 1;
             if k % every == 0 {
-                rows.estimates.push(bank.estimates().map(|(_, p)| p.cast::<f64>()).collect());
-                rows.healths.push(bank.healths().collect());
+                let (estimates, healths) = bank.reports().map(|(_, p, h)| (p.cast::<f64>(), h)).unzip();
+                rows.estimates.push(estimates);
+                rows.healths.push(healths);
             }
         }
     }
