@@ -158,25 +158,42 @@ impl Controller {
 
     /// The recording header of the current settings.
     pub fn record_header(&self) -> RecordHeader {
-        let (p, a) = (&self.settings.probe, &self.settings.amplifier);
+        let p = &self.settings.probe;
         let um_per_adc_v = p.um_per_v / p.adc_v_per_sensor_v;
         RecordHeader {
             rate_hz: self.settings.sample_rate_hz,
             delay: self.board.actuation_delay_samples,
-            u_v_per_code: self.board.amplifier.volts_per_code() / a.dac_v_per_command_v,
-            u_v_offset: -a.dac_offset_v / a.dac_v_per_command_v,
+            u_v_per_code: self.dac_step_v(),
+            u_v_offset: -self.settings.amplifier.dac_offset_v / self.settings.amplifier.dac_v_per_command_v,
             y_um_per_code: self.board.probe.volts_per_code() * um_per_adc_v,
             y_um_offset: -p.adc_offset_v * um_per_adc_v,
         }
     }
 
+    /// The DAC's step as a command, V: what one code of the amplifier's DAC moves the command by.
+    fn dac_step_v(&self) -> f64 {
+        self.board.amplifier.volts_per_code() / self.settings.amplifier.dac_v_per_command_v
+    }
+
     /// Before the verdict of `excite`, `start` and `limits`: a line for each way the chosen excitation does not fit
-    /// the output limits ([`ExcitationDesign::reach`]): beyond the clamp, or steeper than the slew limit. The limits
-    /// then distort it, which `status` counts as `limited=` and the log warns about; a distorted excitation can bias
-    /// the estimates (see [`crate::pipeline::FaultCounters::limited`]).
+    /// the output ([`ExcitationDesign::reach`]): within one step of the DAC, beyond the clamp, or steeper than the
+    /// slew limit. The DAC cannot carry the first (the output holds one code or toggles between two, and the
+    /// excitation monitor starves every estimator: `tests/instrument.rs`); the limits distort the others, which
+    /// `status` counts as `limited=` and the log warns about; a distorted excitation can bias the estimates (see
+    /// [`crate::pipeline::FaultCounters::limited`]).
     fn fit_note(&self, reply: &mut impl Write) -> fmt::Result {
         let (l, fs) = (&self.settings.limits, self.settings.sample_rate_hz);
         let r = self.chosen.reach(fs);
+        let (span, dac_step) = (r.high_v - r.low_v, self.dac_step_v());
+        if self.chosen.waveform != Waveform::Off && span < dac_step {
+            writeln!(
+                reply,
+                "note: the excitation spans {} V, less than one step of the DAC ({} V): the output holds one code or \
+                 toggles between two, and the excitation monitor holds the estimators (starved)",
+                Num(span, 6),
+                Num(dac_step, 6)
+            )?;
+        }
         if r.low_v < l.min_v || r.high_v > l.max_v {
             writeln!(
                 reply,
