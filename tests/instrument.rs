@@ -1386,7 +1386,8 @@ fn an_excitation_within_a_dac_step_is_noted_and_starves_every_estimator() {
                 assert!(starved, "{cmd}: sample {k}");
             }
         }
-        assert!(codes.len() <= 2 + 1, "{cmd}: codes {codes:?}"); // the step from the start's safe code included
+        // Two codes at most, and the safe code the output started from.
+        assert!(codes.len() <= 2 + 1, "{cmd}: codes {codes:?}");
         // `start` says it again.
         lab.send("stop\n");
         assert!(notes(&lab.send("start\n")).iter().any(|n| n.ends_with(WITHIN)), "{cmd}");
