@@ -317,7 +317,12 @@ impl Controller {
         let initial = [t.rls.initial, t.ekf.initial, t.ekf.initial, t.arx.initial][estimator];
         let near = |v: f64, i: f64| (v - i).abs() <= 1e-4 * i.abs();
         if near(values[0], initial.b0) && near(values[1], initial.a1) && near(values[2], initial.a0) {
-            return refuse(Seed::Unmoved);
+            // For `tune stage`, the pre-filter may still be off them (after `tune initial arx`, say): the command
+            // that centres it.
+            let pf = t.rls.prefilter;
+            let f0 = initial.f0_hz();
+            let centre = (prefilter && !near(pf.f_p_hz, f0)).then_some([pf.f_lc_hz, f0, pf.zeta_p]);
+            return refuse(Seed::Unmoved { centre });
         }
         let mut t = self.tuning;
         if let Err(r) = t.set(TuningKey::Initial, &values) {
@@ -639,8 +644,12 @@ enum Refusal {
 enum Seed {
     /// The estimator is not selected.
     NotRunning,
-    /// Its estimate is its initial parameters (within 1e-4 of each).
-    Unmoved,
+    /// Its estimate is its initial parameters (within 1e-4 of each); for `tune stage`, `tune prefilter`'s values
+    /// that centre the pre-filter on them, unless it is.
+    Unmoved {
+        /// `f_lc`, `f_p`, `zeta_p`.
+        centre: Option<[f64; 3]>,
+    },
     /// Its estimate is held ([`crate::estimator::Health::held`]).
     Held,
     /// A value `tune initial` refuses: which, its value, and what it should have been.
@@ -680,8 +689,18 @@ impl fmt::Display for Refusal {
                 "{estimator}'s estimate is held (its model has no continuous equivalent now): let it find the stage \
                  first (status)"
             ),
-            Refusal::Seed { estimator, why: Seed::Unmoved } => {
-                write!(f, "{estimator}'s estimate is its initial parameters: let it find the stage first (status)")
+            Refusal::Seed { estimator, why: Seed::Unmoved { centre } } => {
+                write!(f, "{estimator}'s estimate is its initial parameters: let it find the stage first (status)")?;
+                match centre {
+                    Some([f_lc, f_p, zeta]) => write!(
+                        f,
+                        ", or centre the pre-filter on them: tune prefilter {} {} {}",
+                        Num(*f_lc, 6),
+                        Num(*f_p, 6),
+                        Num(*zeta, 6)
+                    ),
+                    None => Ok(()),
+                }
             }
             Refusal::Seed { estimator, why: Seed::Value(name, value, expected) } => {
                 write!(f, "{estimator}'s estimate has {name} = {}: {expected}", Num(*value, 6))

@@ -726,6 +726,22 @@ fn tune_stage_takes_the_initial_parameters_and_the_prefilter_from_an_estimate() 
         verdict(&lab.send("select hekf\ntune stage arx\n")),
         "error: arx is not running: select it, and let it find the stage, first"
     );
+    // After `tune initial arx` the ARX's estimate is its initial parameters too, but the pre-filter is still the
+    // paper's: the refusal gives the command that centres it on them, which does what `tune stage` would have.
+    let mut lab = Lab::with_stage(Some(KHZ_STAGE));
+    lab.run(50_000);
+    assert!(verdict(&lab.send("tune initial arx\n")).starts_with("ok tune initial = "));
+    let r = lab.send("tune stage arx\n");
+    let (refusal, command) = verdict(&r).split_once(", or centre the pre-filter on them: ").unwrap_or(("", ""));
+    assert_eq!(refusal, "error: arx's estimate is its initial parameters: let it find the stage first (status)");
+    // The resonance of the initial parameters in use (`ok tune initial = B0 A1 A0`).
+    let initial: Vec<f64> = verdict(&lab.send("tune initial\n")).split(' ').filter_map(|w| w.parse().ok()).collect();
+    let f0 = Num(StageParams { b0: initial[0], a1: initial[1], a0: initial[2] }.f0_hz(), 6);
+    assert_eq!(command, format!("tune prefilter 100 {f0} 0.1"), "{r}");
+    let r = lab.send(&format!("{command}\n"));
+    assert_eq!(verdict(&r), format!("ok tune prefilter = 100 {f0} 0.1 (estimators restarted)"));
+    lab.run(50_000);
+    ekfs_near_the_khz_stage(&lab, "tune initial arx, then the refusal's tune prefilter");
 }
 
 /// `tune initial ESTIMATOR` takes an estimate only from an estimator that runs, and only one that can start the
