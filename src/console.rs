@@ -316,20 +316,22 @@ impl Controller {
         let t = &self.tuning;
         let initial = [t.rls.initial, t.ekf.initial, t.ekf.initial, t.arx.initial][estimator];
         let near = |v: f64, i: f64| (v - i).abs() <= 1e-4 * i.abs();
+        // `tune prefilter`'s values with `f_p` at the resonance `f0`, `f_lc` and `zeta_p` kept (`tune initial` does
+        // not move the pre-filter).
+        let pf = t.rls.prefilter;
+        let centre_on = |f0: f64| [pf.f_lc_hz, f0, pf.zeta_p];
         if near(values[0], initial.b0) && near(values[1], initial.a1) && near(values[2], initial.a0) {
             // For `tune stage`, the pre-filter may still be off them (after `tune initial arx`, say): the command
             // that centres it.
-            let pf = t.rls.prefilter;
             let f0 = initial.f0_hz();
-            let centre = (prefilter && !near(pf.f_p_hz, f0)).then_some([pf.f_lc_hz, f0, pf.zeta_p]);
+            let centre = (prefilter && !near(pf.f_p_hz, f0)).then_some(centre_on(f0));
             return refuse(Seed::Unmoved { centre });
         }
         let mut t = self.tuning;
         if let Err(r) = t.set(TuningKey::Initial, &values) {
             return refuse(Seed::Value(["b0", "a1", "a0"][r.index], values[r.index], r.expected));
         }
-        let pf = t.rls.prefilter;
-        let centred = [pf.f_lc_hz, t.ekf.initial.f0_hz(), pf.zeta_p];
+        let centred = centre_on(t.ekf.initial.f0_hz());
         if prefilter {
             // `a0` was taken as positive: so is its resonance.
             t.set(TuningKey::Prefilter, &centred).map_err(|_| Refusal::Text("the estimate has no resonance"))?;
