@@ -339,6 +339,75 @@ impl WatchdogGate {
     }
 }
 
+/// The EKFs' resonance against that of the estimators linear in their parameters ([`disagreement`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Disagreement {
+    /// The EKFs whose estimate is off the reference's.
+    pub ekfs: EstimatorSet,
+    /// The reference: the ARX if it runs with an estimate to report, else the continuous-time RLS (an index in
+    /// [`crate::control::ESTIMATOR_NAMES`]).
+    pub reference: usize,
+}
+
+impl Disagreement {
+    /// The EKFs off the reference, as a list of names (`ekf`, `hekf` or `ekf,hekf`).
+    pub fn ekf_names(&self) -> &'static str {
+        match (self.ekfs.contains(1), self.ekfs.contains(2)) {
+            (true, false) => "ekf",
+            (false, true) => "hekf",
+            _ => "ekf,hekf",
+        }
+    }
+
+    /// The reference's name.
+    pub fn reference_name(&self) -> &'static str {
+        crate::control::ESTIMATOR_NAMES[self.reference]
+    }
+}
+
+/// How far apart two resonances may be before they disagree, as a ratio. The payload's removal moves the paper's
+/// stage by 14 %, and the continuous-time RLS takes 13 s to follow it where the EKFs take 0.2 s: that must not count.
+pub const DISAGREEMENT_F0_RATIO: f64 = 1.25;
+
+/// Whether the running EKFs disagree with the estimators linear in their parameters: a resonance more than 1.25
+/// times above or below theirs ([`DISAGREEMENT_F0_RATIO`]), or a static gain of the other sign. The EKFs are local:
+/// started far from the stage (the paper's initial parameters, 390 Hz, on a stage at 1 kHz) they settle on a wrong
+/// solution, `b0` of the wrong sign, and report it as steadily as a right one. The RLS and the ARX are linear in
+/// their parameters and cannot settle wrong, but they converge more slowly (the ARX 35-58 s at a 50 mV PRBS, the RLS
+/// 13 s after the payload's removal): a disagreement is either. The reference is the ARX if it runs and its estimate
+/// is not held, else the RLS; when both run they must agree with each other, or there is no verdict (`None`), as
+/// there is none with no EKF or no reference running. Computed from a [`Status`] in the working scalar, no square
+/// root.
+pub fn disagreement<T: Real>(status: &Status<T>) -> Option<Disagreement> {
+    compare_ekfs(status).filter(|d| d.ekfs.0 != 0)
+}
+
+/// The verdict of [`disagreement`], agreement included: `Some` with no EKF in [`Disagreement::ekfs`] where every
+/// running EKF agrees with the reference; `None` where there is no verdict.
+pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
+    // Compared on `a0`, the square of the resonance.
+    let ratio = T::of(DISAGREEMENT_F0_RATIO * DISAGREEMENT_F0_RATIO);
+    let agree = |p: &StageParams<T>, q: &StageParams<T>| {
+        p.a0 > T::zero() && p.a0 < ratio * q.a0 && q.a0 < ratio * p.a0 && p.b0 * q.b0 > T::zero()
+    };
+    let reports = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
+    let (rls, arx) = (&status.estimates[0].0, &status.estimates[3].0);
+    let reference = match (reports(3), reports(0)) {
+        (true, true) if !agree(arx, rls) => return None,
+        (true, _) => 3,
+        (false, true) => 0,
+        (false, false) => return None,
+    };
+    let r = &status.estimates[reference].0;
+    // A reference with no resonance (`a0` not positive, or not a number) judges nothing, as no EKF running is judged.
+    let judged = r.a0 > T::zero() && (status.selected.contains(1) || status.selected.contains(2));
+    if !judged {
+        return None;
+    }
+    let off = [1, 2].into_iter().filter(|&i| status.selected.contains(i) && !agree(&status.estimates[i].0, r));
+    Some(Disagreement { ekfs: EstimatorSet(off.fold(0, |set, i| set | 1 << i)), reference })
+}
+
 /// What grew since the last look at the interrupt's [`Status`]: for the telemetry, which warns once per event rather
 /// than leaving the user to read it off climbing counters. Numeric resets matter most: a tuning the data drive to
 /// non-finite values resets an estimator over and over, each time back to its initial parameters and `adapting`,
@@ -349,7 +418,17 @@ pub struct EventWatch {
     seen: News,
     /// Whether the output limits changed commands in the interval the last look covered.
     limited_before: bool,
+    /// Looks at which the EKFs disagreed with the estimators linear in their parameters ([`disagreement`]) since
+    /// they last agreed (looks with no verdict, the RLS and the ARX apart, neither count nor end it).
+    disagreeing: u8,
 }
+
+/// Looks (0.1 s apart in the telemetry) at which the EKFs disagree ([`disagreement`]) before it is news, with no
+/// agreement between them:
+/// 2 s, so that the estimators' own convergence from their start does not warn (on the paper's stage wired the other
+/// way round, with the triangle, the EKFs find the negative gain within 0.1 s, the ARX's passes zero after 1.7 s:
+/// they disagree in 0.9 s and 0.5 s stretches).
+pub const DISAGREEMENT_LOOKS: u8 = 20;
 
 /// Events since the last look ([`EventWatch::look`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -365,30 +444,168 @@ pub struct News {
     /// The limits changed commands both since the last look and in the interval before it: the excitation does not
     /// fit them. A single step of the command (a start about an offset: a sample or two, once) does not count.
     pub limiting: bool,
+    /// The EKFs' [`disagreement`], on the look that completes [`DISAGREEMENT_LOOKS`] since they last agreed; once
+    /// per spell.
+    pub disagreement: Option<Disagreement>,
 }
 
 impl EventWatch {
     /// The counts' growth since the last look. A count that went down was restarted (a new tuning restarts the
     /// estimators and their health): all of it is new.
-    pub fn look<T>(&mut self, status: &Status<T>) -> News {
+    pub fn look<T: Real>(&mut self, status: &Status<T>) -> News {
         let now = News {
             resets: core::array::from_fn(|i| status.estimates[i].1.numeric_resets),
             deadline_misses: status.counters.deadline_misses,
             adc_overruns: status.counters.adc_overruns,
             limited: status.counters.limited,
             limiting: false,
+            disagreement: None,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let limited = grown(now.limited, self.seen.limited);
+        let found = compare_ekfs(status);
+        self.disagreeing = match found {
+            Some(d) if d.ekfs.0 != 0 => self.disagreeing.saturating_add(1),
+            Some(_) => 0,
+            None => self.disagreeing,
+        };
         let news = News {
             resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
             limited,
             limiting: limited > 0 && self.limited_before,
+            disagreement: found.filter(|d| d.ekfs.0 != 0 && self.disagreeing == DISAGREEMENT_LOOKS),
         };
         self.limited_before = limited > 0;
         self.seen = now;
         news
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The paper's stage with the payload, `f0` 422.9 Hz.
+    const STAGE: StageParams<f32> = StageParams { a0: 7.06e6, a1: 77.6, b0: 0.808e6 };
+
+    /// A status with every estimator selected at [`STAGE`], `est` changing it.
+    fn status(est: impl Fn(&mut [(StageParams<f32>, Health); 4])) -> Status<f32> {
+        let mut estimates = [(STAGE, Health::new()); 4];
+        est(&mut estimates);
+        Status {
+            samples: 0,
+            faults: Faults::default(),
+            counters: FaultCounters::default(),
+            command_v: 0.0,
+            excitation_level: PeLevel::default(),
+            selected: EstimatorSet::ALL,
+            estimates,
+            record: RecordStatus::default(),
+        }
+    }
+
+    /// `STAGE` with its resonance times `ratio` (and its gain kept).
+    fn moved(ratio: f32) -> StageParams<f32> {
+        let k = ratio * ratio;
+        StageParams { a0: STAGE.a0 * k, a1: STAGE.a1, b0: STAGE.b0 * k }
+    }
+
+    #[test]
+    fn the_ekfs_disagree_beyond_the_ratio_or_with_the_other_sign() {
+        assert_eq!(disagreement(&status(|_| ())), None, "all at one stage");
+        let agreed = Disagreement { ekfs: EstimatorSet(0), reference: 3 };
+        assert_eq!(compare_ekfs(&status(|_| ())), Some(agreed));
+        // Just within and just beyond 1.25, above and below, for either EKF.
+        for (ratio, off) in [(1.249, false), (1.251, true), (1.0 / 1.249, false), (1.0 / 1.251, true)] {
+            for ekf in [1, 2] {
+                let d = disagreement(&status(|e| e[ekf].0 = moved(ratio)));
+                let expect = off.then_some(Disagreement { ekfs: EstimatorSet(1 << ekf), reference: 3 });
+                assert_eq!(d, expect, "ekf {ekf} at {ratio}");
+            }
+        }
+        // The gain's sign, and a stage with no resonance.
+        let flipped = StageParams { b0: -STAGE.b0, ..STAGE };
+        let d = disagreement(&status(|e| e[1].0 = flipped)).unwrap();
+        assert_eq!((d.ekfs, d.ekf_names(), d.reference_name()), (EstimatorSet(0b010), "ekf", "arx"));
+        let none = StageParams { a0: -STAGE.a0, ..STAGE };
+        let d = disagreement(&status(|e| (e[1].0, e[2].0) = (none, flipped))).unwrap();
+        assert_eq!((d.ekfs, d.ekf_names()), (EstimatorSet(0b110), "ekf,hekf"));
+        // Not finite: no agreement either.
+        let nan = StageParams { a0: f32::NAN, ..STAGE };
+        assert_eq!(disagreement(&status(|e| e[2].0 = nan)).map(|d| d.ekf_names()), Some("hekf"));
+    }
+
+    #[test]
+    fn the_reference_is_the_arx_else_the_rls_and_they_must_agree() {
+        let ekfs_off = |e: &mut [(StageParams<f32>, Health); 4]| (e[1].0, e[2].0) = (moved(2.0), moved(2.0));
+        assert_eq!(disagreement(&status(ekfs_off)).map(|d| d.reference), Some(3));
+        // The ARX held (or not running): the RLS.
+        let held = |e: &mut [(StageParams<f32>, Health); 4]| {
+            ekfs_off(e);
+            e[3].1.held = true;
+        };
+        assert_eq!(disagreement(&status(held)).map(|d| d.reference), Some(0));
+        let mut s = status(ekfs_off);
+        s.selected = EstimatorSet(0b0111);
+        assert_eq!(disagreement(&s).map(|d| (d.reference, d.ekfs)), Some((0, EstimatorSet(0b110))));
+        // The RLS and the ARX apart: no verdict.
+        let apart = |e: &mut [(StageParams<f32>, Health); 4]| {
+            ekfs_off(e);
+            e[0].0 = moved(1.3);
+        };
+        assert_eq!(compare_ekfs(&status(apart)), None);
+        // No reference, no EKF, a reference with no resonance: no verdict. An EKF not running is not judged.
+        for selected in [0b0110, 0b1001] {
+            let mut s = status(ekfs_off);
+            s.selected = EstimatorSet(selected);
+            assert_eq!(compare_ekfs(&s), None, "{selected:#b}");
+        }
+        let no_resonance = |e: &mut [(StageParams<f32>, Health); 4]| {
+            ekfs_off(e);
+            e[3].0.a0 = 0.0;
+            e[0].1.held = true;
+        };
+        assert_eq!(compare_ekfs(&status(no_resonance)), None);
+        let nan_reference = |e: &mut [(StageParams<f32>, Health); 4]| {
+            ekfs_off(e);
+            e[3].0.a0 = f32::NAN;
+            e[0].1.held = true;
+        };
+        assert_eq!(compare_ekfs(&status(nan_reference)), None);
+        let mut s = status(|e| e[1].0 = moved(2.0));
+        s.selected = EstimatorSet(0b1101);
+        assert_eq!(disagreement(&s), None, "the continuous EKF off");
+    }
+
+    #[test]
+    fn the_watch_tells_a_disagreement_once_after_2_s() {
+        let mut watch = EventWatch::default();
+        let (agree, off) = (status(|_| ()), status(|e| e[2].0 = moved(2.0)));
+        let told = |watch: &mut EventWatch, s: &Status<f32>, looks: usize| {
+            (0..looks).map(|_| watch.look(s).disagreement.is_some()).collect::<Vec<_>>()
+        };
+        // One look short, then agreement: nothing; enough in a row: told on the last, and not again while it lasts.
+        let looks = DISAGREEMENT_LOOKS as usize;
+        assert!(!told(&mut watch, &off, looks - 1).contains(&true));
+        assert!(!told(&mut watch, &agree, 1)[0]);
+        let spell = told(&mut watch, &off, 300);
+        assert_eq!(spell.iter().position(|&t| t), Some(looks - 1));
+        assert_eq!(spell.iter().filter(|&&t| t).count(), 1, "{spell:?}");
+        // Looks with no verdict (the RLS and the ARX apart) neither end a spell nor count in it.
+        let undecided = status(|e| (e[2].0, e[0].0) = (moved(2.0), moved(1.3)));
+        assert_eq!(compare_ekfs(&undecided), None);
+        assert!(!told(&mut watch, &undecided, 300).contains(&true));
+        assert!(!told(&mut watch, &off, 300).contains(&true), "the same spell");
+        told(&mut watch, &agree, 1);
+        told(&mut watch, &off, looks - 2);
+        told(&mut watch, &undecided, 5);
+        assert_eq!(told(&mut watch, &off, 2), [false, true]);
+        // Over: the next spell is told again.
+        told(&mut watch, &agree, 1);
+        assert_eq!(told(&mut watch, &off, looks).iter().filter(|&&t| t).count(), 1);
+        let news = watch.look(&agree);
+        assert_eq!(news, News::default());
     }
 }
