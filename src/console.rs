@@ -14,7 +14,7 @@ use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Record
 use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey, Unrunnable};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
-use crate::instrument::{Change, RecordStatus, Status};
+use crate::instrument::{disagreement, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
 use crate::pipeline::{Faults, PipelineConfig, PipelineSettings, SettingsError};
 use crate::record::RecordHeader;
 use crate::text::Num;
@@ -48,7 +48,8 @@ impl<T: Real> Rest<T> {
     #[inline(never)]
     pub fn write_next(&mut self, ctl: &Controller, reply: &mut impl Write) -> bool {
         let Some(s) = &self.status else { return false };
-        if self.next > s.estimates.len() {
+        // An `est` line per estimator, the note of a disagreement if there is one, the `ok` line.
+        if self.next > s.estimates.len() + disagreement(s).is_some() as usize {
             return false;
         }
         // A part that does not fit is cut by the buffer (and marked); the next ones still come.
@@ -562,7 +563,8 @@ impl Controller {
         Ok(Some(change))
     }
 
-    /// Line `line` of `status`'s reply: the `est` line of estimator `line`, or, after the last, the `ok status` line.
+    /// Line `line` of `status`'s reply: the `est` line of estimator `line`; after the last, the note of the EKFs'
+    /// [`disagreement`] with the estimators linear in their parameters if they disagree; then the `ok status` line.
     fn write_status_line<T: Real>(&self, s: &Status<T>, line: usize, w: &mut impl Write) -> fmt::Result {
         if let Some((p, h)) = s.estimates.get(line) {
             let f = |x: T| Num(x.to_f64().unwrap_or(f64::NAN), 6);
@@ -586,6 +588,18 @@ impl Controller {
                 h.numeric_resets,
                 h.covariance_repairs,
                 Num(h.innovation_rms_um as f64, 4)
+            );
+        }
+        if let Some(d) = disagreement(s).filter(|_| line == s.estimates.len()) {
+            let reference = d.reference_name();
+            return writeln!(
+                w,
+                "note: {} disagree with {reference} on the resonance (more than {} times apart) or the gain's sign: \
+                 the EKFs are local and, started far from the stage, settle on a wrong solution; the {reference} \
+                 cannot, but converges more slowly. Once its estimate holds, start the EKFs there: tune stage \
+                 {reference}",
+                d.ekf_names(),
+                Num(DISAGREEMENT_F0_RATIO, 6)
             );
         }
         let c = &s.counters;
@@ -799,10 +813,15 @@ fn list<'a>(f: &mut fmt::Formatter<'_>, names: impl Iterator<Item = &'a str>) ->
 
 /// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is: the hybrid EKF's if it
 /// runs, else the first running estimator's whose parameters are not held ([`crate::estimator::Health::held`]: the
-/// ARX's, the last it could report); `None` if none runs or its estimate has no resonance (`a0 <= 0`).
+/// ARX's, the last it could report); where the EKFs [`disagreement`] with the estimators linear in their parameters,
+/// the latter's (the ARX's, else the RLS's). `None` if none runs or its estimate has no resonance (`a0 <= 0`).
 fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str)> {
     let running = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
-    let i = if running(2) { 2 } else { (0..4).find(|&i| running(i))? };
+    let i = match disagreement(status) {
+        Some(d) => d.reference,
+        None if running(2) => 2,
+        None => (0..4).find(|&i| running(i))?,
+    };
     let f0 = status.estimates[i].0.f0_hz().to_f64()?;
     (f0.is_finite() && f0 > 0.0).then_some((f0, ESTIMATOR_NAMES[i]))
 }
