@@ -354,6 +354,14 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 c.limited
             );
         }
+        if let Some(d) = news.disagreement {
+            defmt::warn!(
+                "{=str} disagree with {=str} on the resonance or the gain's sign for 2 s: the EKFs are local and may have settled on a wrong solution, or the {=str} has not converged yet (see `status`)",
+                d.ekf_names(),
+                d.reference_name(),
+                d.reference_name()
+            );
+        }
     }
 }
 
