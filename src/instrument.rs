@@ -387,8 +387,11 @@ pub fn disagreement<T: Real>(status: &Status<T>) -> Option<Disagreement> {
 pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
     // Compared on `a0`, the square of the resonance.
     let ratio = T::of(DISAGREEMENT_F0_RATIO * DISAGREEMENT_F0_RATIO);
+    // The gains' signs compared, not their product, which underflows for tiny ones.
+    let zero = T::zero();
     let agree = |p: &StageParams<T>, q: &StageParams<T>| {
-        p.a0 > T::zero() && p.a0 < ratio * q.a0 && q.a0 < ratio * p.a0 && p.b0 * q.b0 > T::zero()
+        let same_sign = (p.b0 > zero && q.b0 > zero) || (p.b0 < zero && q.b0 < zero);
+        p.a0 > zero && p.a0 < ratio * q.a0 && q.a0 < ratio * p.a0 && same_sign
     };
     let reports = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
     let (rls, arx) = (&status.estimates[0].0, &status.estimates[3].0);
@@ -532,6 +535,14 @@ mod tests {
         let none = StageParams { a0: -STAGE.a0, ..STAGE };
         let d = disagreement(&status(|e| (e[1].0, e[2].0) = (none, flipped))).unwrap();
         assert_eq!((d.ekfs, d.ekf_names()), (EstimatorSet(0b110), "ekf,hekf"));
+        // Gains too small for their product in f32 (it underflows to zero) keep their signs.
+        let tiny = |e: &mut [(StageParams<f32>, Health); 4]| e.iter_mut().for_each(|(p, _)| p.b0 = 1e-30);
+        assert_eq!(compare_ekfs(&status(tiny)), Some(agreed));
+        let d = disagreement(&status(|e| {
+            tiny(e);
+            e[2].0.b0 = -1e-30;
+        }));
+        assert_eq!(d.map(|d| d.ekf_names()), Some("hekf"));
         // Not finite: no agreement either.
         let nan = StageParams { a0: f32::NAN, ..STAGE };
         assert_eq!(disagreement(&status(|e| e[2].0 = nan)).map(|d| d.ekf_names()), Some("hekf"));

@@ -484,7 +484,7 @@ fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
 /// `status` at its widest fits the console's buffer a line at a time (it was written whole into the firmware's
 /// 768-byte buffer, which cut it after about three `est` lines: the `ok status` line never reached the board's user;
 /// the host's tests used a 1 KiB buffer). Every counter at its largest, the longest numbers, every fault, the
-/// longest excitation, tuning and recorder words.
+/// longest excitation, tuning and recorder words, and the note of the EKFs' disagreement.
 #[test]
 fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
     let mut lab = Lab::new();
@@ -517,6 +517,10 @@ fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
             (u32::MAX, u32::MAX, u32::MAX, u32::MAX);
         h.innovation_rms_um = long;
     }
+    // The EKFs' gain of the other sign: the note of their disagreement with the ARX, its longest form, too.
+    for (p, _) in &mut st.estimates[1..3] {
+        p.b0 = -long;
+    }
     let cmd = nanopos_id::control::parse(b"status").unwrap();
     let mut reply = TextBuf::<REPLY_BYTES>::default();
     let (change, mut rest) = lab.ctl.execute(cmd, || st, &mut reply);
@@ -538,10 +542,11 @@ fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
     for l in &lines {
         println!("{}", l.trim_end());
     }
-    assert_eq!(lines.len(), 5);
+    assert_eq!(lines.len(), 6);
     assert!(
         lines[..4].iter().all(|l| l.starts_with("est "))
-            && lines[4].starts_with("ok status samples=18446744073709551615 ")
+            && lines[4].starts_with("note: ekf,hekf disagree with arx ")
+            && lines[5].starts_with("ok status samples=18446744073709551615 ")
     );
     assert!(whole > 1024, "the whole would not fit one buffer of 1 KiB either: {whole}");
 }
