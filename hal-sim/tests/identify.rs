@@ -181,6 +181,16 @@ fn identify_reports_a_window_where_the_arx_held_its_parameters() {
     assert!(!stderr.contains("window 5:6 (its model"), "{stderr}");
     let health = std::fs::read_to_string(dir.path().join("h.csv")).unwrap();
     assert!(health.contains("\n0.5099,arx,held,") && health.contains("\n5.9999,arx,adapting,"), "{health}");
+    // Every estimator: the EKFs settled on a wrong solution, and the notes say their model fits far worse than the
+    // ARX's and take the ARX's resonance (1 kHz, not the hybrid EKF's 370 Hz) for the pre-filter's note.
+    let out = nanopos_sim(&["identify", "--input", "khz.csv", "--window", "5:6"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    println!("{stderr}");
+    for name in ["ekf", "hekf"] {
+        assert!(stderr.contains(&format!("note: {name}'s model fits window 5:6 ")), "{name}: {stderr}");
+    }
+    assert!(stderr.contains(" times the resonance (1000 Hz, arx's mean)"), "{stderr}");
 }
 
 /// A tuning that drives an estimator to non-finite values resets it over and over (each time back to its initial

@@ -655,7 +655,7 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// it reset itself (its means are of runs that diverged, each restarted from the initial parameters); and per window
 /// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates can
 /// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
-/// board's console takes it).
+/// board's console takes it; where another's model fits the window far better, that one's).
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -682,6 +682,10 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 show(w.t1.min(last))
             ));
         }
+        // The hybrid EKF's mean, unless another estimator's model fits the window far better ([`misfit`]: the EKFs
+        // settled on a wrong solution, as on a stage far from the initial parameters): then that one's, as the
+        // board's console takes the ARX's or the RLS's resonance where the EKFs disagree with them.
+        let by = figs.get(by).and_then(|f| misfit(figs, f)).unwrap_or(by);
         if let Some(f) = figs.get(by) {
             let f0 = f.mean.f0_hz();
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
