@@ -11,7 +11,8 @@
 //! Every block can be switched off (it is then a wire). The DAC output is held over each sample period, so the
 //! zero-order-hold discretisation of the whole chain (`linalg::zoh`) is exact: `x[k+1] = Phi x[k] + Gam u[k]`.
 //! The stage parameters change once, at the payload-removal sample, with the state carried over and an optional
-//! velocity kick (the disturbance bump of taking the payload off by hand).
+//! velocity kick (the disturbance bump of taking the payload off by hand). The piezo's gain may drift at a steady
+//! rate (as with temperature), scaling the drive and so `b0`.
 //!
 //! Optional piezo hysteresis acts on the held drive level: a Prandtl-Ishlinskii sum of play operators mixed with
 //! the linear path. Being applied per sample to a held level, it keeps the sampling exact. Optional creep follows
@@ -115,6 +116,12 @@ pub struct PlantSettings {
     pub hysteresis: Option<Hysteresis>,
     /// Creep; `None`: off.
     pub creep: Option<Creep>,
+    /// The piezo's gain drift (with temperature, SPEC section 1), relative, per second: the drive, and so the
+    /// stage's `b0` and the second mode's gain alike, times `1 + gain_drift_per_s * t` (0: none). Applied to the
+    /// drive at the DAC, ahead of the reconstruction filter and the amplifier: for a drift slow against their
+    /// milliseconds the same as a drifting `b0` (the difference is the drift over their delay, below 1e-6 of `b0`
+    /// at 0.1 % per second).
+    pub gain_drift_per_s: f64,
     /// Sample period, s.
     pub sample_period_s: f64,
 }
@@ -133,6 +140,7 @@ impl Default for PlantSettings {
             antialias_hz: Some(1000.0),
             hysteresis: None,
             creep: None,
+            gain_drift_per_s: 0.0,
             sample_period_s: 1e-4,
         }
     }
@@ -154,6 +162,7 @@ impl PlantSettings {
             antialias_hz: None,
             hysteresis: None,
             creep: None,
+            gain_drift_per_s: 0.0,
             sample_period_s: 1e-4,
         }
     }
@@ -283,13 +292,15 @@ impl Plant {
         self.x[X1]
     }
 
-    /// The true stage parameters of the current sample.
+    /// The true stage parameters of the current sample (`b0` with the gain's drift).
     pub fn params(&self) -> StageParams<f64> {
-        if self.sample < self.settings.change_at_sample {
-            self.settings.before
-        } else {
-            self.settings.after
-        }
+        let p = if self.sample < self.settings.change_at_sample { self.settings.before } else { self.settings.after };
+        StageParams { b0: p.b0 * self.gain(), ..p }
+    }
+
+    /// The piezo's gain at the current sample, relative to its start ([`PlantSettings::gain_drift_per_s`]).
+    fn gain(&self) -> f64 {
+        1.0 + self.settings.gain_drift_per_s * self.settings.sample_period_s * self.sample as f64
     }
 
     /// Index of the current sample.
@@ -313,6 +324,9 @@ impl Plant {
         };
         if let Some(c) = self.settings.creep {
             drive = self.creep(c, drive);
+        }
+        if self.settings.gain_drift_per_s != 0.0 {
+            drive *= self.gain();
         }
         let m = self.current();
         let mut next = mat_vec(&m.phi, &self.x);

@@ -241,6 +241,28 @@ fn creep_grows_the_step_response_by_a_share_per_decade() {
     assert!(without.iter().all(|r| (r - 1.0).abs() < 1e-9), "{without:?}");
 }
 
+/// The gain's drift: under a constant drive the displacement follows the truth's static gain `b0 / a0` as `b0`
+/// drifts (1 % per second here, 10 % in 10 s), lagging it by the stage's own `a1 / a0` (11 us) and by half a sample
+/// (the gain is held over each sample from its start, as the drive is): 6e-7 of it at this rate, measured over 1-6 s
+/// and 7-10 s; the payload's change at 6 s carries the drift over.
+#[test]
+fn a_drifting_gain_moves_the_static_response_with_the_truth() {
+    let ideal = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, 60_000);
+    let mut plant = Plant::new(PlantSettings { gain_drift_per_s: 0.01, ..ideal });
+    let mut worst: f64 = 0.0;
+    for k in 1..=100_000u64 {
+        plant.advance(1.0);
+        // After the start's and the change's rings (time constant 2 / a1: 26 ms and 23 ms) have died out.
+        if (10_000..60_000).contains(&k) || k >= 70_000 {
+            worst = worst.max((plant.output_um() / plant.params().dc_gain() - 1.0).abs());
+        }
+    }
+    let p = plant.params();
+    eprintln!("drifting gain: b0 at 10 s {} (x {}), output within {worst:.1e} of its static gain", p.b0, p.b0 / 1.07e6);
+    assert!((p.b0 / (1.07e6 * 1.1) - 1.0).abs() < 1e-12 && p.a0 == 9.21e6 && p.a1 == 86.8, "{p:?}");
+    assert!(worst < 1e-6, "{worst}");
+}
+
 #[test]
 fn hysteresis_makes_the_static_response_depend_on_the_path() {
     let settings = PlantSettings {
