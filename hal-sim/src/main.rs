@@ -34,6 +34,10 @@ enum Command {
         /// Add piezo creep (1 % of a step per decade of time, from 0.1 s to 100 s).
         #[arg(long)]
         creep: bool,
+        /// Let the piezo's gain drift (as with temperature) at this many % of its starting value per minute,
+        /// negative for a fall: the stage's b0 (and the truth's) at the rate
+        #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
+        gain_drift: f64,
         /// Output CSV file.
         #[arg(long)]
         out: PathBuf,
@@ -169,13 +173,14 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate { scenario, duration, seed, hysteresis, creep, out } => {
+        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, out } => {
             let args = simulate::SimulateArgs {
                 scenario: scenario.into(),
                 duration_s: duration,
                 seed,
                 hysteresis,
                 creep,
+                gain_drift_pct_per_min: gain_drift,
                 out: &out,
             };
             simulate::run(&args).map(|_| ())

@@ -70,6 +70,30 @@ fn simulate_adds_the_piezos_hysteresis_and_creep_on_request() {
     }
 }
 
+/// `--gain-drift PCT_PER_MIN` drifts the piezo's gain, and the truth's `b0` with it, from the start: the same
+/// command, another reading, `a0` and `a1` as they were; 600 % per minute over 0.01 s is 0.1 %.
+#[test]
+fn simulate_drifts_the_gain_and_the_truth_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = |extra: &[&str], name: &str| {
+        let mut args = vec!["simulate", "--scenario", "prbs", "--duration", "0.01", "--out", name];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let text = std::fs::read_to_string(dir.path().join(name)).unwrap();
+        text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect::<Vec<Vec<f64>>>()
+    };
+    let (still, drifting) = (rows(&[], "still.csv"), rows(&["--gain-drift", "600"], "drift.csv"));
+    for (k, (s, d)) in still.iter().zip(&drifting).enumerate() {
+        assert_eq!((d[0], d[1], d[3], d[4]), (s[0], s[1], s[3], s[4]), "row {k}: t, u, a0, a1");
+        // 600 % per minute is 0.1 per second: the gain at sample k is 1 + 1e-5 k.
+        let gain = 1.0 + 1e-5 * k as f64;
+        assert!((d[5] / (s[5] * gain) - 1.0).abs() < 1e-12, "row {k}: b0 {} against {}", d[5], s[5]);
+    }
+    assert!(still.iter().zip(&drifting).skip(20).any(|(s, d)| s[2] != d[2]), "the reading moved");
+    assert_eq!(rows(&["--gain-drift", "0"], "zero.csv"), still, "no drift: the same file");
+}
+
 #[test]
 fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
     let dir = tempfile::tempdir().unwrap();
@@ -231,6 +255,14 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--duration", "0.00001", "--out", "x.csv"], "two samples"),
         // In exponent form, not 1e-300 with its 300 zeros.
         (&["simulate", "--scenario", "prbs", "--duration", "1e-300", "--out", "x.csv"], "--duration 1e-300: shorter"),
+        (&["simulate", "--scenario", "prbs", "--gain-drift", "NaN", "--out", "x.csv"], "--gain-drift NaN: must be"),
+        (&["simulate", "--scenario", "prbs", "--gain-drift", "inf", "--out", "x.csv"], "--gain-drift inf: must be"),
+        (&["simulate", "--scenario", "prbs", "--gain-drift", "fast", "--out", "x.csv"], "fast"),
+        // -50 % per minute: the gain is gone after 120 s, within the default 200 s.
+        (
+            &["simulate", "--scenario", "prbs", "--gain-drift", "-50", "--out", "x.csv"],
+            "--gain-drift -50: the gain would reach zero after 120 s, within the run's 200 s",
+        ),
         (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
         (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),

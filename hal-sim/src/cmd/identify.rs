@@ -1035,6 +1035,7 @@ mod tests {
             seed: None,
             hysteresis: false,
             creep: false,
+            gain_drift_pct_per_min: 0.0,
             out: &input,
         };
         crate::cmd::simulate::run(&sim).unwrap();

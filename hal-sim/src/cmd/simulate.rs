@@ -1,8 +1,10 @@
-//! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] --out FILE.csv`
+//! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] [--gain-drift PCT_PER_MIN]
+//! --out FILE.csv`
 //!
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
-//! [`crate::plant::Creep`]). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
+//! [`crate::plant::Creep`]), and its gain drifting at a steady rate
+//! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
 //! reading (um), and the true stage parameters at that sample.
 
 use super::{fail, show, CliError, OutputFile, Progress};
@@ -26,6 +28,8 @@ pub struct SimulateArgs<'a> {
     pub hysteresis: bool,
     /// With the default piezo creep.
     pub creep: bool,
+    /// The piezo's gain drift, % of its value at the start per minute (0: none).
+    pub gain_drift_pct_per_min: f64,
     /// Where to write.
     pub out: &'a Path,
 }
@@ -38,10 +42,24 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     if args.duration_s > MAX_DURATION_S {
         return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", show(args.duration_s)));
     }
+    let drift = args.gain_drift_pct_per_min;
+    if !drift.is_finite() {
+        return fail(format!("--gain-drift {}: must be a number (% per minute)", show(drift)));
+    }
+    let drift_per_s = drift / 100.0 / 60.0;
+    if 1.0 + drift_per_s * args.duration_s <= 0.0 {
+        return fail(format!(
+            "--gain-drift {}: the gain would reach zero after {} s, within the run's {} s",
+            show(drift),
+            show(-1.0 / drift_per_s),
+            show(args.duration_s)
+        ));
+    }
     let seed = args.seed.unwrap_or(args.scenario.default_seed());
     let (mut board, pipeline) = args.scenario.settings(args.duration_s, seed);
     board.plant.hysteresis = args.hysteresis.then(crate::plant::Hysteresis::default);
     board.plant.creep = args.creep.then(crate::plant::Creep::default);
+    board.plant.gain_drift_per_s = drift_per_s;
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
