@@ -117,7 +117,8 @@ pub struct PlantSettings {
     /// Creep; `None`: off.
     pub creep: Option<Creep>,
     /// The piezo's gain drift (with temperature, SPEC section 1), relative, per second: the drive, and so the
-    /// stage's `b0` and the second mode's gain alike, times `1 + gain_drift_per_s * t` (0: none). Applied to the
+    /// stage's `b0` and the second mode's gain alike, times `1 + gain_drift_per_s * t` (0: none), a falling gain
+    /// stopping at zero. Applied to the
     /// drive at the DAC, ahead of the reconstruction filter and the amplifier: for a drift slow against their
     /// milliseconds the same as a drifting `b0` (the difference is the drift over their delay, below 1e-6 of `b0`
     /// at 0.1 % per second).
@@ -300,7 +301,7 @@ impl Plant {
 
     /// The piezo's gain at the current sample, relative to its start ([`PlantSettings::gain_drift_per_s`]).
     fn gain(&self) -> f64 {
-        1.0 + self.settings.gain_drift_per_s * self.settings.sample_period_s * self.sample as f64
+        (1.0 + self.settings.gain_drift_per_s * self.settings.sample_period_s * self.sample as f64).max(0.0)
     }
 
     /// Index of the current sample.

@@ -244,7 +244,7 @@ fn creep_grows_the_step_response_by_a_share_per_decade() {
 /// The gain's drift: under a constant drive the displacement follows the truth's static gain `b0 / a0` as `b0`
 /// drifts (1 % per second here, 10 % in 10 s), lagging it by the stage's own `a1 / a0` (11 us) and by half a sample
 /// (the gain is held over each sample from its start, as the drive is): 6e-7 of it at this rate, measured over 1-6 s
-/// and 7-10 s; the payload's change at 6 s carries the drift over.
+/// and 7-10 s; the payload's change at 6 s carries the drift over. A falling gain stops at zero.
 #[test]
 fn a_drifting_gain_moves_the_static_response_with_the_truth() {
     let ideal = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, 60_000);
@@ -261,6 +261,13 @@ fn a_drifting_gain_moves_the_static_response_with_the_truth() {
     eprintln!("drifting gain: b0 at 10 s {} (x {}), output within {worst:.1e} of its static gain", p.b0, p.b0 / 1.07e6);
     assert!((p.b0 / (1.07e6 * 1.1) - 1.0).abs() < 1e-12 && p.a0 == 9.21e6 && p.a1 == 86.8, "{p:?}");
     assert!(worst < 1e-6, "{worst}");
+    // A falling gain stops at zero (here after 1 s): no drive reaches the stage, whose output rings down.
+    let mut falling = Plant::new(PlantSettings { gain_drift_per_s: -1.0, ..ideal });
+    for _ in 0..15_000 {
+        falling.advance(1.0);
+    }
+    assert_eq!(falling.params().b0, 0.0);
+    assert!(falling.output_um().abs() < 1e-6, "{}", falling.output_um());
 }
 
 #[test]
