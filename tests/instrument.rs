@@ -1735,10 +1735,9 @@ fn a_random_session_of_commands_keeps_every_promise() {
 #[test]
 fn every_estimator_follows_a_drifting_gain_with_its_own_lag() {
     let run = |pct_per_min: f64| {
-        let mut lab = Lab::new();
-        let (mut board, _) = Lab::settings(None);
+        let (mut board, settings) = Lab::settings(None);
         board.plant.gain_drift_per_s = pct_per_min / 100.0 / 60.0;
-        lab.board = SimBoard::new(board);
+        let mut lab = Lab::on_board(board, settings);
         let mut sums = [[0.0f64; 3]; 4];
         for k in 0..1_000_000 {
             let truth = lab.board.plant().params();

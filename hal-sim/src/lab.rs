@@ -46,7 +46,13 @@ impl Lab {
 
     /// [`Lab::new`], with the stage `stage` (payload on and off alike) instead of the paper's.
     pub fn with_stage(stage: Option<StageParams<f64>>) -> Self {
-        let (board_settings, settings) = Self::settings(stage);
+        let (board, settings) = Self::settings(stage);
+        Self::on_board(board, settings)
+    }
+
+    /// The firmware on a board of `board_settings` (say [`Lab::settings`]' with the payload's change moved or the
+    /// piezo's gain drifting), started with the pipeline `settings`.
+    pub fn on_board(board_settings: BoardSettings, settings: PipelineSettings) -> Self {
         let board = SimBoard::new(board_settings);
         let ctl = Controller::new(settings, board.description(), true).expect("the paper's settings design");
         let isr = Instrument::new(ctl.config(), &ctl.tuning());

@@ -114,6 +114,13 @@ enum Command {
         /// paper's, 8.08e5,77.6,7.06e6, payload removed after 100 s].
         #[arg(long, value_name = "B0,A1,A0", allow_hyphen_values = true)]
         stage: Option<hal_sim::cmd::console::StageArg>,
+        /// When the paper's payload comes off, seconds from the start, or never [default: 100]
+        #[arg(long, value_name = "S|never", allow_hyphen_values = true)]
+        payload_off: Option<hal_sim::cmd::console::PayloadOff>,
+        /// Let the piezo's gain drift (as with temperature) at this many % of its starting value per minute,
+        /// negative for a fall (stopping at zero)
+        #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
+        gain_drift: f64,
     },
     /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
     Decode {
@@ -298,8 +305,13 @@ fn run(cli: Cli) -> Result<(), CliError> {
             }
             Ok(())
         }
-        Command::Console { status_every, stage } => {
-            let args = hal_sim::cmd::console::ConsoleArgs { status_every_s: status_every, stage };
+        Command::Console { status_every, stage, payload_off, gain_drift } => {
+            let args = hal_sim::cmd::console::ConsoleArgs {
+                status_every_s: status_every,
+                stage,
+                payload_off,
+                gain_drift_pct_per_min: gain_drift,
+            };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
                     "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (status, excite, \

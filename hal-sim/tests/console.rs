@@ -119,3 +119,57 @@ fn a_session_on_a_stage_of_ones_own() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("'1,2': expected B0,A1,A0 of y'' = -a0 y - a1 y' + b0 u"), "{stderr}");
 }
+
+/// `--payload-off S|never` and `--gain-drift PCT_PER_MIN`: the payload taken off after 0.3 s, which the hybrid EKF
+/// detects (one change); never taken off, with the gain drifting at 50 % a second: 1 s later the hybrid EKF has the
+/// payload's `a0` and about 1.5 times its `b0` (measured 1.48). Both sessions at once, a second of the board's time
+/// each. Bad values refused with what the options take.
+#[test]
+fn a_session_with_the_payload_off_when_asked_and_a_drifting_gain() {
+    let spawn = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+            .arg("console")
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("run nanopos-sim console")
+    };
+    let mut sessions = [spawn(&["--payload-off", "0.3"]), spawn(&["--payload-off", "never", "--gain-drift", "3000"])];
+    let typed: Vec<_> = sessions.iter_mut().map(|c| c.stdin.take().expect("stdin")).collect();
+    std::thread::sleep(std::time::Duration::from_millis(1000));
+    let hekf_lines: Vec<String> = sessions
+        .into_iter()
+        .zip(typed)
+        .map(|(child, mut typed)| {
+            typed.write_all(b"status\n").expect("type");
+            drop(typed);
+            let out = child.wait_with_output().expect("the session ends with its input");
+            let link = String::from_utf8(out.stdout).unwrap();
+            link.lines().find(|l| l.starts_with("est hekf ")).expect("status").to_string()
+        })
+        .collect();
+    let value = |line: &str, key: &str| -> f64 {
+        line.split(' ').find_map(|w| w.strip_prefix(key)).unwrap_or_else(|| panic!("{key} in {line}")).parse().unwrap()
+    };
+    println!("{hekf_lines:#?}");
+    assert!(hekf_lines[0].contains(" changes=1 "), "{}", hekf_lines[0]);
+    let (a0, b0) = (value(&hekf_lines[1], "a0="), value(&hekf_lines[1], "b0="));
+    assert!(hekf_lines[1].contains(" changes=0 ") && (a0 / 7.06e6 - 1.0).abs() < 0.01, "{}", hekf_lines[1]);
+    assert!((b0 / (1.5 * 8.08e5) - 1.0).abs() < 0.1, "{}", hekf_lines[1]);
+
+    for (args, expected) in [
+        (
+            &["--payload-off", "soon"][..],
+            "'soon': expected the seconds from the start after which the payload comes off",
+        ),
+        (&["--payload-off", "-1"], "'-1': expected the seconds"),
+        (&["--payload-off", "1", "--stage", "1e6,80,7e6"], "--payload-off: only on the paper's stage"),
+        (&["--gain-drift", "inf"], "--gain-drift inf: must be a number (% per minute)"),
+    ] {
+        let out = console(args, b"");
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{args:?}: {stderr}");
+    }
+}

@@ -1,13 +1,14 @@
-//! `nanopos-sim console [--status-every S] [--stage B0,A1,A0]`: the firmware's console on the simulated board,
-//! without a board.
+//! `nanopos-sim console [--status-every S] [--stage B0,A1,A0] [--payload-off S|never] [--gain-drift PCT_PER_MIN]`:
+//! the firmware's console on the simulated board, without a board.
 //!
 //! Standard input is the link's receive side, standard output its transmit side: type the README's commands (or pipe
 //! a script) and read the replies, the recording's header, tuning lines, frames and end line exactly as the
 //! NUCLEO-G474RE sends them over its virtual COM port, so that `nanopos-sim decode` takes the output as it takes a
 //! capture of the board's. The board runs the firmware's interrupt body ([`Lab`]: the same pipeline, estimators,
-//! limits and fault logic) on the paper's stage, the payload removed after 100 s, the PRBS running from the start;
-//! with `--stage`, on a stage of model (1) of your own, unchanging (to rehearse `tune initial`, `tune prefilter` for
-//! it, say).
+//! limits and fault logic) on the paper's stage, the payload removed after 100 s (`--payload-off`: at another time,
+//! or never), the PRBS running from the start; with `--stage`, on a stage of model (1) of your own, unchanging (to
+//! rehearse `tune initial`, `tune prefilter` for it, say). `--gain-drift` lets the piezo's gain drift at a steady
+//! rate, as with temperature, to watch the estimators follow it.
 //!
 //! Time runs at the board's pace, 10 000 samples a second of the wall clock, in steps of 10 ms (a line is taken at
 //! the next step), so a script with pauses (`sleep 5` between commands) sees what it would see on the board: the
@@ -55,6 +56,26 @@ impl std::str::FromStr for StageArg {
     }
 }
 
+/// `--payload-off S|never`: when the paper's payload comes off, in seconds from the start (`None`: never).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PayloadOff(pub Option<f64>);
+
+impl std::str::FromStr for PayloadOff {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "never" {
+            return Ok(PayloadOff(None));
+        }
+        match s.parse::<f64>() {
+            Ok(t) if t.is_finite() && (0.0..=super::simulate::MAX_DURATION_S).contains(&t) => Ok(PayloadOff(Some(t))),
+            _ => Err(format!(
+                "'{s}': expected the seconds from the start after which the payload comes off (0 to {}), or never",
+                super::simulate::MAX_DURATION_S
+            )),
+        }
+    }
+}
+
 /// The command line's options.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ConsoleArgs {
@@ -62,6 +83,10 @@ pub struct ConsoleArgs {
     pub stage: Option<StageArg>,
     /// Write the `status` reply to the log every this many seconds of simulated time.
     pub status_every_s: Option<f64>,
+    /// When the paper's payload comes off, if not after 100 s.
+    pub payload_off: Option<PayloadOff>,
+    /// The piezo's gain drift, % of its starting value per minute.
+    pub gain_drift_pct_per_min: f64,
 }
 
 /// Run the session: `input` is what the link receives, `link` what it sends back, `log` where the periodic status
@@ -90,8 +115,16 @@ pub fn run(
             }
         }
     });
-    let mut lab = Lab::with_stage(args.stage.map(|s| s.0));
-    let rate_hz = 1.0 / lab.board.settings().plant.sample_period_s;
+    if args.stage.is_some() && args.payload_off.is_some() {
+        return Err(CliError("--payload-off: only on the paper's stage (a --stage has no payload to take off)".into()));
+    }
+    let (mut board, settings) = Lab::settings(args.stage.map(|s| s.0));
+    board.plant.gain_drift_per_s = super::gain_drift_per_s(args.gain_drift_pct_per_min)?;
+    let rate_hz = 1.0 / board.plant.sample_period_s;
+    if let Some(PayloadOff(off)) = args.payload_off {
+        board.plant.change_at_sample = off.map_or(u64::MAX, |t| (t * rate_hz).round() as u64);
+    }
+    let mut lab = Lab::on_board(board, settings);
     let status_every = args.status_every_s.map(|s| ((s * rate_hz).round() as u64).max(1));
     let start = Instant::now();
     let mut samples = 0u64;

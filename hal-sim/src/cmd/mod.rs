@@ -142,6 +142,15 @@ impl Spread {
     }
 }
 
+/// `--gain-drift PCT_PER_MIN` as the plant takes it ([`crate::plant::PlantSettings::gain_drift_per_s`]): a number,
+/// in % of the starting gain per minute.
+pub fn gain_drift_per_s(pct_per_min: f64) -> Result<f64, CliError> {
+    if !pct_per_min.is_finite() {
+        return fail(format!("--gain-drift {}: must be a number (% per minute)", show(pct_per_min)));
+    }
+    Ok(pct_per_min / 100.0 / 60.0)
+}
+
 /// Shorthand for building a [`CliError`].
 pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))

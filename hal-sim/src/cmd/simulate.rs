@@ -43,10 +43,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
         return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", show(args.duration_s)));
     }
     let drift = args.gain_drift_pct_per_min;
-    if !drift.is_finite() {
-        return fail(format!("--gain-drift {}: must be a number (% per minute)", show(drift)));
-    }
-    let drift_per_s = drift / 100.0 / 60.0;
+    let drift_per_s = super::gain_drift_per_s(drift)?;
     if 1.0 + drift_per_s * args.duration_s <= 0.0 {
         return fail(format!(
             "--gain-drift {}: the gain would reach zero after {} s, within the run's {} s",
