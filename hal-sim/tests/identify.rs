@@ -191,6 +191,11 @@ fn identify_reports_a_window_where_the_arx_held_its_parameters() {
         assert!(stderr.contains(&format!("note: {name}'s model fits window 5:6 ")), "{name}: {stderr}");
     }
     assert!(stderr.contains(" times the resonance (1000 Hz, arx's mean)"), "{stderr}");
+    assert!(stderr.contains("note: window 5:6: the resonance, 1000 Hz (arx's mean), is at w T = 0.63 "), "{stderr}");
+    // Without the continuous EKF, no such note.
+    let out =
+        nanopos_sim(&["identify", "--input", "khz.csv", "--window", "5:6", "--estimators", "hekf,arx"], dir.path());
+    assert!(out.status.success() && !String::from_utf8_lossy(&out.stderr).contains(" w T = "));
 }
 
 /// A tuning that drives an estimator to non-finite values resets it over and over (each time back to its initial

@@ -655,7 +655,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// it reset itself (its means are of runs that diverged, each restarted from the initial parameters); and per window
 /// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates can
 /// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
-/// board's console takes it; where another's model fits the window far better, that one's).
+/// board's console takes it; where another's model fits the window far better, that one's); and where that
+/// resonance is beyond `w T` 0.5 with the continuous EKF run, that its `a1` comes out low there.
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -688,6 +689,16 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         let by = figs.get(by).and_then(|f| misfit(figs, f)).unwrap_or(by);
         if let Some(f) = figs.get(by) {
             let f0 = f.mean.f0_hz();
+            // As the board's `status` says it: the continuous EKF's `a1` low at a fast resonance.
+            let wt = 2.0 * std::f64::consts::PI * f0 * dt;
+            if r.names.contains(&"ekf") && wt > nanopos_id::console::FAST_RESONANCE_WT {
+                notes.push(format!(
+                    "window {}:{}: the resonance, {f0:.0} Hz ({}'s mean), is at w T = {wt:.2} of the record's sample \
+                     rate, where the continuous EKF's one RK4 step a sample leaves its a1 low (on the simulated board \
+                     -1.3 % at w T 0.5, -5.2 % at 0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %",
+                    w.t0, w.t1, r.names[by]
+                ));
+            }
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
                 notes.push(format!(
                     "window {}:{}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): \
