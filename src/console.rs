@@ -23,9 +23,9 @@ use core::fmt::{self, Write};
 
 /// The most bytes one part of a reply takes: the console's reply buffer. The longest part is `status`'s `ok` line,
 /// 445 bytes with every counter at its widest, the longest numbers, every fault and the widest excitation (a
-/// multisine about an offset) (the whole reply 1 385 bytes, 1 669 with the note of the EKFs' disagreement, about 300 more with that of a fast resonance;
-/// `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`); the longest error
-/// is about 300.
+/// multisine about an offset) (the whole reply 1 385 bytes, with a note at most about 1 700: the note of the EKFs'
+/// disagreement 1 669; `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`);
+/// the longest error is about 300.
 pub const REPLY_BYTES: usize = 512;
 
 /// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
