@@ -14,7 +14,7 @@ use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Record
 use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey, Unrunnable};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
-use crate::instrument::{disagreement, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
+use crate::instrument::{self, disagreement, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
 use crate::pipeline::{Faults, PipelineConfig, PipelineSettings, SettingsError};
 use crate::record::RecordHeader;
 use crate::text::Num;
@@ -563,16 +563,13 @@ impl Controller {
         Ok(Some(change))
     }
 
-    /// `status`'s note: the EKFs' [`disagreement`] with the estimators linear in their parameters; else, while the
-    /// continuous EKF runs, a resonance too fast for it ([`FAST_RESONANCE_WT`]) (not both: where the EKFs settled
-    /// on a wrong solution, which of them to take is not the question yet).
+    /// `status`'s note: the EKFs' [`disagreement`] with the estimators linear in their parameters; else a
+    /// resonance too fast for the continuous EKF while it runs ([`instrument::fast_resonance`]).
     fn status_note<T: Real>(&self, s: &Status<T>) -> Option<StatusNote> {
-        if let Some(d) = disagreement(s) {
-            return Some(StatusNote::Disagreement(d));
+        match disagreement(s) {
+            Some(d) => Some(StatusNote::Disagreement(d)),
+            None => instrument::fast_resonance(s, self.settings.sample_rate_hz).map(StatusNote::FastResonance),
         }
-        let (f0_hz, name) = s.selected.contains(1).then(|| estimated_resonance(s)).flatten()?;
-        let wt = 2.0 * core::f64::consts::PI * f0_hz / self.settings.sample_rate_hz;
-        (wt > FAST_RESONANCE_WT).then_some(StatusNote::FastResonance { f0_hz, whose: Whose::Estimate(name), wt })
     }
 
     /// Line `line` of `status`'s reply: the `est` line of estimator `line`; after the last, its note
@@ -615,14 +612,15 @@ impl Controller {
                     Num(DISAGREEMENT_F0_RATIO, 6)
                 );
             }
-            Some(StatusNote::FastResonance { f0_hz, whose, wt }) => {
+            Some(StatusNote::FastResonance(f)) => {
                 return writeln!(
                     w,
-                    "note: the resonance, {} Hz ({whose}), is at w T = {} of this sample rate, where the continuous \
-                     EKF's one RK4 step a sample leaves its a1 low (on the simulated board -1.3 % at w T 0.5, -5.2 % \
-                     at 0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %: take hekf's",
-                    Num(f0_hz, 4),
-                    Num(wt, 2)
+                    "note: the resonance, {} Hz ({}), is at w T = {} of this sample rate, where the continuous EKF's \
+                     one RK4 step a sample leaves its a1 low (on the simulated board -1.3 % at w T 0.5, -5.2 % at \
+                     0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %: take hekf's",
+                    Num(f.f0_hz, 4),
+                    Whose::Estimate(ESTIMATOR_NAMES[f.estimator]),
+                    Num(f.wt, 2)
                 );
             }
             None => {}
@@ -836,33 +834,18 @@ fn list<'a>(f: &mut fmt::Formatter<'_>, names: impl Iterator<Item = &'a str>) ->
     Ok(())
 }
 
-/// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is: the hybrid EKF's if it
-/// runs, else the first running estimator's whose parameters are not held ([`crate::estimator::Health::held`]: the
-/// ARX's, the last it could report); where the EKFs [`disagreement`] with the estimators linear in their parameters,
-/// the latter's (the ARX's, else the RLS's). `None` if none runs or its estimate has no resonance (`a0 <= 0`).
+/// [`instrument::estimated_resonance`], with the estimator's name.
 fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str)> {
-    let running = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
-    let i = match disagreement(status) {
-        Some(d) => d.reference,
-        None if running(2) => 2,
-        None => (0..4).find(|&i| running(i))?,
-    };
-    let f0 = status.estimates[i].0.f0_hz().to_f64()?;
-    (f0.is_finite() && f0 > 0.0).then_some((f0, ESTIMATOR_NAMES[i]))
+    instrument::estimated_resonance(status).map(|(f0, i)| (f0, ESTIMATOR_NAMES[i]))
 }
-
-/// The `w T` (resonance in radians a sample) above which `status` notes the continuous EKF's `a1` as low: there it is
-/// 1.3 % low on the simulated board, 5.2 % at 0.63 (1 kHz at 10 kHz), 20 % at 0.82, where the hybrid EKF stays within
-/// 1 % (`which_estimator_for_which_stage` in `tests/instrument.rs`).
-pub const FAST_RESONANCE_WT: f64 = 0.5;
 
 /// A note of `status`'s, between the estimators' lines and its `ok` line.
 #[derive(Clone, Copy)]
 enum StatusNote {
     /// The EKFs disagree with the ARX or the RLS.
     Disagreement(crate::instrument::Disagreement),
-    /// The continuous EKF runs at a resonance beyond [`FAST_RESONANCE_WT`].
-    FastResonance { f0_hz: f64, whose: Whose, wt: f64 },
+    /// The continuous EKF runs at a resonance beyond [`instrument::FAST_RESONANCE_WT`].
+    FastResonance(instrument::FastResonance),
 }
 
 /// Where a resonance in a note is from: an estimator's estimate, or `tune initial`.

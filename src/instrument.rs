@@ -411,6 +411,50 @@ pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
     Some(Disagreement { ekfs: EstimatorSet(off.fold(0, |set, i| set | 1 << i)), reference })
 }
 
+/// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is (an index in
+/// [`crate::control::ESTIMATOR_NAMES`]): the hybrid EKF's if it runs, else the first running estimator's whose
+/// parameters are not held ([`Health::held`]: the ARX's, the last it could report); where the EKFs [`disagreement`]
+/// with the estimators linear in their parameters, the latter's (the ARX's, else the RLS's). `None` if none runs or
+/// its estimate has no resonance (`a0 <= 0`).
+pub fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, usize)> {
+    let running = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
+    let i = match disagreement(status) {
+        Some(d) => d.reference,
+        None if running(2) => 2,
+        None => (0..4).find(|&i| running(i))?,
+    };
+    let f0 = status.estimates[i].0.f0_hz().to_f64()?;
+    (f0.is_finite() && f0 > 0.0).then_some((f0, i))
+}
+
+/// The `w T` (resonance in radians a sample) above which the continuous EKF's `a1` comes out low: 1.3 % on the
+/// simulated board, 5.2 % at 0.63 (1 kHz at 10 kHz), 20 % at 0.82, where the hybrid EKF stays within 1 %
+/// (`which_estimator_for_which_stage` in `tests/instrument.rs`).
+pub const FAST_RESONANCE_WT: f64 = 0.5;
+
+/// A resonance too fast for the continuous EKF ([`fast_resonance`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FastResonance {
+    /// The resonance, Hz.
+    pub f0_hz: f64,
+    /// Whose estimate it is (an index in [`crate::control::ESTIMATOR_NAMES`]).
+    pub estimator: usize,
+    /// Its `w T` at the sample rate.
+    pub wt: f64,
+}
+
+/// The [`estimated_resonance`] where it is beyond [`FAST_RESONANCE_WT`] at `sample_rate_hz`, while the continuous
+/// EKF runs and the EKFs do not [`disagreement`] with the ARX or the RLS (where they settled on a wrong solution,
+/// which of them to take is not the question yet).
+pub fn fast_resonance<T: Real>(status: &Status<T>, sample_rate_hz: f64) -> Option<FastResonance> {
+    if !status.selected.contains(1) || disagreement(status).is_some() {
+        return None;
+    }
+    let (f0_hz, estimator) = estimated_resonance(status)?;
+    let wt = 2.0 * core::f64::consts::PI * f0_hz / sample_rate_hz;
+    (wt > FAST_RESONANCE_WT).then_some(FastResonance { f0_hz, estimator, wt })
+}
+
 /// What grew since the last look at the interrupt's [`Status`]: for the telemetry, which warns once per event rather
 /// than leaving the user to read it off climbing counters. Numeric resets matter most: a tuning the data drive to
 /// non-finite values resets an estimator over and over, each time back to its initial parameters and `adapting`,

@@ -1785,7 +1785,7 @@ fn every_estimator_follows_a_drifting_gain_with_its_own_lag() {
 /// 800 Hz, 3.2-4.5 % above: the second mode nearer, and their own discretisation), and at 1.6 kHz their `a1` is off
 /// by 20-40 %. Measured (`cargo test --release --test
 /// instrument -- --nocapture which_estimator`); README "Which estimator for which stage". From `w T` 0.5 on,
-/// `status` notes the continuous EKF's `a1` ([`nanopos_id::console::FAST_RESONANCE_WT`]) while it runs.
+/// `status` notes the continuous EKF's `a1` ([`nanopos_id::instrument::FAST_RESONANCE_WT`]) while it runs.
 #[test]
 fn which_estimator_for_which_stage() {
     let mut table = Vec::new();

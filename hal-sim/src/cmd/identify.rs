@@ -691,7 +691,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             let f0 = f.mean.f0_hz();
             // As the board's `status` says it: the continuous EKF's `a1` low at a fast resonance.
             let wt = 2.0 * std::f64::consts::PI * f0 * dt;
-            if r.names.contains(&"ekf") && wt > nanopos_id::console::FAST_RESONANCE_WT {
+            if r.names.contains(&"ekf") && wt > nanopos_id::instrument::FAST_RESONANCE_WT {
                 notes.push(format!(
                     "window {}:{}: the resonance, {f0:.0} Hz ({}'s mean), is at w T = {wt:.2} of the record's sample \
                      rate, where the continuous EKF's one RK4 step a sample leaves its a1 low (on the simulated board \
