@@ -459,25 +459,38 @@ pub fn fast_resonance<T: Real>(status: &Status<T>, sample_rate_hz: f64) -> Optio
 /// than leaving the user to read it off climbing counters. Numeric resets matter most: a tuning the data drive to
 /// non-finite values resets an estimator over and over, each time back to its initial parameters and `adapting`,
 /// so its parameters look steady while nothing is identified.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug)]
 pub struct EventWatch {
     /// The counts at the last look (nothing seen: all zero).
-    seen: News,
+    seen: Counts,
     /// Whether the output limits changed commands in the interval the last look covered.
     limited_before: bool,
     /// Looks at which the EKFs disagreed with the estimators linear in their parameters ([`disagreement`]) since
     /// they last agreed (looks with no verdict, the RLS and the ARX apart, neither count nor end it).
     disagreeing: u8,
+    /// Looks in a row at which the resonance was too fast for the continuous EKF ([`fast_resonance`]).
+    fast: u8,
+    /// The interrupt's sample rate, Hz (f32: the watch lives in the telemetry task's static state).
+    sample_rate_hz: f32,
+}
+
+/// The counts [`EventWatch`] follows, as the last look saw them.
+#[derive(Clone, Copy, Debug)]
+struct Counts {
+    resets: [u32; 4],
+    deadline_misses: u32,
+    adc_overruns: u32,
+    limited: u32,
 }
 
 /// Looks (0.1 s apart in the telemetry) at which the EKFs disagree ([`disagreement`]), with no agreement between
-/// them, before it is news: 2 s, so that the estimators' own convergence from their start does not warn (on the
+/// them, or the resonance is too fast for the continuous EKF ([`fast_resonance`]), in a row, before it is news: 2 s, so that the estimators' own convergence from their start does not warn (on the
 /// paper's stage wired the other way round, with the triangle, the EKFs find the negative gain within 0.1 s, the
 /// ARX's passes zero after 1.7 s: they disagree in 0.9 s and 0.5 s stretches).
 pub const DISAGREEMENT_LOOKS: u8 = 20;
 
 /// Events since the last look ([`EventWatch::look`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct News {
     /// Numeric resets per estimator, in the bank's order.
     pub resets: [u32; 4],
@@ -493,22 +506,30 @@ pub struct News {
     /// The EKFs' [`disagreement`], on the look that completes [`DISAGREEMENT_LOOKS`] since they last agreed; once
     /// per spell.
     pub disagreement: Option<Disagreement>,
+    /// The [`fast_resonance`], on the look that completes [`DISAGREEMENT_LOOKS`] of it in a row; once per spell.
+    pub fast_resonance: Option<FastResonance>,
 }
 
 impl EventWatch {
+    /// Nothing seen yet, for an interrupt at `sample_rate_hz`.
+    pub const fn new(sample_rate_hz: f32) -> Self {
+        let seen = Counts { resets: [0; 4], deadline_misses: 0, adc_overruns: 0, limited: 0 };
+        EventWatch { seen, limited_before: false, disagreeing: 0, fast: 0, sample_rate_hz }
+    }
+
     /// The counts' growth since the last look. A count that went down was restarted (a new tuning restarts the
     /// estimators and their health): all of it is new.
     pub fn look<T: Real>(&mut self, status: &Status<T>) -> News {
-        let now = News {
+        let now = Counts {
             resets: core::array::from_fn(|i| status.estimates[i].1.numeric_resets),
             deadline_misses: status.counters.deadline_misses,
             adc_overruns: status.counters.adc_overruns,
             limited: status.counters.limited,
-            limiting: false,
-            disagreement: None,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let limited = grown(now.limited, self.seen.limited);
+        let fast = fast_resonance(status, self.sample_rate_hz as f64);
+        self.fast = if fast.is_some() { self.fast.saturating_add(1) } else { 0 };
         let found = compare_ekfs(status);
         self.disagreeing = match found {
             Some(d) if d.ekfs.0 != 0 => self.disagreeing.saturating_add(1),
@@ -522,6 +543,7 @@ impl EventWatch {
             limited,
             limiting: limited > 0 && self.limited_before,
             disagreement: found.filter(|d| d.ekfs.0 != 0 && self.disagreeing == DISAGREEMENT_LOOKS),
+            fast_resonance: fast.filter(|_| self.fast == DISAGREEMENT_LOOKS),
         };
         self.limited_before = limited > 0;
         self.seen = now;
@@ -634,8 +656,37 @@ mod tests {
     }
 
     #[test]
+    fn a_resonance_too_fast_for_the_continuous_ekf_is_told_once_after_2_s() {
+        let khz = |e: &mut [(StageParams<f32>, Health); 4]| e.iter_mut().for_each(|(p, _)| *p = moved(1000.0 / 422.9));
+        let f = fast_resonance(&status(khz), 1e4).expect("1 kHz at 10 kHz");
+        assert_eq!(f.estimator, 2, "the hybrid EKF's");
+        assert!((f.f0_hz / 1000.0 - 1.0).abs() < 1e-4 && (f.wt - 0.2 * core::f64::consts::PI).abs() < 1e-4, "{f:?}");
+        // Not at the paper's stage, nor at 20 kHz, nor with the continuous EKF off, nor while the EKFs disagree.
+        assert_eq!(fast_resonance(&status(|_| ()), 1e4), None);
+        assert_eq!(fast_resonance(&status(khz), 2e4), None);
+        let mut off = status(khz);
+        off.selected = EstimatorSet(0b1101);
+        assert_eq!(fast_resonance(&off, 1e4), None);
+        let apart = |e: &mut [(StageParams<f32>, Health); 4]| {
+            khz(e);
+            e[1].0 = STAGE;
+        };
+        assert_eq!(fast_resonance(&status(apart), 1e4), None);
+        // The hybrid EKF off: the first running estimator's, the RLS's.
+        let mut no_hekf = status(khz);
+        no_hekf.selected = EstimatorSet(0b1011);
+        assert_eq!(fast_resonance(&no_hekf, 1e4).map(|f| f.estimator), Some(0));
+        // Told on the 20th look in a row, once; again after a look without.
+        let mut watch = EventWatch::new(1e4);
+        let told: Vec<bool> = (0..100).map(|_| watch.look(&status(khz)).fast_resonance.is_some()).collect();
+        assert_eq!((told.iter().position(|&t| t), told.iter().filter(|&&t| t).count()), (Some(19), 1));
+        assert_eq!(watch.look(&status(|_| ())), News::default());
+        assert_eq!((0..20).filter(|_| watch.look(&status(khz)).fast_resonance.is_some()).count(), 1);
+    }
+
+    #[test]
     fn the_watch_tells_a_disagreement_once_after_2_s() {
-        let mut watch = EventWatch::default();
+        let mut watch = EventWatch::new(1e4);
         let (agree, off) = (status(|_| ()), status(|e| e[2].0 = moved(2.0)));
         let told = |watch: &mut EventWatch, s: &Status<f32>, looks: usize| {
             (0..looks).map(|_| watch.look(s).disagreement.is_some()).collect::<Vec<_>>()

@@ -604,7 +604,7 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
 #[test]
 fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let mut lab = Lab::new();
-    let mut watch = EventWatch::default();
+    let mut watch = EventWatch::new(1e4);
     let mut look = |lab: &mut Lab, samples: usize| {
         lab.run(samples);
         watch.look(&lab.isr.status())
@@ -761,7 +761,7 @@ fn the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers() {
         for c in commands {
             assert!(verdict(&lab.send(c)).starts_with("ok"), "{what}: {c}");
         }
-        let (mut watch, mut told, mut last) = (EventWatch::default(), vec![], None);
+        let (mut watch, mut told, mut last) = (EventWatch::new(1e4), vec![], None);
         for look in 1..=seconds * 10 {
             lab.run(1000);
             let status = lab.isr.status();
@@ -1785,7 +1785,8 @@ fn every_estimator_follows_a_drifting_gain_with_its_own_lag() {
 /// 800 Hz, 3.2-4.5 % above: the second mode nearer, and their own discretisation), and at 1.6 kHz their `a1` is off
 /// by 20-40 %. Measured (`cargo test --release --test
 /// instrument -- --nocapture which_estimator`); README "Which estimator for which stage". From `w T` 0.5 on,
-/// `status` notes the continuous EKF's `a1` ([`nanopos_id::instrument::FAST_RESONANCE_WT`]) while it runs.
+/// `status` notes the continuous EKF's `a1` ([`nanopos_id::instrument::FAST_RESONANCE_WT`]) while it runs, and the
+/// telemetry warns of it once.
 #[test]
 fn which_estimator_for_which_stage() {
     let mut table = Vec::new();
@@ -1798,7 +1799,7 @@ fn which_estimator_for_which_stage() {
         {
             assert!(verdict(&lab.send(&cmd)).starts_with("ok tune"), "{cmd}");
         }
-        let mut sums = [[0.0f64; 3]; 4];
+        let (mut sums, mut watch, mut told) = ([[0.0f64; 3]; 4], EventWatch::new(1e4), 0);
         for k in 0..100_000 {
             lab.sample();
             if k >= 50_000 && k % 100 == 0 {
@@ -1807,7 +1808,12 @@ fn which_estimator_for_which_stage() {
                     *s = [s[0] + e[0], s[1] + e[1], s[2] + e[2]];
                 }
             }
+            if k % 1000 == 999 {
+                told += watch.look(&lab.isr.status()).fast_resonance.is_some() as usize;
+            }
         }
+        // The telemetry warns of it once, from `w T` 0.5 on.
+        assert_eq!(told, usize::from(w * 1e-4 > 0.5), "{f0} Hz");
         let means = sums.map(|s| s.map(|e| e / 500.0));
         let shown = means.map(|e| e.map(|x| format!("{:+.2}", 100.0 * x)));
         println!(
