@@ -45,18 +45,22 @@ fn simulate_writes_the_documented_columns_with_the_truth() {
     }
 }
 
+/// The rows of `simulate --scenario prbs --duration DURATION` with the flags `extra`, written to `name` in `dir`.
+fn simulated_rows(dir: &Path, duration: &str, extra: &[&str], name: &str) -> Vec<Vec<f64>> {
+    let mut args = vec!["simulate", "--scenario", "prbs", "--duration", duration, "--out", name];
+    args.extend_from_slice(extra);
+    let out = nanopos_sim(&args, dir);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(dir.join(name)).unwrap();
+    text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect()
+}
+
 /// `--hysteresis` and `--creep` change the stage, not the command: the same `t` and `u` columns, another `y`.
 #[test]
 fn simulate_adds_the_piezos_hysteresis_and_creep_on_request() {
     let dir = tempfile::tempdir().unwrap();
     let columns = |extra: &[&str], name: &str| {
-        let mut args = vec!["simulate", "--scenario", "prbs", "--duration", "0.5", "--out", name];
-        args.extend_from_slice(extra);
-        let out = nanopos_sim(&args, dir.path());
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let text = std::fs::read_to_string(dir.path().join(name)).unwrap();
-        let rows: Vec<Vec<f64>> =
-            text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect();
+        let rows = simulated_rows(dir.path(), "0.5", extra, name);
         let column = |i: usize| rows.iter().map(|r| r[i]).collect::<Vec<f64>>();
         (column(1), column(2))
     };
@@ -75,14 +79,7 @@ fn simulate_adds_the_piezos_hysteresis_and_creep_on_request() {
 #[test]
 fn simulate_drifts_the_gain_and_the_truth_on_request() {
     let dir = tempfile::tempdir().unwrap();
-    let rows = |extra: &[&str], name: &str| {
-        let mut args = vec!["simulate", "--scenario", "prbs", "--duration", "0.01", "--out", name];
-        args.extend_from_slice(extra);
-        let out = nanopos_sim(&args, dir.path());
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let text = std::fs::read_to_string(dir.path().join(name)).unwrap();
-        text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect::<Vec<Vec<f64>>>()
-    };
+    let rows = |extra: &[&str], name: &str| simulated_rows(dir.path(), "0.01", extra, name);
     let (still, drifting) = (rows(&[], "still.csv"), rows(&["--gain-drift", "600"], "drift.csv"));
     for (k, (s, d)) in still.iter().zip(&drifting).enumerate() {
         assert_eq!((d[0], d[1], d[3], d[4]), (s[0], s[1], s[3], s[4]), "row {k}: t, u, a0, a1");
