@@ -5,7 +5,7 @@ use hal_sim::board::SimBoard;
 use hal_sim::lab::Lab;
 use hal_sim::sim::Scenario;
 use nanopos_id::console::REPLY_BYTES;
-use nanopos_id::control::ESTIMATOR_NAMES;
+use nanopos_id::control::{EstimatorSet, ESTIMATOR_NAMES};
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
@@ -1850,4 +1850,46 @@ fn which_estimator_for_which_stage() {
     let ekf_a1: Vec<f64> = table.iter().map(|(_, m)| m[1][1]).collect();
     assert!(ekf_a1[..3].iter().all(|e| e.abs() < 0.01), "{ekf_a1:?}");
     assert!(ekf_a1[3] < -0.01 && ekf_a1[4] < -0.04 && ekf_a1[5] < -0.15, "{ekf_a1:?}");
+}
+
+/// The EKFs' basin from the paper's initial parameters (390 Hz), and the disagreement on every stage outside it:
+/// stages of damping ratio 0.01 and static gain 0.05 um/V, 30 s of the board's PRBS with nothing typed. Measured: both
+/// EKFs find the stage (f0 within 1 %, b0 within 5 %) at 250, 300, 450 and 480 Hz; at 500 Hz the continuous one does
+/// and the hybrid one does not; at 200 Hz and from 550 Hz up (and at 220 and 520 Hz, measured on the side) both
+/// settle on a wrong solution (b0 of the wrong sign, f0 330-380 Hz), and the disagreement with the ARX names exactly
+/// the EKFs that did (`cargo test --release --test instrument -- --nocapture basin`). The basin is this stage's and this noise's: the 200 Hz stage of twice
+/// the gain is found after about 20 s (`the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers`).
+#[test]
+fn the_ekfs_basin_from_the_papers_initial_parameters() {
+    let mut found = Vec::new();
+    for f0 in [200.0, 250.0, 300.0, 450.0, 480.0, 500.0, 550.0, 700.0, 1300.0] {
+        let w = 2.0 * std::f64::consts::PI * f0;
+        let stage = StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w };
+        let mut lab = Lab::with_stage(Some(stage));
+        lab.run(300_000);
+        let status = lab.isr.status();
+        let mut wrong = EstimatorSet(0);
+        for ekf in [1, 2] {
+            let p = status.estimates[ekf].0;
+            let (f0_error, b0_error) = (p.f0_hz() as f64 / f0 - 1.0, p.b0 as f64 / stage.b0 - 1.0);
+            let right = f0_error.abs() < 0.01 && b0_error.abs() < 0.05;
+            assert!(right || p.b0 < 0.0, "{f0} Hz, {}: f0 {f0_error:+.3}, b0 {b0_error:+.3}", ESTIMATOR_NAMES[ekf]);
+            if !right {
+                wrong.0 |= 1 << ekf;
+            }
+        }
+        let told = disagreement(&status);
+        println!("{f0} Hz: wrong {wrong:?}, disagreement {told:?}");
+        assert_eq!(told.map_or(EstimatorSet(0), |d| d.ekfs), wrong, "{f0} Hz");
+        assert!(told.is_none_or(|d| d.reference_name() == "arx"), "{f0} Hz");
+        found.push((f0, wrong.0));
+    }
+    // The anchors: found at 300 and 450 Hz, missed by both at 200, 700 and 1300 Hz.
+    for (f0, wrong) in found {
+        match f0 {
+            300.0 | 450.0 => assert_eq!(wrong, 0, "{f0} Hz"),
+            200.0 | 700.0 | 1300.0 => assert_eq!(wrong, 0b110, "{f0} Hz"),
+            _ => {}
+        }
+    }
 }
