@@ -667,9 +667,9 @@ fn errors(stage: &StageParams<f64>, p: StageParams<f32>) -> [f64; 3] {
     [p.a0 as f64 / stage.a0 - 1.0, p.a1 as f64 / stage.a1 - 1.0, p.b0 as f64 / stage.b0 - 1.0]
 }
 
-/// A limit, kept measured: the EKFs are local. Started at the paper's stage (423 Hz), on a stage at 1 kHz they
-/// settle on a wrong solution (`b0` of the wrong sign) and stay there. The ARX, linear in its parameters, finds the
-/// stage within 5 s with the pre-filter left at the paper's 450 Hz (`a0` within 0.03 %, `b0` 7 % high); the
+/// A limit, kept measured: the EKFs are local. Started at the paper's initial parameters (390 Hz), on a stage at
+/// 1 kHz they settle on a wrong solution (`b0` of the wrong sign) and stay there. The ARX, linear in its parameters,
+/// finds the stage within 5 s with the pre-filter left at the paper's 450 Hz (`a0` within 0.03 %, `b0` 7 % high); the
 /// estimators restarted from its estimate (`tune initial arx`), and the pre-filter (and so the replicas' match)
 /// moved to its resonance, the EKFs land within 1 % on `b0` 5 s later: a stage found with no number typed but the
 /// resonance `status` shows. With the replicas left matched at 450 Hz, `b0` was 6 % high in every estimator. The
