@@ -483,10 +483,11 @@ struct Counts {
     limited: u32,
 }
 
-/// Looks (0.1 s apart in the telemetry) at which the EKFs disagree ([`disagreement`]), with no agreement between
-/// them, or the resonance is too fast for the continuous EKF ([`fast_resonance`]), in a row, before it is news: 2 s, so that the estimators' own convergence from their start does not warn (on the
-/// paper's stage wired the other way round, with the triangle, the EKFs find the negative gain within 0.1 s, the
-/// ARX's passes zero after 1.7 s: they disagree in 0.9 s and 0.5 s stretches).
+/// Looks (0.1 s apart in the telemetry) at which the EKFs disagree ([`disagreement`]), with no agreement between them,
+/// or the resonance is too fast for the continuous EKF ([`fast_resonance`]), in a row, before it is news: 2 s, so that
+/// the estimators' own convergence from their start does not warn (on the paper's stage wired the other way round, with
+/// the triangle, the EKFs find the negative gain within 0.1 s, the ARX's passes zero after 1.7 s: they disagree for
+/// 0.9 s, then for 0.5 s).
 pub const DISAGREEMENT_LOOKS: u8 = 20;
 
 /// Events since the last look ([`EventWatch::look`]).

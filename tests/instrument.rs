@@ -1852,13 +1852,14 @@ fn which_estimator_for_which_stage() {
     assert!(ekf_a1[3] < -0.01 && ekf_a1[4] < -0.04 && ekf_a1[5] < -0.15, "{ekf_a1:?}");
 }
 
-/// The EKFs' basin from the paper's initial parameters (390 Hz), and the disagreement on every stage outside it:
-/// stages of damping ratio 0.01 and static gain 0.05 um/V, 30 s of the board's PRBS with nothing typed. Measured: both
-/// EKFs find the stage (f0 within 1 %, b0 within 5 %) at 250, 300, 450 and 480 Hz; at 500 Hz the continuous one does
-/// and the hybrid one does not; at 200 Hz and from 550 Hz up (and at 220 and 520 Hz, measured on the side) both
-/// settle on a wrong solution (b0 of the wrong sign, f0 330-380 Hz), and the disagreement with the ARX names exactly
-/// the EKFs that did (`cargo test --release --test instrument -- --nocapture basin`). The basin is this stage's and this noise's: the 200 Hz stage of twice
-/// the gain is found after about 20 s (`the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers`).
+/// The EKFs' basin from the paper's initial parameters (390 Hz), and the disagreement on every stage outside it: stages
+/// of damping ratio 0.01 and static gain 0.05 um/V, 30 s of the board's PRBS with nothing typed. Measured: both EKFs
+/// find the stage (f0 within 1 %, b0 within 5 %) at 250, 300, 450 and 480 Hz; at 500 Hz the continuous one does and the
+/// hybrid one does not; at 200 Hz and from 550 Hz up (and at 220 and 520 Hz, measured on the side) both settle on a
+/// wrong solution (b0 of the wrong sign, f0 330-380 Hz), and the disagreement with the ARX names exactly the EKFs that
+/// did (`cargo test --release --test instrument -- --nocapture basin`). The basin is this stage's and this noise's: the
+/// 200 Hz stage of twice the gain is found after about 20 s
+/// (`the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers`).
 #[test]
 fn the_ekfs_basin_from_the_papers_initial_parameters() {
     let mut found = Vec::new();

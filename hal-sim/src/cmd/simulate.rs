@@ -4,8 +4,9 @@
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
-//! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as output by the DAC (V), the probe
-//! reading (um), and the true stage parameters at that sample.
+//! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it). Writes `t,u,y,a0,a1,b0` per
+//! sample: time (s), the commanded input as output by the DAC (V), the probe reading (um), and the true stage
+//! parameters at that sample.
 
 use super::{fail, show, CliError, OutputFile, Progress};
 use crate::sim::{Scenario, Simulation};
