@@ -48,13 +48,20 @@ impl<T: Real> Rest<T> {
     #[inline(never)]
     pub fn write_next(&mut self, ctl: &Controller, reply: &mut impl Write) -> bool {
         let Some(s) = &self.status else { return false };
-        // An `est` line per estimator, its note if it has one, the `ok` line.
-        if self.next > s.estimates.len() + ctl.status_note(s).is_some() as usize {
-            return false;
-        }
+        // An `est` line per estimator; after them the note if there is one (judged here, once), then the `ok` line.
+        let len = s.estimates.len();
+        let (note, next) = match self.next {
+            n if n < len => (None, n + 1),
+            n if n == len => {
+                let note = ctl.status_note(s);
+                (note, if note.is_some() { len + 1 } else { len + 2 })
+            }
+            n if n == len + 1 => (None, len + 2),
+            _ => return false,
+        };
         // A part that does not fit is cut by the buffer (and marked); the next ones still come.
-        let _ = ctl.write_status_line(s, self.next, reply);
-        self.next += 1;
+        let _ = ctl.write_status_line(s, note, self.next, reply);
+        self.next = next;
         true
     }
 }
@@ -568,13 +575,21 @@ impl Controller {
     fn status_note<T: Real>(&self, s: &Status<T>) -> Option<StatusNote> {
         match disagreement(s) {
             Some(d) => Some(StatusNote::Disagreement(d)),
-            None => instrument::fast_resonance(s, self.settings.sample_rate_hz).map(StatusNote::FastResonance),
+            None => {
+                instrument::fast_resonance_given(s, self.settings.sample_rate_hz, false).map(StatusNote::FastResonance)
+            }
         }
     }
 
-    /// Line `line` of `status`'s reply: the `est` line of estimator `line`; after the last, its note
-    /// ([`Controller::status_note`]) if it has one; then the `ok status` line.
-    fn write_status_line<T: Real>(&self, s: &Status<T>, line: usize, w: &mut impl Write) -> fmt::Result {
+    /// Line `line` of `status`'s reply: the `est` line of estimator `line`; after the last, `note`
+    /// ([`Controller::status_note`]) if there is one, else the `ok status` line.
+    fn write_status_line<T: Real>(
+        &self,
+        s: &Status<T>,
+        note: Option<StatusNote>,
+        line: usize,
+        w: &mut impl Write,
+    ) -> fmt::Result {
         if let Some((p, h)) = s.estimates.get(line) {
             let f = |x: T| Num(x.to_f64().unwrap_or(f64::NAN), 6);
             write!(
@@ -599,7 +614,7 @@ impl Controller {
                 Num(h.innovation_rms_um as f64, 4)
             );
         }
-        match self.status_note(s).filter(|_| line == s.estimates.len()) {
+        match note.filter(|_| line == s.estimates.len()) {
             Some(StatusNote::Disagreement(d)) => {
                 let reference = d.reference_name();
                 return writeln!(
@@ -615,12 +630,11 @@ impl Controller {
             Some(StatusNote::FastResonance(f)) => {
                 return writeln!(
                     w,
-                    "note: the resonance, {} Hz ({}), is at w T = {} of this sample rate, where the continuous EKF's \
-                     one RK4 step a sample leaves its a1 low (on the simulated board -1.3 % at w T 0.5, -5.2 % at \
-                     0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %: take hekf's",
+                    "note: the resonance, {} Hz ({}), is at w T = {} of this sample rate, where {}: take hekf's",
                     Num(f.f0_hz, 4),
                     Whose::Estimate(ESTIMATOR_NAMES[f.estimator]),
-                    Num(f.wt, 2)
+                    Num(f.wt, 2),
+                    instrument::FAST_RESONANCE_EFFECT
                 );
             }
             None => {}
@@ -840,7 +854,7 @@ fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, &'static str
 }
 
 /// A note of `status`'s, between the estimators' lines and its `ok` line.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 enum StatusNote {
     /// The EKFs disagree with the ARX or the RLS.
     Disagreement(crate::instrument::Disagreement),

@@ -417,8 +417,13 @@ pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
 /// with the estimators linear in their parameters, the latter's (the ARX's, else the RLS's). `None` if none runs or
 /// its estimate has no resonance (`a0 <= 0`).
 pub fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, usize)> {
+    resonance_given(status, disagreement(status))
+}
+
+/// [`estimated_resonance`] with the [`disagreement`] judged.
+fn resonance_given<T: Real>(status: &Status<T>, disagreement: Option<Disagreement>) -> Option<(f64, usize)> {
     let running = |i: usize| status.selected.contains(i) && !status.estimates[i].1.held;
-    let i = match disagreement(status) {
+    let i = match disagreement {
         Some(d) => d.reference,
         None if running(2) => 2,
         None => (0..4).find(|&i| running(i))?,
@@ -426,6 +431,10 @@ pub fn estimated_resonance<T: Real>(status: &Status<T>) -> Option<(f64, usize)> 
     let f0 = status.estimates[i].0.f0_hz().to_f64()?;
     (f0.is_finite() && f0 > 0.0).then_some((f0, i))
 }
+
+/// What a resonance beyond [`FAST_RESONANCE_WT`] does to the EKFs, as the console's and `identify`'s notes say it.
+pub const FAST_RESONANCE_EFFECT: &str = "the continuous EKF's one RK4 step a sample leaves its a1 low (on the \
+    simulated board -1.3 % at w T 0.5, -5.2 % at 0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %";
 
 /// The `w T` (resonance in radians a sample) above which the continuous EKF's `a1` comes out low: 1.3 % on the
 /// simulated board, 5.2 % at 0.63 (1 kHz at 10 kHz), 20 % at 0.82, where the hybrid EKF stays within 1 %
@@ -447,10 +456,20 @@ pub struct FastResonance {
 /// EKF runs and the EKFs do not [`disagreement`] with the ARX or the RLS (where they settled on a wrong solution,
 /// which of them to take is not the question yet).
 pub fn fast_resonance<T: Real>(status: &Status<T>, sample_rate_hz: f64) -> Option<FastResonance> {
-    if !status.selected.contains(1) || disagreement(status).is_some() {
+    fast_resonance_given(status, sample_rate_hz, disagreement(status).is_some())
+}
+
+/// [`fast_resonance`] for a caller that has judged the [`disagreement`] already.
+pub(crate) fn fast_resonance_given<T: Real>(
+    status: &Status<T>,
+    sample_rate_hz: f64,
+    disagreeing: bool,
+) -> Option<FastResonance> {
+    if !status.selected.contains(1) || disagreeing {
         return None;
     }
-    let (f0_hz, estimator) = estimated_resonance(status)?;
+    // No disagreement: the hybrid EKF's resonance, else the first running estimator's.
+    let (f0_hz, estimator) = resonance_given(status, None)?;
     let wt = 2.0 * core::f64::consts::PI * f0_hz / sample_rate_hz;
     (wt > FAST_RESONANCE_WT).then_some(FastResonance { f0_hz, estimator, wt })
 }
@@ -488,7 +507,7 @@ struct Counts {
 /// the estimators' own convergence from their start does not warn (on the paper's stage wired the other way round, with
 /// the triangle, the EKFs find the negative gain within 0.1 s, the ARX's passes zero after 1.7 s: they disagree for
 /// 0.9 s, then for 0.5 s).
-pub const DISAGREEMENT_LOOKS: u8 = 20;
+pub const WARNING_LOOKS: u8 = 20;
 
 /// Events since the last look ([`EventWatch::look`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -504,10 +523,10 @@ pub struct News {
     /// The limits changed commands both since the last look and in the interval before it: the excitation does not
     /// fit them. A single step of the command (a start about an offset: a sample or two, once) does not count.
     pub limiting: bool,
-    /// The EKFs' [`disagreement`], on the look that completes [`DISAGREEMENT_LOOKS`] since they last agreed; once
+    /// The EKFs' [`disagreement`], on the look that completes [`WARNING_LOOKS`] since they last agreed; once
     /// per spell.
     pub disagreement: Option<Disagreement>,
-    /// The [`fast_resonance`], on the look that completes [`DISAGREEMENT_LOOKS`] of it in a row; once per spell.
+    /// The [`fast_resonance`], on the look that completes [`WARNING_LOOKS`] of it in a row; once per spell.
     pub fast_resonance: Option<FastResonance>,
 }
 
@@ -529,22 +548,23 @@ impl EventWatch {
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let limited = grown(now.limited, self.seen.limited);
-        let fast = fast_resonance(status, self.sample_rate_hz as f64);
-        self.fast = if fast.is_some() { self.fast.saturating_add(1) } else { 0 };
         let found = compare_ekfs(status);
         self.disagreeing = match found {
             Some(d) if d.ekfs.0 != 0 => self.disagreeing.saturating_add(1),
             Some(_) => 0,
             None => self.disagreeing,
         };
+        let disagreeing = found.is_some_and(|d| d.ekfs.0 != 0);
+        let fast = fast_resonance_given(status, self.sample_rate_hz as f64, disagreeing);
+        self.fast = if fast.is_some() { self.fast.saturating_add(1) } else { 0 };
         let news = News {
             resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
             limited,
             limiting: limited > 0 && self.limited_before,
-            disagreement: found.filter(|d| d.ekfs.0 != 0 && self.disagreeing == DISAGREEMENT_LOOKS),
-            fast_resonance: fast.filter(|_| self.fast == DISAGREEMENT_LOOKS),
+            disagreement: found.filter(|_| disagreeing && self.disagreeing == WARNING_LOOKS),
+            fast_resonance: fast.filter(|_| self.fast == WARNING_LOOKS),
         };
         self.limited_before = limited > 0;
         self.seen = now;
@@ -693,7 +713,7 @@ mod tests {
             (0..looks).map(|_| watch.look(s).disagreement.is_some()).collect::<Vec<_>>()
         };
         // One look short, then agreement: nothing; enough in a row: told on the last, and not again while it lasts.
-        let looks = DISAGREEMENT_LOOKS as usize;
+        let looks = WARNING_LOOKS as usize;
         assert!(!told(&mut watch, &off, looks - 1).contains(&true));
         assert!(!told(&mut watch, &agree, 1)[0]);
         let spell = told(&mut watch, &off, 300);

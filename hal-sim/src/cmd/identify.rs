@@ -694,9 +694,11 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             if r.names.contains(&"ekf") && wt > nanopos_id::instrument::FAST_RESONANCE_WT {
                 notes.push(format!(
                     "window {}:{}: the resonance, {f0:.0} Hz ({}'s mean), is at w T = {wt:.2} of the record's sample \
-                     rate, where the continuous EKF's one RK4 step a sample leaves its a1 low (on the simulated board \
-                     -1.3 % at w T 0.5, -5.2 % at 0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %",
-                    w.t0, w.t1, r.names[by]
+                     rate, where {}",
+                    w.t0,
+                    w.t1,
+                    r.names[by],
+                    nanopos_id::instrument::FAST_RESONANCE_EFFECT
                 ));
             }
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
