@@ -16,7 +16,7 @@
 //! leave a gap: what was recorded is contiguous, and the stop is reported.
 
 use crate::control::EstimatorSet;
-use crate::estimator::{Estimator, Health, PeLevel};
+use crate::estimator::{Adaptation, Estimator, Health, PeLevel};
 use crate::estimators::{full_bank, restart_bank, FullBank, TuningConfig};
 use crate::hal::{run_sample_with, StageBoard};
 use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOutput};
@@ -411,6 +411,22 @@ pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
     Some(Disagreement { ekfs: EstimatorSet(off.fold(0, |set, i| set | 1 << i)), reference })
 }
 
+/// The estimate of EKF `ekf` (1: the continuous, 2: the hybrid) when a controller may retune from it: the EKF runs
+/// and adapts (not frozen, not starved), and [`compare_ekfs`] has a verdict and it is agreement with the ARX or the
+/// RLS. Health alone does not do: an EKF settled on a wrong solution reports `adapting`. Nor does the absence of a
+/// [`disagreement`]: with no verdict (the RLS and the ARX apart, as from 2 to 10 s on a stage at 1 kHz while the RLS
+/// converges, or neither running) the EKFs are not checked, and on that stage a damping loop retuned from the hybrid
+/// EKF then, `b0` of the wrong sign, drove the output to its limits (`tests/damping.rs`). So keep the ARX running
+/// (294 instructions a sample) if a controller is to follow the EKFs. Nor does agreement mean much at first: every
+/// estimator starts at the initial parameters, so they agree until the data move them; a controller gives them time
+/// after a start or a restart (on the PRBS of 1 V, 2 s did on the stages tested).
+pub fn trusted_ekf_estimate<T: Real>(status: &Status<T>, ekf: usize) -> Option<StageParams<T>> {
+    let (params, health) = status.estimates.get(ekf).filter(|_| ekf == 1 || ekf == 2)?;
+    let adapting = status.selected.contains(ekf) && health.adaptation == Adaptation::Adapting;
+    let agrees = compare_ekfs(status).is_some_and(|d| !d.ekfs.contains(ekf));
+    (adapting && agrees).then_some(*params)
+}
+
 /// The stage's resonance as the interrupt's estimators have it, Hz, and whose estimate it is (an index in
 /// [`crate::control::ESTIMATOR_NAMES`]): the hybrid EKF's if it runs, else the first running estimator's whose
 /// parameters are not held ([`Health::held`]: the ARX's, the last it could report); where the EKFs [`disagreement`]
@@ -632,6 +648,34 @@ mod tests {
         // Not finite: no agreement either.
         let nan = StageParams { a0: f32::NAN, ..STAGE };
         assert_eq!(disagreement(&status(|e| e[2].0 = nan)).map(|d| d.ekf_names()), Some("hekf"));
+    }
+
+    #[test]
+    fn a_controller_may_follow_an_ekf_only_while_it_adapts_and_agrees_with_a_reference() {
+        assert_eq!(trusted_ekf_estimate(&status(|_| ()), 2), Some(STAGE));
+        assert_eq!(trusted_ekf_estimate(&status(|_| ()), 1), Some(STAGE));
+        // Not an EKF, or no estimator at all.
+        assert_eq!(trusted_ekf_estimate(&status(|_| ()), 0), None);
+        assert_eq!(trusted_ekf_estimate(&status(|_| ()), 3), None);
+        assert_eq!(trusted_ekf_estimate(&status(|_| ()), 4), None);
+        // Off the reference: not that one; the other still.
+        let off = status(|e| e[2].0 = moved(2.0));
+        assert_eq!((trusted_ekf_estimate(&off, 2), trusted_ekf_estimate(&off, 1)), (None, Some(STAGE)));
+        // No verdict: the RLS and the ARX apart, or neither running.
+        assert_eq!(trusted_ekf_estimate(&status(|e| e[0].0 = moved(2.0)), 2), None);
+        let mut alone = status(|_| ());
+        alone.selected = EstimatorSet(0b0110);
+        assert_eq!(trusted_ekf_estimate(&alone, 2), None);
+        // With the RLS alone as the reference (the ARX not running, or held), a verdict again.
+        alone.selected = EstimatorSet(0b0111);
+        assert_eq!(trusted_ekf_estimate(&alone, 2), Some(STAGE));
+        assert_eq!(trusted_ekf_estimate(&status(|e| e[3].1.held = true), 2), Some(STAGE));
+        // Not running, frozen or starved.
+        alone.selected = EstimatorSet(0b1011);
+        assert_eq!(trusted_ekf_estimate(&alone, 2), None);
+        for a in [Adaptation::Frozen, Adaptation::Starved] {
+            assert_eq!(trusted_ekf_estimate(&status(|e| e[2].1.adaptation = a), 2), None, "{a:?}");
+        }
     }
 
     #[test]
