@@ -9,7 +9,8 @@
 //! it. So it is tuned from the hybrid EKF's estimate (`f0`, `b0 / a0`) and the chain's known response: `w_c` where the
 //! band-pass's phase at `f0` is the -90 degrees of a velocity feedback less the chain's phase, and `g` for an added
 //! damping ratio `dzeta = g |BP| |H_chain| (b0 / a0) / 2` at `f0`. Retuned at 10 Hz, as a controller would from the
-//! firmware's status snapshot, while the EKF reports `adapting`.
+//! firmware's status snapshot: on the paper's stage while the EKF reports `adapting`; through the firmware's
+//! interrupt body (`Lab`), by `instrument::trusted_ekf_estimate`, which the last test shows a controller needs.
 //!
 //! The damping is measured as a ring: the excitation off, a kick through the command (10 V asked for three samples,
 //! which the slew limit of 2.5 V a sample shapes into a triangle), and the decay rate of the ring's peaks
