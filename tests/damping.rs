@@ -259,7 +259,10 @@ fn the_loop_retuned_from_the_estimate_keeps_its_damping_through_the_payload_chan
                 }
             }
             let zeta = sim_ring_zeta(&mut sim, &mut damper, &settings);
-            println!("zeta_c {zeta_c}, retuned from the estimate {adaptive}: ring zeta at the end {zeta:.4}; hekf relocked {relock:?} s");
+            println!(
+                "zeta_c {zeta_c}, retuned from the estimate {adaptive}: ring zeta at the end {zeta:.4}; hekf relocked \
+                 {relock:?} s"
+            );
             let relock = relock.expect("the hybrid EKF relocks in the loop");
             assert!(relock < 0.5, "{relock}");
             zetas.push(zeta);
@@ -362,7 +365,10 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
         |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
         KHZ_W,
     );
-    println!("1 kHz after tune stage arx, trusted: {retunes} retunes, |u| <= {u_peak:.2} V; the ring's damping ratio {zeta:.4}");
+    println!(
+        "1 kHz after tune stage arx, trusted: {retunes} retunes, |u| <= {u_peak:.2} V; the ring's damping ratio \
+         {zeta:.4}"
+    );
     assert!(retunes == 100 && u_peak < 6.0 && zeta > 0.02, "{retunes} {u_peak} {zeta}");
 }
 
@@ -415,8 +421,8 @@ fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
         );
         let pct = |w: [f64; 2]| format!("{:+.2} / {:+.2} %", 100.0 * w[0], 100.0 * w[1]);
         println!(
-            "triangle, {added_zeta} asked: {retunes} retunes, |u| <= {u_peak:.2} V, the ring's damping ratio at the end \
-             {zeta:.4}; hekf a0 / b0 75-100 s {}, 175-200 s {}",
+            "triangle, {added_zeta} asked: {retunes} retunes, |u| <= {u_peak:.2} V, the ring's damping ratio at the \
+             end {zeta:.4}; hekf a0 / b0 75-100 s {}, 175-200 s {}",
             pct(windows[0]),
             pct(windows[1])
         );
