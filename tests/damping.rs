@@ -433,3 +433,65 @@ fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
         }
     }
 }
+
+/// Across stages: the stages of "Which estimator for which stage" (damping ratio 0.01, 0.05 um/V), the hybrid EKF
+/// started at the stage with the pre-filter on it, the loop (0.1 asked for) following the trusted estimate from 2 s,
+/// 10 s. The ring's damping ratio (open loop 0.0092-0.0099 for 0.01: the ring method holds up to 1.3 kHz, 7.7 samples
+/// a cycle) in the loop: 300 Hz 0.161, 450 Hz 0.157, 600 Hz 0.140, while the chain lags less than 150 degrees there
+/// (68, 104, 142); 800 Hz 0.074, 1 kHz 0.028, 1.3 kHz 0.060, around the filters' cut-off, where they lag 190-300
+/// degrees and take the gain away: the simple design's range on this board. The command within 2.4 V up to 600 Hz,
+/// 4.7 V beyond. At 1.6 kHz (6 samples a cycle) the ring method fails (it read 0.0005 open loop) and with the loop
+/// the command reached 7.9 V: measured while writing this test, not asserted, not tried further.
+#[test]
+fn the_loops_damping_across_stages() {
+    use hal_sim::lab::Lab;
+    use nanopos_id::instrument::trusted_ekf_estimate;
+    for (f0, least) in [(300.0, 0.13), (450.0, 0.13), (600.0, 0.12), (800.0, 0.05), (1000.0, 0.02), (1300.0, 0.04)] {
+        let w = 2.0 * PI * f0;
+        let stage = StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w };
+        let mut figures = Vec::new();
+        for added_zeta in [0.0, 0.1] {
+            let mut lab = Lab::with_stage(Some(stage));
+            let start_there = [
+                format!("tune initial {} {} {}\n", stage.b0, stage.a1, stage.a0),
+                format!("tune prefilter 100 {f0} 0.1\n"),
+            ];
+            for command in start_there {
+                let reply = lab.send(&command);
+                assert!(reply.lines().last().is_some_and(|l| l.starts_with("ok tune")), "{command}: {reply}");
+            }
+            let plant = lab.board.settings().plant;
+            let mut damper = Damper::new(added_zeta, 0.5);
+            let (mut retunes, mut u_peak) = (0, 0.0f32);
+            for k in 0..100_000 {
+                if k >= 20_000 && k % 1000 == 0 {
+                    if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
+                        damper.tune(&StageParams { a0: p.a0 as f64, a1: p.a1 as f64, b0: p.b0 as f64 }, &plant);
+                        retunes += 1;
+                    }
+                }
+                u_peak =
+                    u_peak.max(lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32).u_v.abs());
+            }
+            lab.send("excite off\n");
+            let zeta = ring_zeta(
+                |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
+                w,
+            );
+            figures.push(format!("{zeta:.4} ({retunes} retunes, |u| <= {u_peak:.2} V)"));
+            assert_eq!(retunes, 80, "{f0} Hz: the estimate trusted from 2 s on");
+            if added_zeta == 0.0 {
+                assert!((zeta / 0.01 - 1.0).abs() < 0.1, "{f0} Hz, open loop: {zeta}");
+            } else {
+                assert!(zeta > least && u_peak < 5.0, "{f0} Hz: {zeta} {u_peak}");
+            }
+        }
+        let lag = (-chain(&lab_plant(), f0).arg().to_degrees()).rem_euclid(360.0);
+        println!("{f0} Hz (the chain lags {lag:.0} degrees): open loop {}, in the loop {}", figures[0], figures[1]);
+    }
+}
+
+/// The simulated board's analog chain (the same for every stage).
+fn lab_plant() -> PlantSettings {
+    BoardSettings::default().plant
+}
