@@ -152,9 +152,9 @@ fn the_ring_measures_the_stages_damping() {
     assert!(worst < 0.05, "{worst}");
 }
 
-/// `seconds` of the PRBS on `stage` (unchanging) with `damper` in the loop from 2 s, retuned every 0.1 s from the
-/// hybrid EKF's estimate while it adapts: the EKFs' mean errors over the last 10 s (a0, a1, b0, relative), the peak
-/// command, and the ring's damping ratio at the end.
+/// `seconds` of the PRBS on `board` (its stage `before` for good) with `damper` in the loop from 2 s, retuned every
+/// 0.1 s from the hybrid EKF's estimate while it adapts: the EKFs' mean errors over the last 10 s (a0, a1, b0,
+/// relative), the peak command, and the ring's damping ratio at the end.
 fn damped_run(board: BoardSettings, mut damper: Damper, seconds: u64) -> ([[f64; 3]; 2], f64, f64) {
     let (_, settings) = Scenario::Prbs.settings(seconds as f64, 1);
     let plant = board.plant;
