@@ -6,18 +6,19 @@
 //! `Instrument::sample_adding`). Velocity feedback `u = -k x'` would damp the stage's mode, `a1 -> a1 + k b0`, but the
 //! analog chain between the DAC and the ADC (the two 1 kHz Butterworth filters, the amplifier, the sensor, the DAC's
 //! hold and the sample the command waits) lags by about 110 degrees at the resonance: the controller must make up for
-//! it. So it is tuned from the hybrid EKF's estimate (`f0`, `b0 / a0`) and the chain's known response: `w_c` where the
-//! band-pass's phase at `f0` is the -90 degrees of a velocity feedback less the chain's phase, and `g` for an added
-//! damping ratio `dzeta = g |BP| |H_chain| (b0 / a0) / 2` at `f0`. Retuned at 10 Hz, as a controller would from the
-//! firmware's status snapshot: on the paper's stage while the EKF reports `adapting`; through the firmware's
-//! interrupt body (`Lab`), by `instrument::trusted_ekf_estimate`, which the last test shows a controller needs.
+//! it. So it is tuned from the hybrid EKF's estimate (`f0`, `b0 / a0`) and the chain's response as the pipeline's
+//! settings describe it (its replicas' cut-offs and lags: what a controller on the board has; the simulated board's
+//! chain is the same nominal one): `w_c` where the band-pass's phase at `f0` is the -90 degrees of a velocity
+//! feedback less the chain's phase, and `g` for an added damping ratio `dzeta = g |BP| |H_chain| (b0 / a0) / 2` at
+//! `f0`. Retuned at 10 Hz, as a controller would from the firmware's status snapshot: in the simulations while the
+//! EKF reports `adapting`; through the firmware's interrupt body (`Lab`) while `instrument::trusted_ekf_estimate`
+//! gives it, which `a_controller_follows_an_ekf_only_once_a_reference_confirms_it` shows a controller needs.
 //!
 //! The damping is measured as a ring: the excitation off, a kick through the command (10 V asked for three samples,
 //! which the slew limit of 2.5 V a sample shapes into a triangle), and the decay rate of the ring's peaks
 //! (`zeta = sigma / w0`).
 
 use hal_sim::board::BoardSettings;
-use hal_sim::plant::PlantSettings;
 use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::ekf::{Cekf, EkfDesign, Hekf};
@@ -33,25 +34,22 @@ use std::f64::consts::{PI, SQRT_2};
 /// The sample rate, Hz.
 const FS: f64 = 1e4;
 
-/// The analog chain's response at `f_hz` from the DAC's code to the ADC's reading, the stage's mode left out: the
-/// reconstruction and anti-aliasing filters, the amplifier's and the sensor's bandwidths (all as the board's
-/// settings say: on a real board, from its schematic), and 1.5 samples (the DAC's hold, half a sample on average,
-/// and the sample a command waits in the DAC's holding register).
-fn chain(plant: &PlantSettings, f_hz: f64) -> Complex {
+/// The analog chain's response at `f_hz` from the DAC's code to the ADC's reading, the stage's mode left out, as the
+/// pipeline's settings describe it (what the firmware knows of the hardware, and all a controller on the board has):
+/// the reconstruction and anti-aliasing filters (2nd-order Butterworth at the replicas' cut-offs), the amplifier's
+/// and the sensor's lags (the lag replica's poles), and 1.5 samples (the DAC's hold, half a sample on average, and
+/// the sample a command waits in the DAC's holding register).
+fn chain(settings: &PipelineSettings, f_hz: f64) -> Complex {
     let s = s_at(f_hz);
     let one = Complex::from(1.0);
-    let butterworth = |fc: Option<f64>| {
-        fc.map_or(one, |fc| {
-            let x = s.scale(1.0 / (2.0 * PI * fc));
-            one / (x * x + x.scale(SQRT_2) + one)
-        })
+    let butterworth = |fc: f64| {
+        let x = s.scale(1.0 / (2.0 * PI * fc));
+        one / (x * x + x.scale(SQRT_2) + one)
     };
-    let lag = |fc: Option<f64>| fc.map_or(one, |fc| one / (s.scale(1.0 / (2.0 * PI * fc)) + one));
-    let delay = Complex::expj(-2.0 * PI * f_hz * 1.5 / FS);
-    butterworth(plant.reconstruction_hz)
-        * butterworth(plant.antialias_hz)
-        * lag(plant.amplifier_hz)
-        * lag(plant.sensor_hz)
+    let delay = Complex::expj(-2.0 * PI * f_hz * 1.5 / settings.sample_rate_hz);
+    butterworth(settings.reconstruction.cutoff_hz)
+        * butterworth(settings.antialias.cutoff_hz)
+        * settings.lags.analog(f_hz)
         * delay
 }
 
@@ -73,10 +71,11 @@ impl Damper {
         Damper { section: off, state: BiquadState::default(), zeta_c, added_zeta }
     }
 
-    /// Tuned for the stage `p` behind the chain of `plant`.
-    fn tune(&mut self, p: &StageParams<f64>, plant: &PlantSettings) {
-        let (f0, zc) = (p.f0_hz(), self.zeta_c);
-        let h = chain(plant, f0);
+    /// Tuned for the stage `p` behind the chain `settings` describe.
+    fn tune<T: nanopos_id::Real>(&mut self, p: &StageParams<T>, settings: &PipelineSettings) {
+        let (p, zc): (StageParams<f64>, f64) = (p.cast(), self.zeta_c);
+        let f0 = p.f0_hz();
+        let h = chain(settings, f0);
         // The phase the controller needs at f0. The band-pass's there is atan((w_c^2 - w0^2) / (2 zeta_c w_c w0)),
         // within +-90 degrees: solved for w_c; a phase beyond (a chain lagging more than 180 degrees, as near its
         // filters' cut-off) is the other sign's, half a turn round, which has the same tangent.
@@ -157,15 +156,14 @@ fn the_ring_measures_the_stages_damping() {
 /// relative), the peak command, and the ring's damping ratio at the end.
 fn damped_run(board: BoardSettings, mut damper: Damper, seconds: u64) -> ([[f64; 3]; 2], f64, f64) {
     let (_, settings) = Scenario::Prbs.settings(seconds as f64, 1);
-    let plant = board.plant;
-    let truth = plant.before;
+    let truth = board.plant.before;
     let mut sim = Simulation::new(board, &settings, ekfs()).unwrap();
     let (mut sums, mut n, mut u_peak) = ([[0.0; 3]; 2], 0.0, 0.0f64);
     let end = seconds * 10_000;
     for k in 0..end {
         let hekf = &sim.pipeline.estimators.0;
         if k >= 20_000 && k % 1000 == 0 && hekf.health().adaptation == Adaptation::Adapting {
-            damper.tune(&hekf.params(), &plant);
+            damper.tune(&hekf.params(), &settings);
         }
         let (_, out) = sim.step_adding(|y| damper.command(y));
         u_peak = u_peak.max(out.u_v.abs());
@@ -240,7 +238,6 @@ fn the_loop_retuned_from_the_estimate_keeps_its_damping_through_the_payload_chan
         let mut zetas = Vec::new();
         for adaptive in [true, false] {
             let (board, settings) = Scenario::Prbs.settings(200.0, 1);
-            let plant = board.plant;
             let mut sim = Simulation::new(board, &settings, ekfs()).unwrap();
             let mut damper = Damper::new(0.1, zeta_c);
             let mut relock = None;
@@ -248,7 +245,7 @@ fn the_loop_retuned_from_the_estimate_keeps_its_damping_through_the_payload_chan
                 let hekf = &sim.pipeline.estimators.0;
                 if k >= 20_000 && k % 1000 == 0 && (adaptive || k == 20_000) {
                     assert_eq!(hekf.health().adaptation, Adaptation::Adapting);
-                    damper.tune(&hekf.params(), &plant);
+                    damper.tune(&hekf.params(), &settings);
                 }
                 let (r, out) = sim.step_adding(|y| damper.command(y));
                 assert!(out.faults.is_empty() && out.u_v.abs() < 2.5, "{k}: {out:?}");
@@ -310,13 +307,13 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
     for (stage, name) in [(Some(KHZ_STAGE), "1 kHz"), (None, "paper")] {
         for (rule, take) in rules {
             let mut lab = Lab::with_stage(stage);
-            let plant = lab.board.settings().plant;
+            let settings = *lab.ctl.settings();
             let mut damper = Damper::new(0.1, 0.5);
             let (mut retunes, mut u_peak, mut first) = (0, 0.0f32, None);
             for k in 0..200_000 {
                 if k >= 20_000 && k % 1000 == 0 {
                     if let Some(p) = take(&lab.isr.status()) {
-                        damper.tune(&StageParams { a0: p.a0 as f64, a1: p.a1 as f64, b0: p.b0 as f64 }, &plant);
+                        damper.tune(&p, &settings);
                         retunes += 1;
                         first = first.or(Some(k as f64 / FS));
                     }
@@ -345,16 +342,16 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
     // The 1 kHz stage the way the README's "Another stage" takes it: 5 s, `tune stage arx` (the EKFs restarted at the
     // ARX's estimate, the pre-filter centred there), 2 s, then the trusted rule.
     let mut lab = Lab::with_stage(Some(KHZ_STAGE));
-    let plant = lab.board.settings().plant;
     lab.run(50_000);
     assert!(lab.send("tune stage arx\n").contains("ok tune stage"));
     lab.run(20_000);
+    let settings = *lab.ctl.settings();
     let mut damper = Damper::new(0.1, 0.5);
     let (mut retunes, mut u_peak) = (0, 0.0f32);
     for k in 0..100_000 {
         if k % 1000 == 0 {
             if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                damper.tune(&StageParams { a0: p.a0 as f64, a1: p.a1 as f64, b0: p.b0 as f64 }, &plant);
+                damper.tune(&p, &settings);
                 retunes += 1;
             }
         }
@@ -388,7 +385,7 @@ fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
         for command in ["tuning triangle\n", "excite triangle 1 10\n"] {
             assert!(lab.send(command).starts_with("ok"), "{command}");
         }
-        let plant = lab.board.settings().plant;
+        let settings = *lab.ctl.settings();
         let mut damper = Damper::new(added_zeta, 0.5);
         let (mut retunes, mut u_peak) = (0, 0.0f32);
         // Sums of the hybrid EKF's relative errors of a0 and b0 over 75-100 s and 175-200 s, at 100 Hz.
@@ -396,7 +393,7 @@ fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
         for k in 0..2_000_000 {
             if k >= 20_000 && k % 1000 == 0 {
                 if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                    damper.tune(&StageParams { a0: p.a0 as f64, a1: p.a1 as f64, b0: p.b0 as f64 }, &plant);
+                    damper.tune(&p, &settings);
                     retunes += 1;
                 }
             }
@@ -460,13 +457,13 @@ fn the_loops_damping_across_stages() {
                 let reply = lab.send(&command);
                 assert!(reply.lines().last().is_some_and(|l| l.starts_with("ok tune")), "{command}: {reply}");
             }
-            let plant = lab.board.settings().plant;
+            let settings = *lab.ctl.settings();
             let mut damper = Damper::new(added_zeta, 0.5);
             let (mut retunes, mut u_peak) = (0, 0.0f32);
             for k in 0..100_000 {
                 if k >= 20_000 && k % 1000 == 0 {
                     if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                        damper.tune(&StageParams { a0: p.a0 as f64, a1: p.a1 as f64, b0: p.b0 as f64 }, &plant);
+                        damper.tune(&p, &settings);
                         retunes += 1;
                     }
                 }
@@ -486,12 +483,7 @@ fn the_loops_damping_across_stages() {
                 assert!(zeta > least && u_peak < 5.0, "{f0} Hz: {zeta} {u_peak}");
             }
         }
-        let lag = (-chain(&lab_plant(), f0).arg().to_degrees()).rem_euclid(360.0);
+        let lag = (-chain(&Lab::settings(None).1, f0).arg().to_degrees()).rem_euclid(360.0);
         println!("{f0} Hz (the chain lags {lag:.0} degrees): open loop {}, in the loop {}", figures[0], figures[1]);
     }
-}
-
-/// The simulated board's analog chain (the same for every stage).
-fn lab_plant() -> PlantSettings {
-    BoardSettings::default().plant
 }
