@@ -19,17 +19,19 @@
 //! (`zeta = sigma / w0`).
 
 use hal_sim::board::BoardSettings;
+use hal_sim::lab::Lab;
 use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::ekf::{Cekf, EkfDesign, Hekf};
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::filters::design::{bilinear2, prewarp_constant};
-use nanopos_id::filters::response::{s_at, Complex};
+use nanopos_id::filters::response::Complex;
 use nanopos_id::filters::{Biquad, BiquadState};
 use nanopos_id::hal::StageBoard;
+use nanopos_id::instrument::{disagreement, trusted_ekf_estimate, Status};
 use nanopos_id::pipeline::PipelineSettings;
 use nanopos_id::StageParams;
-use std::f64::consts::{PI, SQRT_2};
+use std::f64::consts::PI;
 
 /// The sample rate, Hz.
 const FS: f64 = 1e4;
@@ -40,17 +42,8 @@ const FS: f64 = 1e4;
 /// and the sensor's lags (the lag replica's poles), and 1.5 samples (the DAC's hold, half a sample on average, and
 /// the sample a command waits in the DAC's holding register).
 fn chain(settings: &PipelineSettings, f_hz: f64) -> Complex {
-    let s = s_at(f_hz);
-    let one = Complex::from(1.0);
-    let butterworth = |fc: f64| {
-        let x = s.scale(1.0 / (2.0 * PI * fc));
-        one / (x * x + x.scale(SQRT_2) + one)
-    };
     let delay = Complex::expj(-2.0 * PI * f_hz * 1.5 / settings.sample_rate_hz);
-    butterworth(settings.reconstruction.cutoff_hz)
-        * butterworth(settings.antialias.cutoff_hz)
-        * settings.lags.analog(f_hz)
-        * delay
+    settings.reconstruction.analog(f_hz) * settings.antialias.analog(f_hz) * settings.lags.analog(f_hz) * delay
 }
 
 /// The resonant damping controller.
@@ -130,6 +123,49 @@ fn sim_ring_zeta(sim: &mut Simulation<Ekfs>, damper: &mut Damper, settings: &Pip
     sim.config = quiet.design(&sim.board.description()).expect("the same pipeline, the excitation off");
     let w0 = sim.board.plant().params().a0.sqrt();
     ring_zeta(|kick| sim.step_adding(|y| damper.command(y) + kick).0.y_um, w0)
+}
+
+/// `samples` samples of the firmware's interrupt body on `lab` with `damper` in the loop, retuned every 0.1 s from
+/// sample `from` on with what `rule` takes from the status snapshot, as a controller on the board would (the chain
+/// from the pipeline's settings in force at the start), and `observe(k, lab)` after each sample: the retunes, the
+/// first one's time (s) and the peak command (V).
+fn lab_loop(
+    lab: &mut Lab,
+    damper: &mut Damper,
+    samples: u64,
+    from: u64,
+    rule: impl Fn(&Status<f32>) -> Option<StageParams<f32>>,
+    mut observe: impl FnMut(u64, &Lab),
+) -> (u32, Option<f64>, f32) {
+    let settings = *lab.ctl.settings();
+    let (mut retunes, mut first, mut u_peak) = (0, None, 0.0f32);
+    for k in 0..samples {
+        if k >= from && k % 1000 == 0 {
+            if let Some(p) = rule(&lab.isr.status()) {
+                damper.tune(&p, &settings);
+                retunes += 1;
+                first = first.or(Some(k as f64 / FS));
+            }
+        }
+        u_peak = u_peak.max(lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32).u_v.abs());
+        observe(k, lab);
+    }
+    (retunes, first, u_peak)
+}
+
+/// [`ring_zeta`] on `lab` with `damper` in the loop, its excitation turned off (`excite off`).
+fn lab_ring_zeta(lab: &mut Lab, damper: &mut Damper) -> f64 {
+    lab.send("excite off\n");
+    let w0 = lab.board.plant().params().a0.sqrt();
+    ring_zeta(
+        |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
+        w0,
+    )
+}
+
+/// The hybrid EKF's estimate when [`trusted_ekf_estimate`] gives it.
+fn trusted(status: &Status<f32>) -> Option<StageParams<f32>> {
+    trusted_ekf_estimate(status, 2)
 }
 
 /// The ring measures the stage's damping: open loop, over noise seeds 1-8 on both stages, within 5 % of the truth's
@@ -295,13 +331,10 @@ const KHZ_W: f64 = 2.0 * PI * 1000.0;
 /// simple design gets a third of what it asks there.
 #[test]
 fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
-    use hal_sim::lab::Lab;
-    use nanopos_id::instrument::{disagreement, trusted_ekf_estimate, Status};
     let naive = |s: &Status<f32>| {
         let (p, h) = s.estimates[2];
         (disagreement(s).is_none() && h.adaptation == Adaptation::Adapting).then_some(p)
     };
-    let trusted = |s: &Status<f32>| trusted_ekf_estimate(s, 2);
     /// Whether, and from what, the controller retunes.
     type Rule<'a> = &'a dyn Fn(&Status<f32>) -> Option<StageParams<f32>>;
     // (name, rule, the first sample it may retune at)
@@ -313,27 +346,10 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
                 continue;
             }
             let mut lab = Lab::with_stage(stage);
-            let settings = *lab.ctl.settings();
             let mut damper = Damper::new(0.1, 0.5);
-            let (mut retunes, mut u_peak, mut first) = (0, 0.0f32, None);
-            for k in 0..200_000 {
-                if k >= from && k % 1000 == 0 {
-                    if let Some(p) = take(&lab.isr.status()) {
-                        damper.tune(&p, &settings);
-                        retunes += 1;
-                        first = first.or(Some(k as f64 / FS));
-                    }
-                }
-                let out = lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32);
-                u_peak = u_peak.max(out.u_v.abs());
-            }
+            let (retunes, first, u_peak) = lab_loop(&mut lab, &mut damper, 200_000, from, take, |_, _| ());
             let limited = lab.isr.status().counters.limited;
-            lab.send("excite off\n");
-            let w0 = lab.board.plant().params().a0.sqrt();
-            let zeta = ring_zeta(
-                |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
-                w0,
-            );
+            let zeta = lab_ring_zeta(&mut lab, &mut damper);
             println!(
                 "{name}, {rule}: {retunes} retunes (the first at {first:?} s), |u| <= {u_peak:.2} V, {limited} samples \
                  limited; the ring's damping ratio after {zeta:.4}"
@@ -353,23 +369,9 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
     lab.run(50_000);
     assert!(lab.send("tune stage arx\n").contains("ok tune stage"));
     lab.run(20_000);
-    let settings = *lab.ctl.settings();
     let mut damper = Damper::new(0.1, 0.5);
-    let (mut retunes, mut u_peak) = (0, 0.0f32);
-    for k in 0..100_000 {
-        if k % 1000 == 0 {
-            if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                damper.tune(&p, &settings);
-                retunes += 1;
-            }
-        }
-        u_peak = u_peak.max(lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32).u_v.abs());
-    }
-    lab.send("excite off\n");
-    let zeta = ring_zeta(
-        |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
-        KHZ_W,
-    );
+    let (retunes, _, u_peak) = lab_loop(&mut lab, &mut damper, 100_000, 0, trusted, |_, _| ());
+    let zeta = lab_ring_zeta(&mut lab, &mut damper);
     println!(
         "1 kHz after tune stage arx, trusted: {retunes} retunes, |u| <= {u_peak:.2} V; the ring's damping ratio \
          {zeta:.4}"
@@ -386,44 +388,29 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
 /// excites the resonance, and the loop takes away what it does: a0 moves by up to 1.5 %, b0 comes nearer the truth.
 #[test]
 fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
-    use hal_sim::lab::Lab;
-    use nanopos_id::instrument::trusted_ekf_estimate;
     for added_zeta in [0.0, 0.1] {
         let mut lab = Lab::new();
         for command in ["tuning triangle\n", "excite triangle 1 10\n"] {
             assert!(lab.send(command).starts_with("ok"), "{command}");
         }
-        let settings = *lab.ctl.settings();
         let mut damper = Damper::new(added_zeta, 0.5);
-        let (mut retunes, mut u_peak) = (0, 0.0f32);
-        // Sums of the hybrid EKF's relative errors of a0 and b0 over 75-100 s and 175-200 s, at 100 Hz.
+        // Sums of the hybrid EKF's relative errors of a0 and b0 over 75-100 s and 175-200 s, at 100 Hz (the truth
+        // after the sample is the sample's in both: the payload comes off at 100 s).
         let mut windows = [[0.0; 2]; 2];
-        for k in 0..2_000_000 {
-            if k >= 20_000 && k % 1000 == 0 {
-                if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                    damper.tune(&p, &settings);
-                    retunes += 1;
-                }
-            }
-            let truth = lab.board.plant().params();
-            u_peak = u_peak.max(lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32).u_v.abs());
+        let observe = |k: u64, lab: &Lab| {
             let window = match k {
                 750_000..1_000_000 => 0,
                 1_750_000..2_000_000 => 1,
-                _ => continue,
+                _ => return,
             };
             if k % 100 == 0 {
-                let p = lab.isr.status().estimates[2].0;
+                let (p, truth) = (lab.isr.status().estimates[2].0, lab.board.plant().params());
                 windows[window][0] += (p.a0 as f64 / truth.a0 - 1.0) / 2500.0;
                 windows[window][1] += (p.b0 as f64 / truth.b0 - 1.0) / 2500.0;
             }
-        }
-        lab.send("excite off\n");
-        let w0 = lab.board.plant().params().a0.sqrt();
-        let zeta = ring_zeta(
-            |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
-            w0,
-        );
+        };
+        let (retunes, _, u_peak) = lab_loop(&mut lab, &mut damper, 2_000_000, 20_000, trusted, observe);
+        let zeta = lab_ring_zeta(&mut lab, &mut damper);
         let pct = |w: [f64; 2]| format!("{:+.2} / {:+.2} %", 100.0 * w[0], 100.0 * w[1]);
         println!(
             "triangle, {added_zeta} asked: {retunes} retunes, |u| <= {u_peak:.2} V, the ring's damping ratio at the \
@@ -449,8 +436,6 @@ fn the_loop_keeps_damping_under_a_scan_through_the_payload_change() {
 /// the command reached 7.9 V: measured while writing this test, not asserted, not tried further.
 #[test]
 fn the_loops_damping_across_stages() {
-    use hal_sim::lab::Lab;
-    use nanopos_id::instrument::trusted_ekf_estimate;
     for (f0, least) in [(300.0, 0.13), (450.0, 0.13), (600.0, 0.12), (800.0, 0.05), (1000.0, 0.02), (1300.0, 0.04)] {
         let w = 2.0 * PI * f0;
         let stage = StageParams { a0: w * w, a1: 0.02 * w, b0: 0.05 * w * w };
@@ -465,24 +450,9 @@ fn the_loops_damping_across_stages() {
                 let reply = lab.send(&command);
                 assert!(reply.lines().last().is_some_and(|l| l.starts_with("ok tune")), "{command}: {reply}");
             }
-            let settings = *lab.ctl.settings();
             let mut damper = Damper::new(added_zeta, 0.5);
-            let (mut retunes, mut u_peak) = (0, 0.0f32);
-            for k in 0..100_000 {
-                if k >= 20_000 && k % 1000 == 0 {
-                    if let Some(p) = trusted_ekf_estimate(&lab.isr.status(), 2) {
-                        damper.tune(&p, &settings);
-                        retunes += 1;
-                    }
-                }
-                u_peak =
-                    u_peak.max(lab.isr.sample_adding(&mut lab.board, |y| damper.command(y as f64) as f32).u_v.abs());
-            }
-            lab.send("excite off\n");
-            let zeta = ring_zeta(
-                |kick| lab.isr.sample_adding(&mut lab.board, |y| (damper.command(y as f64) + kick) as f32).y_um as f64,
-                w,
-            );
+            let (retunes, _, u_peak) = lab_loop(&mut lab, &mut damper, 100_000, 20_000, trusted, |_, _| ());
+            let zeta = lab_ring_zeta(&mut lab, &mut damper);
             figures.push(format!("{zeta:.4} ({retunes} retunes, |u| <= {u_peak:.2} V)"));
             assert_eq!(retunes, 80, "{f0} Hz: the estimate trusted from 2 s on");
             if added_zeta == 0.0 {

@@ -9,7 +9,7 @@
 //! chain; pre-warping at 450 Hz cut that to 0.1-0.4 % and 0.1-0.3 %. So [`ReplicaDesign`]'s default pre-warps at
 //! 450 Hz, and the frequency is a setting.
 
-use crate::filters::response::{s_at, Complex};
+use crate::filters::response::{polyval, s_at, Complex};
 use crate::filters::Biquad;
 
 /// A 2nd-order Butterworth low-pass replica (of the board's reconstruction or anti-aliasing filter).
@@ -28,6 +28,12 @@ impl Default for ReplicaDesign {
 }
 
 impl ReplicaDesign {
+    /// The analog filter's response at `f_hz` (what the replica matches at `prewarp_hz`).
+    pub fn analog(&self, f_hz: f64) -> Complex {
+        let wc = 2.0 * core::f64::consts::PI * self.cutoff_hz;
+        polyval(&[wc * wc], s_at(f_hz)) / polyval(&[wc * wc, core::f64::consts::SQRT_2 * wc, 1.0], s_at(f_hz))
+    }
+
     /// The section for sample rate `fs_hz`.
     pub fn design(&self, fs_hz: f64) -> Biquad<f64> {
         butterworth_lowpass2(self.cutoff_hz, self.prewarp_hz, fs_hz)
@@ -134,16 +140,13 @@ pub fn highpass1(cutoff_hz: f64, prewarp_hz: f64, fs_hz: f64) -> Biquad<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::filters::response::{polyval, s_at};
-    use core::f64::consts::{FRAC_PI_2, PI, SQRT_2};
+    use core::f64::consts::{FRAC_PI_2, PI};
 
     const FS: f64 = 10_000.0;
     const T: f64 = 1.0 / FS;
 
     fn analog_butterworth(f_hz: f64, fc: f64) -> crate::filters::response::Complex {
-        let wc = 2.0 * PI * fc;
-        let s = s_at(f_hz);
-        polyval(&[wc * wc], s) / polyval(&[wc * wc, SQRT_2 * wc, 1.0], s)
+        ReplicaDesign { cutoff_hz: fc, prewarp_hz: fc }.analog(f_hz)
     }
 
     #[test]
