@@ -178,6 +178,14 @@ impl Controller {
         }
     }
 
+    /// The clamp in force, V: the output limits within what the DAC reaches ([`PipelineSettings::dac_reach`]; the
+    /// settings in force were designed, so it has a reach).
+    fn clamp_v(&self) -> [f64; 2] {
+        let l = &self.settings.limits;
+        let reach = self.settings.dac_reach(&self.board).map_or([l.min_v, l.max_v], |(_, r)| r);
+        [l.min_v.max(reach[0]), l.max_v.min(reach[1])]
+    }
+
     /// The DAC's step as a command, V: what one code of the amplifier's DAC moves the command by.
     fn dac_step_v(&self) -> f64 {
         self.board.amplifier.volts_per_code() / self.settings.amplifier.dac_v_per_command_v
@@ -192,6 +200,7 @@ impl Controller {
     fn fit_note(&self, reply: &mut impl Write) -> fmt::Result {
         let (l, fs) = (&self.settings.limits, self.settings.sample_rate_hz);
         let r = self.chosen.reach(fs);
+        let [min_v, max_v] = self.clamp_v();
         let (span, dac_step) = (r.high_v - r.low_v, self.dac_step_v());
         if self.chosen.waveform != Waveform::Off && span < dac_step {
             writeln!(
@@ -202,14 +211,14 @@ impl Controller {
                 Num(dac_step, 6)
             )?;
         }
-        if r.low_v < l.min_v || r.high_v > l.max_v {
+        if r.low_v < min_v || r.high_v > max_v {
             writeln!(
                 reply,
-                "note: the excitation spans {} V to {} V, beyond the limits' {} V to {} V: the clamp will clip it",
+                "note: the excitation spans {} V to {} V, beyond the clamp's {} V to {} V: the clamp will clip it",
                 Num(r.low_v, 6),
                 Num(r.high_v, 6),
-                Num(l.min_v, 6),
-                Num(l.max_v, 6)
+                Num(min_v, 6),
+                Num(max_v, 6)
             )?;
         }
         let max_step = l.max_slew_v_per_s / fs;
@@ -537,6 +546,19 @@ impl Controller {
                 s.limits.max_slew_v_per_s = slew_v_per_s as f64;
                 change.config = Some(self.design(&s, self.running)?);
                 self.settings = s;
+                let beyond = |r: &[f64; 2]| s.limits.min_v < r[0] || s.limits.max_v > r[1];
+                if let Some((_, [low_v, high_v])) = s.dac_reach(&self.board).filter(|(_, r)| beyond(r)) {
+                    let [low, high] = self.board.amplifier_swing_v;
+                    writeln!(
+                        reply,
+                        "note: the DAC reaches {} V to {} V (its output is specified from {} V to {} V): the clamp \
+                         stops the output there",
+                        Num(low_v, 6),
+                        Num(high_v, 6),
+                        Num(low, 6),
+                        Num(high, 6)
+                    )?;
+                }
                 self.fit_note(reply)?;
                 let l = &s.limits;
                 writeln!(

@@ -42,11 +42,32 @@ pub struct BoardDescription {
     pub probe: ConverterFormat,
     /// Format of the amplifier DAC's code.
     pub amplifier: ConverterFormat,
+    /// The DAC output, V, lowest first, within which its code sets the output: what it is specified to reach. The
+    /// G474's DAC with its output buffer on (the buffer drives the reconstruction filter) is specified from 0.2 V to
+    /// its reference less 0.2 V, not rail to rail (STM32 datasheets, "DAC characteristics"); beyond, the output
+    /// stops short of the code and the estimators, fed the command, would take a drive the stage never saw. The
+    /// pipeline keeps the output within it ([`BoardDescription::amplifier_codes`]). An unbuffered or external DAC:
+    /// `[0, full_scale_v]`.
+    pub amplifier_swing_v: [f64; 2],
     /// Samples between writing a DAC code and the DAC output changing, 0 or 1. The G474 firmware loads the DAC from
     /// the sample timer (TIM2 TRGO), so a code written during sample `k` appears exactly at `t_(k+1)`: one sample,
     /// without jitter. A board that writes the DAC directly from the interrupt would be 0 (plus the interrupt's
     /// latency, which this model cannot express: avoid).
     pub actuation_delay_samples: u8,
+}
+
+impl BoardDescription {
+    /// The amplifier DAC's first and last codes within [`Self::amplifier_swing_v`]: the codes the pipeline writes.
+    /// `None` if the swing is not finite or holds fewer than two codes.
+    pub fn amplifier_codes(&self) -> Option<[u32; 2]> {
+        let (a, [low, high]) = (&self.amplifier, self.amplifier_swing_v);
+        if !(low.is_finite() && high.is_finite()) {
+            return None;
+        }
+        let first = libm::ceil(low / a.volts_per_code()).max(0.0);
+        let last = libm::floor(high / a.volts_per_code()).min(a.max_code() as f64);
+        (first < last).then_some([first as u32, last as u32])
+    }
 }
 
 /// What went wrong on the board during one sample (counted by the pipeline, reported by telemetry).

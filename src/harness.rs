@@ -6,9 +6,9 @@
 //! [`Vectors`] file. The harness embeds that file, replays the probe codes through the same [`Workload`] on the
 //! Cortex-M4F and compares: every DAC code, and the final estimates bit for bit.
 //!
-//! File layout (little-endian): magic `NPV1`, `u32` sample count, the [`BoardDescription`] (`u8` bits and `f64`
-//! full scale of the probe, the same of the amplifier, `u8` actuation delay), the [`Results`], then per sample the
-//! `u32` probe code and the `u32` DAC code.
+//! File layout (little-endian): magic `NPV2`, `u32` sample count, the [`BoardDescription`] (`u8` bits and `f64`
+//! full scale of the probe, the same of the amplifier, two `f64` of the DAC's swing, `u8` actuation delay), the
+//! [`Results`], then per sample the `u32` probe code and the `u32` DAC code. (`NPV1`, before the swing, is refused.)
 
 use crate::estimator::{Estimator, FilteredSample};
 use crate::estimators::arx::{ArxConfig, ArxDesign, ArxEstimator, ArxRls};
@@ -151,14 +151,14 @@ pub struct Vectors<'a> {
 /// Why a vectors file was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum VectorsError {
-    /// It does not start with `NPV1`.
+    /// It does not start with `NPV2`.
     Magic,
     /// It ends before its header says.
     Truncated,
 }
 
-const MAGIC: &[u8; 4] = b"NPV1";
-const HEADER: usize = 4 + 4 + 2 * (1 + 8) + 1;
+const MAGIC: &[u8; 4] = b"NPV2";
+const HEADER: usize = 4 + 4 + 2 * (1 + 8) + 2 * 8 + 1;
 
 impl<'a> Vectors<'a> {
     /// Parse `bytes` (no copy).
@@ -171,7 +171,9 @@ impl<'a> Vectors<'a> {
             let n = r.u32()? as usize;
             let mut converter = || Some(ConverterFormat { bits: r.u8()?, full_scale_v: f64::from_bits(r.u64()?) });
             let (probe, amplifier) = (converter()?, converter()?);
-            let board = BoardDescription { probe, amplifier, actuation_delay_samples: r.u8()? };
+            let swing = [f64::from_bits(r.u64()?), f64::from_bits(r.u64()?)];
+            let board =
+                BoardDescription { probe, amplifier, amplifier_swing_v: swing, actuation_delay_samples: r.u8()? };
             let expected = Results::read(&mut r)?;
             let samples = r.buf.get(r.at..r.at.checked_add(n.checked_mul(8)?)?)?;
             Some(Vectors { board, expected, samples })
@@ -204,6 +206,9 @@ impl<'a> Vectors<'a> {
         for c in [board.probe, board.amplifier] {
             w.put(&[c.bits]);
             w.put(&c.full_scale_v.to_bits().to_le_bytes());
+        }
+        for v in board.amplifier_swing_v {
+            w.put(&v.to_bits().to_le_bytes());
         }
         w.put(&[board.actuation_delay_samples]);
         out(&head);
@@ -263,6 +268,7 @@ mod tests {
         let board = BoardDescription {
             probe: ConverterFormat { bits: 16, full_scale_v: 3.3 },
             amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
+            amplifier_swing_v: [0.2, 3.1],
             actuation_delay_samples: 1,
         };
         let expected =
@@ -274,7 +280,7 @@ mod tests {
         assert_eq!((v.board, v.expected, v.len()), (board, expected, 2));
         assert_eq!((v.sample(0), v.sample(1)), (samples[0], samples[1]));
         assert_eq!(Vectors::parse(&bytes[..bytes.len() - 1]).unwrap_err(), VectorsError::Truncated);
-        assert_eq!(Vectors::parse(b"NPV2").unwrap_err(), VectorsError::Magic);
+        assert_eq!(Vectors::parse(b"NPV1").unwrap_err(), VectorsError::Magic, "the format before the DAC's swing");
         assert_eq!(Vectors::parse(&bytes[..10]).unwrap_err(), VectorsError::Truncated);
     }
 }

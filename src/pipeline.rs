@@ -96,9 +96,9 @@ impl OutputLimits {
     pub const MAX_RAMP_TO_SAFE_S: f64 = 0.1;
 
     /// The slowest slew limit allowed with a DAC whose output spans `dac_span_v` (the commands of its first and last
-    /// codes, V): its end farthest from the safe value, reached back in [`Self::MAX_RAMP_TO_SAFE_S`] (100 V/s on the
-    /// board, -10 to 10 V about 0 V). The DAC's ends, not the clamp's: after the clamp is narrowed, the output ramps
-    /// into it from wherever it was.
+    /// codes within its swing, V: [`PipelineSettings::dac_reach`]): its end farthest from the safe value, reached back
+    /// in [`Self::MAX_RAMP_TO_SAFE_S`] (87.8 V/s on the board, -8.78 to 8.78 V about 0 V). The DAC's ends, not the
+    /// clamp's: after the clamp is narrowed, the output ramps into it from wherever it was.
     pub fn min_slew_v_per_s(&self, dac_span_v: [f64; 2]) -> f64 {
         let [a, b] = dac_span_v.map(|v| libm::fabs(v - self.safe_v));
         a.max(b) / Self::MAX_RAMP_TO_SAFE_S
@@ -182,8 +182,12 @@ pub enum SettingsError {
     SlowSlew(f64),
     /// A front-end gain is zero or not finite; names the side.
     FrontEnd(&'static str),
-    /// A converter format with 0 or more than 24 bits, or a non-positive full scale.
+    /// A converter format with 0 or more than 24 bits, or a non-positive full scale, or a DAC swing
+    /// ([`BoardDescription::amplifier_swing_v`]) that holds fewer than two of its codes.
     Converter,
+    /// The safe value is beyond what the DAC reaches with this front end ([`PipelineSettings::dac_reach`]); carries
+    /// that reach, V.
+    DacReach([f64; 2]),
     /// An actuation delay other than 0 or 1 sample.
     ActuationDelay,
     /// Excitation frequency or amplitude out of range.
@@ -216,7 +220,15 @@ impl core::fmt::Display for SettingsError {
             SettingsError::FrontEnd(which) => {
                 write!(f, "{which} front end: gains must be finite and non-zero")
             }
-            SettingsError::Converter => write!(f, "converter format: 1 to 24 bits and a positive full scale"),
+            SettingsError::Converter => {
+                write!(f, "converter format: 1 to 24 bits, a positive full scale, and a DAC swing of two codes or more")
+            }
+            SettingsError::DacReach([low, high]) => write!(
+                f,
+                "safe value: the DAC reaches {} V to {} V with this front end, and the safe value must be within",
+                crate::text::Num(*low, 6),
+                crate::text::Num(*high, 6)
+            ),
             SettingsError::ActuationDelay => write!(f, "board actuation delay must be 0 or 1 sample"),
             SettingsError::Excitation => {
                 write!(f, "excitation: frequencies below Nyquist, finite amplitude and offset")
@@ -265,7 +277,9 @@ pub struct PipelineConfig<T> {
     pub amplifier: Affine<T>,
     /// DAC code -> command V.
     pub amplifier_inverse: Affine<T>,
-    /// Largest DAC code.
+    /// Largest DAC code. The codes written stay within the DAC's swing ([`BoardDescription::amplifier_codes`])
+    /// without a clamp of their own: `min_v` and `max_v` are within the commands of its first and last codes, and
+    /// the encoding of a command there rounds to that code (half a code to spare: the f32 error is a thousandth).
     pub dac_max_code: u32,
     /// Lowest probe code that is not over-range.
     pub probe_low_code: u32,
@@ -304,6 +318,19 @@ impl PipelineSettings {
         self.antialias.prewarp_hz = p.f_p_hz;
         self.lags.match_hz = p.f_p_hz;
         self
+    }
+
+    /// The DAC's codes within its swing ([`BoardDescription::amplifier_codes`]) and the commands they give with
+    /// this amplifier front end, V, lowest first: what the output can reach (with the defaults on the board, codes
+    /// 249 to 3847, -8.78 to 8.78 V). The clamp in force is the output limits within it. `None` if the swing holds
+    /// no two codes.
+    pub fn dac_reach(&self, board: &BoardDescription) -> Option<([u32; 2], [f64; 2])> {
+        let codes = board.amplifier_codes()?;
+        let a = &self.amplifier;
+        let [p, q] =
+            codes.map(|c| (c as f64 * board.amplifier.volts_per_code() - a.dac_offset_v) / a.dac_v_per_command_v);
+        // An inverting front end (a negative gain) turns the order round.
+        Some((codes, [p.min(q), p.max(q)]))
     }
 
     /// Validate and design for the board's converters.
@@ -352,9 +379,13 @@ impl PipelineSettings {
                 return Err(SettingsError::Converter);
             }
         }
-        let command_at =
-            |code: u32| (code as f64 * amplifier_dac.volts_per_code() - a.dac_offset_v) / a.dac_v_per_command_v;
-        let min_slew = l.min_slew_v_per_s([command_at(0), command_at(amplifier_dac.max_code())]);
+        let (_, reach) = self.dac_reach(board).ok_or(SettingsError::Converter)?;
+        // The safe value must be an output the DAC can give (the limits then overlap what it reaches).
+        if !(l.safe_v >= reach[0] && l.safe_v <= reach[1]) {
+            return Err(SettingsError::DacReach(reach));
+        }
+        // The output cannot leave the DAC's reach, so that is where a fault's ramp may start from.
+        let min_slew = l.min_slew_v_per_s(reach);
         // The floor as the message prints it (6 digits) is accepted.
         if l.max_slew_v_per_s < min_slew * (1.0 - 1e-6) {
             return Err(SettingsError::SlowSlew(min_slew));
@@ -408,8 +439,8 @@ impl PipelineSettings {
             dac_max_code: amplifier_dac.max_code(),
             probe_low_code: margin,
             probe_high_code: probe_adc.max_code().saturating_sub(margin),
-            min_v: T::of(l.min_v),
-            max_v: T::of(l.max_v),
+            min_v: T::of(l.min_v.max(reach[0])),
+            max_v: T::of(l.max_v.min(reach[1])),
             max_step_v: T::of(l.max_slew_v_per_s / fs),
             safe_v: T::of(l.safe_v),
             stuck_samples: self.faults.stuck_samples.max(2),
@@ -749,7 +780,8 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     }
 }
 
-/// Command V -> (DAC code, the volts that code really outputs). Saturates at the code range.
+/// Command V -> (DAC code, the volts that code really outputs). Saturates at the code range (the clamp keeps the
+/// command within the DAC's swing: [`PipelineConfig::dac_max_code`]).
 #[inline]
 fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
     let raw = cfg.amplifier.apply(u_v).round();

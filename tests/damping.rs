@@ -316,9 +316,9 @@ const KHZ_W: f64 = 2.0 * PI * 1000.0;
 /// `Lab`), the damper retuned at 10 Hz from 2 s on from the hybrid EKF's estimate in the status snapshot, as a
 /// controller on the board would, by one of two rules. "No disagreement" ([`disagreement`] is `None` and the hybrid
 /// EKF adapts): on the 1 kHz stage the comparison has no verdict from 2.1 to 10.3 s (the RLS, converging, apart from
-/// the ARX), the rule lets the wrong estimate through from 2.2 s, and the loop drives the output to its limits (10 V,
-/// 4 040 samples limited, in the first two seconds), then runs at 2-6 V and pushes the hybrid EKF further off (f0
-/// 362 -> 292 Hz). [`trusted_ekf_estimate`] (a verdict, and it is agreement): never retuned there, the output the
+/// the ARX), the rule lets the wrong estimate through from 2.2 s, and the loop drives the output to its clamp (8.78 V,
+/// the DAC's reach, within the 10 V limits; 3 675 samples limited; with a DAC reaching 10 V, 4 040, and the loop then
+/// ran at 2-6 V and pushed the hybrid EKF further off, f0 362 -> 292 Hz). [`trusted_ekf_estimate`] (a verdict, and it is agreement): never retuned there, the output the
 /// PRBS's 1 V; on the paper's stage, where the verdict is agreement throughout, both rules retune every 0.1 s and the
 /// loop damps as in the tests above (0.150). From the start instead of 2 s, the trusted rule took the initial
 /// parameters (every estimator starts at them, so they agree) and that loop left the 1 kHz mode undamped (-0.0001),
@@ -355,7 +355,11 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
                  limited; the ring's damping ratio after {zeta:.4}"
             );
             match (name, rule) {
-                ("1 kHz", "no disagreement") => assert!(retunes > 0 && u_peak >= 9.9 && limited > 1000),
+                // To the clamp: the DAC's reach (8.78 V), within the output limits (10 V).
+                ("1 kHz", "no disagreement") => {
+                    let clamp = lab.isr.config().max_v;
+                    assert!(retunes > 0 && u_peak >= clamp - 0.01 && limited > 1000, "{u_peak} {clamp}")
+                }
                 // Once, at the start, from the initial parameters: the loop then does not damp.
                 ("1 kHz", "trusted from the start") => assert!(retunes == 1 && zeta < 0.005, "{retunes} {zeta}"),
                 ("1 kHz", _) => assert!(retunes == 0 && u_peak <= 1.01 && limited == 0),

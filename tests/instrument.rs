@@ -437,19 +437,37 @@ fn the_output_is_clamped_and_slew_limited_as_configured_at_run_time() {
     assert!(max_step > 0.04);
 
     // A fault's ramp (and `stop`'s) goes through the slew limit, so the limit may not be so slow that the output
-    // would take more than 0.1 s back to its safe value from anywhere the DAC reaches (-10 to 10 V; the clamp's range
-    // does not bound it: narrowed, the output ramps into it from where it was): 1e-30 V/s was accepted, and a fault
-    // left the output where it was. The slowest allowed brings it back from the DAC's end within 1 000 samples.
+    // would take more than 0.1 s back to its safe value from anywhere the DAC reaches (-8.78 to 8.78 V, its buffered
+    // output's 0.2 to 3.1 V; the clamp's range does not bound it: narrowed, the output ramps into it from where it
+    // was): 1e-30 V/s was accepted, and a fault left the output where it was. The slowest allowed brings it back from
+    // the DAC's end within 1 000 samples.
     let cfg = *lab.isr.config();
     assert_eq!(
-        verdict(&lab.send("limits -0.4 0.6 99.9\n")),
-        "error: slew limit: at least 100 V/s, so that after a fault the output reaches its safe value within 0.1 s \
+        verdict(&lab.send("limits -0.4 0.6 87.8\n")),
+        "error: slew limit: at least 87.8418 V/s, so that after a fault the output reaches its safe value within 0.1 s \
          from anywhere in the DAC's range"
     );
     assert_eq!(lab.isr.config(), &cfg);
-    assert_eq!(verdict(&lab.send("limits -10 10 100\n")), "ok limits -10 V to 10 V, 100 V/s");
-    assert_eq!(verdict(&lab.send("excite constant -10\n")), "ok excite constant -10 V (running)");
-    assert!((lab.run(3000).last().unwrap().u_v + 10.0).abs() <= lsb);
+    // Limits beyond the DAC's reach: accepted, and the reply says where the output stops (and that the PRBS, 2 V
+    // steps, will be ramped).
+    let reply = lab.send("limits -10 10 87.9\n");
+    assert_eq!(
+        notes(&reply),
+        [
+            "note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 V): the clamp \
+             stops the output there",
+            "note: the excitation steps by up to 2 V a sample, beyond the slew limit's 0.00879 V: it will be ramped"
+        ]
+    );
+    assert_eq!(verdict(&reply), "ok limits -10 V to 10 V, 87.9 V/s");
+    let reply = lab.send("excite constant -10\n");
+    assert_eq!(
+        notes(&reply),
+        ["note: the excitation spans -10 V to -10 V, beyond the clamp's -8.78418 V to 8.78418 V: the clamp will clip it"]
+    );
+    assert_eq!(verdict(&reply), "ok excite constant -10 V (running)");
+    let last = *lab.run(3000).last().unwrap();
+    assert!((last.u_v + 8.78418).abs() <= 1e-5 && last.dac_code == 249, "{last:?}");
     assert!(verdict(&lab.send("stop\n")).starts_with("ok stop"));
     let back = lab.run(1100).iter().position(|o| o.u_v.abs() <= lsb / 2.0);
     assert!(back.is_some_and(|k| k <= 1001), "{back:?}");
@@ -626,14 +644,14 @@ fn the_telemetry_says_when_an_estimator_keeps_resetting() {
     let news = look(&mut lab, 10);
     assert_eq!((news.deadline_misses, news.adc_overruns, news.resets), (1, 1, [0; 4]));
     assert_eq!(look(&mut lab, 10), News::default());
-    // An excitation the clamp clips (8 V + 3 V sin, above 10 V 27 % of the time): counted at every look, and told
-    // from the second on; back within the limits, nothing more.
+    // An excitation the clamp clips (8 V + 3 V sin, above the DAC's reach of 8.78 V 41.6 % of the time): counted at
+    // every look, and told from the second on; back within the limits, nothing more.
     lab.board.inject_faults = None;
     assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
     let clipped: Vec<News> = (0..5).map(|_| look(&mut lab, 1000)).collect();
-    assert!(clipped.iter().all(|n| (250..=290).contains(&n.limited)), "{clipped:?}");
+    assert!(clipped.iter().all(|n| (396..=436).contains(&n.limited)), "{clipped:?}");
     assert_eq!(clipped.iter().map(|n| n.limiting).collect::<Vec<_>>(), [false, true, true, true, true]);
-    assert!(verdict(&lab.send("excite sine 3 100 6\n")).starts_with("ok"));
+    assert!(verdict(&lab.send("excite sine 3 100 5\n")).starts_with("ok"));
     lab.run(100);
     look(&mut lab, 0);
     assert_eq!(look(&mut lab, 1000), News::default());
@@ -1382,27 +1400,36 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         ("excite prbs 1\n", &[]),
         (
             "excite sine 3 100 8\n",
-            &["note: the excitation spans 5 V to 11 V, beyond the limits' -10 V to 10 V: the clamp will clip it", SINE],
+            &[
+                "note: the excitation spans 5 V to 11 V, beyond the clamp's -8.78418 V to 8.78418 V: the clamp will \
+                 clip it",
+                SINE,
+            ],
         ),
-        ("excite sine 3 100 6\n", &[SINE]),
+        ("excite sine 3 100 5\n", &[SINE]),
         (
             "excite prbs 1.5\n",
             &["note: the excitation steps by up to 3 V a sample, beyond the slew limit's 2.5 V: it will be ramped"],
         ),
-        ("excite multisine 1 200 800 8\n", &[]),
+        ("excite multisine 1 200 800 7\n", &[]),
         (
             "excite multisine 2 200 800 8\n",
-            &["note: the excitation spans 5.28 V to 10.72 V, beyond the limits' -10 V to 10 V: the clamp will clip it"],
+            &["note: the excitation spans 5.28 V to 10.72 V, beyond the clamp's -8.78418 V to 8.78418 V: the clamp \
+               will clip it"],
         ),
         ("excite prbs 1\n", &[]),
         (
             "limits -0.5 0.5 1000\n",
             &[
-                "note: the excitation spans -1 V to 1 V, beyond the limits' -0.5 V to 0.5 V: the clamp will clip it",
+                "note: the excitation spans -1 V to 1 V, beyond the clamp's -0.5 V to 0.5 V: the clamp will clip it",
                 "note: the excitation steps by up to 2 V a sample, beyond the slew limit's 0.1 V: it will be ramped",
             ],
         ),
-        ("limits -10 10 25000\n", &[]),
+        (
+            "limits -10 10 25000\n",
+            &["note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 V): the clamp \
+               stops the output there"],
+        ),
     ];
     for (cmd, want) in cases {
         let reply = lab.send(cmd);
@@ -1414,7 +1441,8 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         let before = lab.isr.status().counters.limited;
         lab.run(2000);
         let grew = lab.isr.status().counters.limited > before;
-        assert_eq!(grew, want.iter().any(|n| n.contains("limit")), "{cmd}: limited grew {grew}");
+        let acts = want.iter().any(|n| n.contains("will clip") || n.contains("will be ramped"));
+        assert_eq!(grew, acts, "{cmd}: limited grew {grew}");
     }
     // `start` says it again for the excitation it starts.
     assert!(verdict(&lab.send("excite sine 3 100 8\n")).starts_with("ok"));
@@ -1560,7 +1588,8 @@ const SINE: &str =
 /// verb with numbers from everyday to absurd (`nan`, `inf`, `1e39`, `1e-45`, huge counts), interleaved with runs of
 /// samples, now and then with an external command added (steady, following the probe, huge or not finite), and now
 /// and then a probe fault. What must hold throughout: every line gets exactly one final `ok` or `error:`; every DAC
-/// code is in range and every command finite within -10 to 10 V; every estimate finite; after `stop` (without an
+/// code is within the DAC's swing (codes 249 to 3847, whatever the limits) and every command finite within -8.78 to
+/// 8.78 V; every estimate finite; after `stop` (without an
 /// external command, which `stop` does not stop) or a fault the output is at its safe value within 0.1 s; once a
 /// change has had 0.2 s to ramp in, the output is inside the clamp in force. Found so far: a slew
 /// limit of 1e-30 V/s accepted (the output then never went safe), and, 22 000 lines into a longer run, the continuous
@@ -1684,7 +1713,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
             };
             since_change += 1;
             assert!(
-                o.dac_code <= 4095 && o.u_v.is_finite() && o.u_v.abs() <= 10.0 + lsb,
+                (249..=3847).contains(&o.dac_code) && o.u_v.is_finite() && o.u_v.abs() <= 8.7842,
                 "{o:?}\n{}",
                 recent(&session)
             );

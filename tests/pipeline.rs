@@ -5,7 +5,7 @@ use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::filters::{Biquad, BiquadState, PrefilterDesign};
-use nanopos_id::hal::{run_sample, BoardFaults, StageBoard};
+use nanopos_id::hal::{run_sample, BoardDescription, BoardFaults, StageBoard};
 use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
 
@@ -133,6 +133,38 @@ fn the_command_is_clamped_and_slew_limited() {
     assert_eq!(sim.pipeline.fault_counters().limited, 7);
 }
 
+/// The G474's DAC, its output buffer on, is specified from 0.2 V to its reference less 0.2 V, not rail to rail: with
+/// the level shift mapping 0-3.3 V onto -10 to 10 V it reaches -8.78 to 8.78 V. A command beyond is held at the
+/// reach's end, and counted as limited, and what the replicas (and so the estimators) are told is what the DAC gives:
+/// the simulated board, whose DAC stops at its swing, drives the stage with exactly that. Before, the pipeline wrote
+/// every code to 4095 and the replicas took 9.5 V for a drive of at most 8.79 V. A DAC that swings rail to rail (an
+/// unbuffered or external one: `amplifier_swing_v` 0 to its reference) reaches the limits as before.
+#[test]
+fn the_command_stays_within_what_the_dac_reaches() {
+    for (swing, want_v, want_code) in [([0.2, 3.1], 8.78418, 3847), ([0.0, 3.3], 9.5, 3994)] {
+        let mut board = BoardSettings::default();
+        board.dac.swing_v = swing;
+        let settings = PipelineSettings { excitation: ExcitationDesign::constant(9.5), ..PipelineSettings::default() };
+        let mut sim = Simulation::new(board, &settings, ()).unwrap();
+        let out: Vec<_> = (0..20).map(|_| sim.step()).collect();
+        let (record, last) = out.last().unwrap();
+        assert!((last.u_v - want_v).abs() < 0.0025 && last.dac_code == want_code, "{swing:?}: {last:?}");
+        // The command in effect is what the simulated DAC puts out (it stops at its swing), to the last bit.
+        assert_eq!(record.u_v, sim.board.last_u_v(), "{swing:?}");
+        assert_eq!(record.u_v, last.u_v, "{swing:?}");
+        let limited = sim.pipeline.fault_counters().limited;
+        // Beyond the reach every sample is limited; within it, only the ramp up (2.5 V a sample) from 0 V.
+        assert_eq!(limited, if want_v < 9.0 { 20 } else { 3 }, "{swing:?}");
+    }
+    // A code beyond the swing written to the simulated board gives the swing's end: the buffer's limit, modelled.
+    let mut board = SimBoard::new(BoardSettings::default());
+    board.write_amplifier(0);
+    let at_zero = board.last_u_v();
+    board.write_amplifier(0);
+    assert_eq!(at_zero, 0.0, "mid-scale before the first code acts");
+    assert!((board.last_u_v() - (0.2 - 1.65) / 0.165).abs() < 1e-12, "{}", board.last_u_v());
+}
+
 /// A slew limit under half a DAC code per sample still moves the output: the limiter steps from its own unrounded
 /// output, not from the DAC's code (from which such a step rounded back to the same code on every sample: the output
 /// never moved, not even to its safe value after a fault). The design no longer allows such a slew at 10 kHz with a
@@ -172,13 +204,18 @@ fn the_samples_the_limits_change_are_counted() {
     };
     let n = 20_000;
     assert_eq!(limited(ExcitationDesign::sine(100.0, 3.0), n).0, 0.0);
-    // About 6.9 V: only the start from rest, 2.5 V a sample to the offset, counts (two samples).
-    let (_, sim) = limited(ExcitationDesign { offset_v: 6.9, ..ExcitationDesign::sine(100.0, 3.0) }, n);
+    // About 5.7 V: only the start from rest, 2.5 V a sample to the offset, counts (two samples).
+    let (_, sim) = limited(ExcitationDesign { offset_v: 5.7, ..ExcitationDesign::sine(100.0, 3.0) }, n);
     assert_eq!(sim.pipeline.fault_counters().limited, 2);
-    // 8 V + 3 V sin: above the 10 V clamp while sin > 2/3.
+    // 8 V + 3 V sin: above the clamp while sin > (clamp - 8) / 3; the clamp is the DAC's reach (8.78 V), within
+    // the 10 V limits.
+    let (board, settings) = Scenario::Prbs.settings(2.0, 1);
+    let reach = settings.dac_reach(&SimBoard::new(board).description()).unwrap().1;
+    assert!((reach[1] - 8.78418).abs() < 1e-5 && (reach[0] + reach[1]).abs() < 1e-12, "{reach:?}");
     let share = limited(ExcitationDesign { offset_v: 8.0, ..ExcitationDesign::sine(100.0, 3.0) }, n).0;
-    let above = (2.0f64 / 3.0).acos() / std::f64::consts::PI;
-    assert!((share - above).abs() < 0.005, "{share} against {above}");
+    // Counted in samples, 100 a period: the arc above holds 41 or 42 of them, as its phase falls.
+    let above = ((reach[1] - 8.0) / 3.0).acos() / std::f64::consts::PI;
+    assert!((share - above).abs() < 0.01, "{share} against {above}");
     // 2 V at 3 kHz: slopes up to 37 700 V/s against the 25 000 V/s limit, steeper than it over 54 % of the period;
     // sampled at 10 kHz its steps are smaller than its steepest slope, and the pattern repeats every 10 samples,
     // 4 of them slewed.
@@ -213,12 +250,35 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     s.limits.safe_v = 11.0;
     check(s, SettingsError::Limits);
     // A fault ramps the output to its safe value through the slew limit: within 0.1 s from the far end of the DAC's
-    // range (-10 to 10 V; the clamp's own does not count: narrowed, the output ramps into it from where it was).
+    // reach (-8.78 to 8.78 V, the codes within its buffered output's 0.2 to 3.1 V; the clamp's own range does not
+    // count: narrowed, the output ramps into it from where it was).
+    let (codes, reach) = ok.dac_reach(&desc).unwrap();
+    assert_eq!(codes, [249, 3847]);
     let mut s = ok;
-    (s.limits.min_v, s.limits.max_v, s.limits.safe_v, s.limits.max_slew_v_per_s) = (-2.0, 2.0, 1.0, 109.9);
-    check(s, SettingsError::SlowSlew(110.0));
-    s.limits.max_slew_v_per_s = 110.0;
+    (s.limits.min_v, s.limits.max_v, s.limits.safe_v, s.limits.max_slew_v_per_s) = (-2.0, 2.0, 1.0, 97.8);
+    check(s, SettingsError::SlowSlew((reach[0] - 1.0).abs() / 0.1));
+    s.limits.max_slew_v_per_s = 97.9;
     assert!(s.design::<f32>(&desc).is_ok());
+    // The clamp in force is the limits within the DAC's reach; a safe value beyond the reach is refused (the output
+    // could not go there), and so is a DAC whose swing holds fewer than two codes.
+    let cfg = ok.design::<f32>(&desc).unwrap();
+    assert_eq!((cfg.min_v, cfg.max_v), (reach[0] as f32, reach[1] as f32));
+    // The clamp's ends encode to the swing's first and last codes (no clamp of codes of their own keeps them there).
+    let ends = [cfg.min_v, cfg.max_v].map(|v| (cfg.amplifier.scale * v + cfg.amplifier.offset).round() as u32);
+    assert_eq!(ends, codes);
+    let mut s = ok;
+    s.amplifier.dac_offset_v = 3.2;
+    let command_at = |code: u32| (code as f64 * 3.3 / 4096.0 - 3.2) / (3.3 / 20.0);
+    check(s, SettingsError::DacReach(codes.map(command_at)));
+    for swing in [[1.0, 1.0008], [3.1, 0.2], [f64::NAN, 3.1], [0.2, f64::INFINITY]] {
+        let d = BoardDescription { amplifier_swing_v: swing, ..desc };
+        assert_eq!(ok.design::<f32>(&d).unwrap_err(), SettingsError::Converter, "{swing:?}");
+    }
+    // A full-swing DAC (an unbuffered or external one): every code, and the limits as they are.
+    let full = BoardDescription { amplifier_swing_v: [0.0, 3.3], ..desc };
+    let cfg = ok.design::<f32>(&full).unwrap();
+    // (10 V would be code 4096: the top code is one step below.)
+    assert_eq!((cfg.min_v, cfg.max_v), (-10.0, (4095.0 * 3.3 / 4096.0 - 1.65) / 0.165));
     let mut s = ok;
     s.probe.um_per_v = 0.0;
     check(s, SettingsError::FrontEnd("probe"));

@@ -1,8 +1,9 @@
 //! The simulated NUCLEO-G474RE: the [`Plant`] behind the same [`StageBoard`] trait as the real board, with the
 //! converters and the analog front end in between.
 //!
-//! - **DAC**: 12 bits over 0-3.3 V; the written code is decoded back to the amplifier-input voltage through the
-//!   front end (0-3.3 V onto +-10 V) and held over the sample period. Like the firmware's timer-triggered DAC, a
+//! - **DAC**: 12 bits over 0-3.3 V, its output within the buffered G474 DAC's specified swing (0.2 to 3.1 V: a code
+//!   beyond gives the swing's end); the output is decoded back to the amplifier-input voltage through the front end
+//!   (0-3.3 V onto +-10 V, so -8.79 to 8.79 V) and held over the sample period. Like the firmware's timer-triggered DAC, a
 //!   code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
 //! - **ADC timing**: the firmware centres the oversampling window on the sample instant, so the reading is the
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
@@ -64,11 +65,15 @@ pub struct DacModel {
     pub bits: u8,
     /// Reference voltage, V.
     pub vref_v: f64,
+    /// The output the DAC reaches, V, lowest first: the G474's with its output buffer on, as specified (0.2 V to
+    /// the reference less 0.2 V). A code beyond gives the nearest end ([`nanopos_id::hal::BoardDescription::
+    /// amplifier_swing_v`]; a real buffer stops short softly, and often a little further out).
+    pub swing_v: [f64; 2],
 }
 
 impl Default for DacModel {
     fn default() -> Self {
-        DacModel { bits: 12, vref_v: 3.3 }
+        DacModel { bits: 12, vref_v: 3.3, swing_v: [0.2, 3.1] }
     }
 }
 
@@ -187,6 +192,7 @@ impl StageBoard for SimBoard {
         BoardDescription {
             probe: self.settings.adc.format(),
             amplifier: self.settings.dac.format(),
+            amplifier_swing_v: self.settings.dac.swing_v,
             actuation_delay_samples: self.settings.actuation_delay_samples,
         }
     }
@@ -211,7 +217,8 @@ impl StageBoard for SimBoard {
             _ => self.pending_code.replace(code).unwrap_or(1 << (dac.bits - 1)),
         };
         let code = code.min(dac.max_code());
-        let v_dac = code as f64 * dac.volts_per_code();
+        let [low, high] = self.settings.dac.swing_v;
+        let v_dac = (code as f64 * dac.volts_per_code()).max(low).min(high);
         let a = &self.settings.amplifier;
         self.last_u_v = (v_dac - a.dac_offset_v) / a.dac_v_per_command_v;
         self.plant.advance(self.last_u_v);

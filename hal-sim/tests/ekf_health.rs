@@ -526,12 +526,13 @@ fn a_single_sine_starves_every_estimator() {
     );
 }
 
-/// A limit, kept measured: a sine the output clamp clips (8 V + 3 V sin at 100 Hz, above 10 V 27 % of the time,
-/// counted in `FaultCounters::limited`) is no longer a sine: its harmonics reach the estimators, and the monitor
-/// passes it part of the time. What the hybrid filter then learns is biased by the stage's second mode, as on the
-/// full board's triangle: after 30 s of PRBS it moved by 1.7 % over the first 0.5 s of the clipped sine and by 1.6 %
-/// over the next 9.5 s (f64 and f32 alike), and by 0.06 % and 0.3 % with the second mode switched off. The output
-/// limits are not a waveform generator.
+/// A limit, kept measured: a sine the output clamp clips (8 V + 3 V sin at 100 Hz, above the DAC's reach of 8.78 V
+/// 42 % of the time, counted in `FaultCounters::limited`) is no longer a sine: its harmonics reach the estimators,
+/// and the monitor passes it part of the time. What the hybrid filter then learns is biased by the stage's second
+/// mode, as on the full board's triangle: after 30 s of PRBS it moved by 1.5 % over the first 0.5 s of the clipped
+/// sine and by 2.1 % over the next 9.5 s (f64 and f32 alike), and by 0.05 % and 0.5 % with the second mode switched
+/// off (clipped at 10 V, before the DAC's reach was modelled, 27 % of the time: 1.7 and 1.6 %, 0.06 and 0.3 %). The
+/// output limits are not a waveform generator.
 #[test]
 fn a_clipped_sine_is_rich_and_biased_by_the_second_mode() {
     let ekf = EkfDesign::default();

@@ -8,6 +8,11 @@
 //! | amplifier out (DAC1_OUT1) | PA4 | A2 (CN8 pin 3) | reconstruction filter input, then 0-3.3 V -> +-10 V level shift |
 //! | ground | GND | CN8 | analog ground of filters and instruments |
 //!
+//! The DAC's output buffer is on (it drives the filter), and a buffered STM32 DAC is specified from 0.2 V to its
+//! reference less 0.2 V, not rail to rail ([`DESCRIPTION`]`.amplifier_swing_v`): through the 0-3.3 V -> +-10 V
+//! level shift the output reaches -8.78 to 8.78 V, and the pipeline keeps it there. For the whole +-10 V, build the
+//! level shift for 0.2-3.1 V and set `dac_v_per_command_v` to 2.9 / 20 in [`settings`].
+//!
 //! | console TX (LPUART1_TX) | PA2 | ST-LINK virtual COM port (USB) | host terminal, 921 600 baud 8N1 |
 //! | console RX (LPUART1_RX) | PA3 | ST-LINK virtual COM port (USB) | host terminal |
 //!
@@ -122,6 +127,10 @@ pub fn clocks() -> embassy_stm32::Config {
 pub const DESCRIPTION: BoardDescription = BoardDescription {
     probe: ConverterFormat { bits: 16, full_scale_v: 3.3 },
     amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
+    // DAC1 channel 1 with its output buffer on (it drives the reconstruction filter): specified from 0.2 V to
+    // VREF+ - 0.2 V, which the pipeline keeps the output within (codes 249 to 3847: -8.78 to 8.78 V with the level
+    // shift of `settings`).
+    amplifier_swing_v: [0.2, 3.1],
     actuation_delay_samples: 1,
 };
 
@@ -168,7 +177,8 @@ pub fn reset_cause() -> ResetCause {
 
 /// The pipeline's settings on this board: the sample rate, and the analog front end's scaling (the reference probe's
 /// 5 um/V; the divider mapping +-10 V onto the ADC's 0-3.3 V, the level shift mapping the DAC's 0-3.3 V onto
-/// +-10 V). Change them with the hardware; the rest are the paper's defaults.
+/// +-10 V, of which its buffered output reaches -8.78 to 8.78 V). Change them with the hardware; the rest are the
+/// paper's defaults.
 pub fn settings() -> PipelineSettings {
     PipelineSettings {
         sample_rate_hz: SAMPLE_RATE_HZ as f64,
