@@ -25,8 +25,17 @@
 //! last feed.
 //!
 //! ## Clocks
-//! HSI16 / 4 * 85 / 2 = 170 MHz SYSCLK (PLL R, range-1 boost), APB1/APB2 at 170 MHz, so TIM2 counts at 170 MHz.
-//! ADC12 kernel clock = SYSCLK; embassy's ADC driver divides it by 4 to 42.5 MHz (limit 60 MHz).
+//! HSE 24 MHz (the Nucleo's crystal X3) / 6 * 85 / 2 = 170 MHz SYSCLK (PLL R, range-1 boost), APB1/APB2 at
+//! 170 MHz, so TIM2 counts at 170 MHz. ADC12 kernel clock = SYSCLK; embassy's ADC driver divides it by 4 to
+//! 42.5 MHz (limit 60 MHz).
+//!
+//! The sample period is the time base of every estimate: the firmware takes it for exactly 100 us, and a clock off
+//! by a fraction `e` sets every frequency the estimators give off by `e`, `a1` by `e` and `a0` and `b0` by `2 e`
+//! (the stage seen on a stretched time axis). A crystal is within about 50 ppm. The HSI16 RC oscillator, which
+//! clocked the firmware before, is factory-trimmed only to about 1 % and drifts by about as much again with
+//! temperature (STM32 datasheets, "HSI16 oscillator characteristics"): `a0` a few % off, against the 0.1 % the
+//! estimators reach. If the crystal does not start within 50 ms ([`crystal_starts`]: not fitted, or its solder
+//! bridges changed) the firmware still runs, from HSI16 / 4 * 85 / 2 (the same 170 MHz), and says so in the log.
 //!
 //! ## Sample clock (10 kHz), all in hardware
 //! TIM2 counts 0..16 999 (170 MHz / 17 000 = 10 kHz).
@@ -104,19 +113,48 @@ pub fn take_console_rx_error() -> bool {
     CONSOLE_RX_ERROR.swap(false, Ordering::Relaxed)
 }
 
-/// The clock tree above.
-pub fn clocks() -> embassy_stm32::Config {
+/// The Nucleo's HSE crystal, Hz.
+const CRYSTAL_HZ: u32 = 24_000_000;
+/// How long the crystal has to start, ms (its datasheet start-up time is about 2 ms).
+const CRYSTAL_START_MS: u32 = 50;
+
+/// Whether the HSE crystal starts within [`CRYSTAL_START_MS`]: switched on, waited for, and switched off again, so
+/// that `embassy_stm32::init` finds the reset state (it would wait for a missing crystal for ever). Call before it,
+/// on the reset clock (HSI16).
+pub fn crystal_starts() -> bool {
+    let cr = pac::RCC.cr();
+    cr.modify(|w| w.set_hseon(true));
+    let mut started = false;
+    for _ in 0..CRYSTAL_START_MS {
+        if cr.read().hserdy() {
+            started = true;
+            break;
+        }
+        cortex_m::asm::delay(16_000); // At least 1 ms at 16 MHz.
+    }
+    cr.modify(|w| w.set_hseon(false));
+    // A running crystal stops within six of its cycles; a bounded wait all the same.
+    for _ in 0..1000 {
+        if !cr.read().hserdy() {
+            break;
+        }
+    }
+    started
+}
+
+/// The clock tree above: from the crystal if it started ([`crystal_starts`]), else from HSI16 (same frequencies).
+pub fn clocks(crystal: bool) -> embassy_stm32::Config {
     use embassy_stm32::rcc::*;
     let mut config = embassy_stm32::Config::default();
-    config.rcc.hsi = true;
-    config.rcc.pll = Some(Pll {
-        source: PllSource::HSI,
-        prediv: PllPreDiv::DIV4,
-        mul: PllMul::MUL85,
-        divp: None,
-        divq: None,
-        divr: Some(PllRDiv::DIV2),
-    });
+    let (source, prediv) = if crystal {
+        config.rcc.hse = Some(Hse { freq: embassy_stm32::time::Hertz(CRYSTAL_HZ), mode: HseMode::Oscillator });
+        (PllSource::HSE, PllPreDiv::DIV6)
+    } else {
+        config.rcc.hsi = true;
+        (PllSource::HSI, PllPreDiv::DIV4)
+    };
+    config.rcc.pll =
+        Some(Pll { source, prediv, mul: PllMul::MUL85, divp: None, divq: None, divr: Some(PllRDiv::DIV2) });
     config.rcc.sys = Sysclk::PLL1_R;
     config.rcc.boost = true;
     config.rcc.mux.adc12sel = mux::Adcsel::SYS;

@@ -72,7 +72,8 @@ fn with_task<R>(f: impl FnOnce(&mut SampleTask) -> R) -> Option<R> {
 async fn main(spawner: Spawner) {
     // SAFETY: first thing, once; nothing in `.ramtext` has run (its interrupt is enabled further down).
     unsafe { crate::ram_code::load() };
-    let p = embassy_stm32::init(board::clocks());
+    let crystal = board::crystal_starts();
+    let p = embassy_stm32::init(board::clocks(crystal));
     // The embassy time driver (TIM15) and the console's UART must not delay the sample interrupt.
     embassy_stm32::interrupt::TIM1_BRK_TIM15.set_priority(Priority::P1);
     embassy_stm32::interrupt::LPUART1.set_priority(Priority::P2);
@@ -107,6 +108,15 @@ async fn main(spawner: Spawner) {
     board::start_sample_clock();
     if cause == ResetCause::Watchdog {
         defmt::warn!("nanopos-fw: reset by the watchdog (a hang or a fault): excitation stopped, send `start`");
+    }
+    if crystal {
+        defmt::info!("nanopos-fw: sample clock from the 24 MHz crystal (HSE)");
+    } else {
+        defmt::warn!(
+            "nanopos-fw: the 24 MHz crystal (HSE) did not start: the sample clock runs from the HSI16 RC oscillator, \
+             about 1 % off and drifting with temperature, and every estimate with it (f0 and a1 by as much, a0 and b0 \
+             twice)"
+        );
     }
     defmt::info!(
         "nanopos-fw: sampling at {=u32} Hz, {=str}, probe 16-bit, DAC 12-bit, cycle budget {=u32}, reset cause {}, console LPUART1 {=u32} baud",
