@@ -480,3 +480,42 @@ fn hysteresis_shows_as_the_gain_at_the_drives_amplitude() {
     assert!((ratio[0] - 1.0).abs() < 1e-5 && (ratio[1] - 1.0).abs() < 1e-4, "{ratio:?}");
     assert!((ratio[2] - 0.971875).abs() < 2e-4, "{ratio:?}");
 }
+
+/// The sample period is the time base of every estimate. A board whose clock runs slow by a fraction `e` takes
+/// samples `T (1 + e)` apart while the pipeline takes them for `T`: it sees the stage on a stretched time axis, `f0`
+/// and `a1` high by `e`, `a0` and `b0` by `2 e` (`(1 + e)^2 - 1`), whatever the estimator; and the 1 kHz filters'
+/// replicas, matched at the assumed rate, then take their phase at the resonance at the wrong frequency, which adds
+/// to `a1` and `b0`. Measured on the full board's PRBS, the hybrid EKF's means over 10-15 s (payload on) against the
+/// board without the error, for `e` = +-0.5 % (the HSI16 RC oscillator's order of error, why the firmware clocks
+/// from the crystal, 50 ppm): `a0` moved by 1.03 times `2 e`, `a1` by 1.41-1.42 times `e`, `b0` by 1.14 times `2 e`.
+#[test]
+fn a_sample_clock_off_by_e_sets_a0_and_b0_off_by_2e() {
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    use hal_sim::sim::Scenario;
+    let design = HekfDesign::default();
+    let errors = |e: f64| {
+        let h = run(
+            Scenario::Prbs,
+            30.0,
+            1,
+            || Hekf::<f64>::new(design.design()),
+            || Hekf::<f32>::new(design.design()),
+            |b, _| b.plant.sample_period_s *= 1.0 + e,
+        );
+        let (mean, truth) = window_mean(&h.f64, 10.0, 15.0);
+        rel_errors(&mean, &truth)
+    };
+    let base = errors(0.0);
+    for e in [0.005, -0.005] {
+        let got = errors(e);
+        let moved: Vec<f64> = (0..3).map(|i| (1.0 + got[i]) / (1.0 + base[i]) - 1.0).collect();
+        let want = [(1.0 + e) * (1.0 + e) - 1.0, e, (1.0 + e) * (1.0 + e) - 1.0];
+        println!("clock off by {e:+}: a0, a1, b0 moved by {moved:+.5?}, expected {want:+.5?} (without: {base:+.5?})");
+        // a0 (the resonance) as the stretched axis says; a1 and b0 by more, the same way: the replicas' phase at the
+        // resonance taken at the wrong frequency.
+        let ratio: Vec<f64> = (0..3).map(|i| moved[i] / want[i]).collect();
+        println!("  moved / expected {ratio:.3?}");
+        assert!((ratio[0] - 1.0).abs() < 0.05, "{e}: a0 {ratio:?}");
+        assert!((1.0..1.6).contains(&ratio[1]) && (1.0..1.25).contains(&ratio[2]), "{e}: a1, b0 {ratio:?}");
+    }
+}

@@ -30,8 +30,8 @@
 //! 42.5 MHz (limit 60 MHz).
 //!
 //! The sample period is the time base of every estimate: the firmware takes it for exactly 100 us, and a clock off
-//! by a fraction `e` sets every frequency the estimators give off by `e`, `a1` by `e` and `a0` and `b0` by `2 e`
-//! (the stage seen on a stretched time axis). A crystal is within about 50 ppm. The HSI16 RC oscillator, which
+//! by a fraction `e` sets every frequency the estimators give off by `e` and `a0` by `2 e` (the stage seen on a
+//! stretched time axis), `a1` and `b0` by more (on the simulated board at 0.5 %: 1.4 `e` and 2.3 `e`). A crystal is within about 50 ppm. The HSI16 RC oscillator, which
 //! clocked the firmware before, is factory-trimmed only to about 1 % and drifts by about as much again with
 //! temperature (STM32 datasheets, "HSI16 oscillator characteristics"): `a0` a few % off, against the 0.1 % the
 //! estimators reach. If the crystal does not start within 50 ms ([`crystal_starts`]: not fitted, or its solder

@@ -114,8 +114,8 @@ async fn main(spawner: Spawner) {
     } else {
         defmt::warn!(
             "nanopos-fw: the 24 MHz crystal (HSE) did not start: the sample clock runs from the HSI16 RC oscillator, \
-             about 1 % off and drifting with temperature, and every estimate with it (f0 and a1 by as much, a0 and b0 \
-             twice)"
+             about 1 % off and drifting with temperature, and every estimate with it (f0 by as much, a0 twice, a1 and \
+             b0 more)"
         );
     }
     defmt::info!(
