@@ -178,12 +178,10 @@ impl Controller {
         }
     }
 
-    /// The clamp in force, V: the output limits within what the DAC reaches ([`PipelineSettings::dac_reach`]; the
-    /// settings in force were designed, so it has a reach).
+    /// The clamp in force, V ([`PipelineSettings::clamp_v`]; the settings in force were designed, so there is one).
     fn clamp_v(&self) -> [f64; 2] {
         let l = &self.settings.limits;
-        let reach = self.settings.dac_reach(&self.board).map_or([l.min_v, l.max_v], |(_, r)| r);
-        [l.min_v.max(reach[0]), l.max_v.min(reach[1])]
+        self.settings.clamp_v(&self.board).unwrap_or([l.min_v, l.max_v])
     }
 
     /// The DAC's step as a command, V: what one code of the amplifier's DAC moves the command by.

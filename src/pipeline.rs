@@ -225,7 +225,7 @@ impl core::fmt::Display for SettingsError {
             }
             SettingsError::DacReach([low, high]) => write!(
                 f,
-                "safe value: the DAC reaches {} V to {} V with this front end, and the safe value must be within",
+                "safe value: the DAC reaches {} V to {} V with this front end, and the safe value must lie between",
                 crate::text::Num(*low, 6),
                 crate::text::Num(*high, 6)
             ),
@@ -333,6 +333,12 @@ impl PipelineSettings {
         Some((codes, [p.min(q), p.max(q)]))
     }
 
+    /// The clamp in force, V: the output limits within [`Self::dac_reach`]. `None` where that is.
+    pub fn clamp_v(&self, board: &BoardDescription) -> Option<[f64; 2]> {
+        let (_, [low, high]) = self.dac_reach(board)?;
+        Some([self.limits.min_v.max(low), self.limits.max_v.min(high)])
+    }
+
     /// Validate and design for the board's converters.
     #[inline(never)]
     pub fn design<T: Real>(&self, board: &BoardDescription) -> Result<PipelineConfig<T>, SettingsError> {
@@ -386,6 +392,7 @@ impl PipelineSettings {
         }
         // The output cannot leave the DAC's reach, so that is where a fault's ramp may start from.
         let min_slew = l.min_slew_v_per_s(reach);
+        let clamp = self.clamp_v(board).ok_or(SettingsError::Converter)?;
         // The floor as the message prints it (6 digits) is accepted.
         if l.max_slew_v_per_s < min_slew * (1.0 - 1e-6) {
             return Err(SettingsError::SlowSlew(min_slew));
@@ -439,8 +446,8 @@ impl PipelineSettings {
             dac_max_code: amplifier_dac.max_code(),
             probe_low_code: margin,
             probe_high_code: probe_adc.max_code().saturating_sub(margin),
-            min_v: T::of(l.min_v.max(reach[0])),
-            max_v: T::of(l.max_v.min(reach[1])),
+            min_v: T::of(clamp[0]),
+            max_v: T::of(clamp[1]),
             max_step_v: T::of(l.max_slew_v_per_s / fs),
             safe_v: T::of(l.safe_v),
             stuck_samples: self.faults.stuck_samples.max(2),
