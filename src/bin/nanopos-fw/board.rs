@@ -36,6 +36,7 @@
 //! temperature (STM32 datasheets, "HSI16 oscillator characteristics"): `a0` a few % off, against the 0.1 % the
 //! estimators reach. If the crystal does not start within 50 ms ([`crystal_starts`]: not fitted, or its solder
 //! bridges changed) the firmware still runs, from HSI16 / 4 * 85 / 2 (the same 170 MHz), and says so in the log.
+//! A crystal that fails while running is caught by the clock security system ([`watch_crystal`]).
 //!
 //! ## Sample clock (10 kHz), all in hardware
 //! TIM2 counts 0..16 999 (170 MHz / 17 000 = 10 kHz).
@@ -140,6 +141,17 @@ pub fn crystal_starts() -> bool {
         }
     }
     started
+}
+
+/// Watch the running crystal: the clock security system switches the system clock to HSI16 if it fails, and raises
+/// the NMI ([`clear_crystal_failure`]). Call after `embassy_stm32::init` started the crystal.
+pub fn watch_crystal() {
+    pac::RCC.cr().modify(|w| w.set_csson(true));
+}
+
+/// Acknowledge the clock security system's failure flag (the NMI comes back at once until it is cleared).
+pub fn clear_crystal_failure() {
+    pac::RCC.cicr().write(|w| w.set_cssc(true));
 }
 
 /// The clock tree above: from the crystal if it started ([`crystal_starts`]), else from HSI16 (same frequencies).

@@ -74,6 +74,9 @@ async fn main(spawner: Spawner) {
     unsafe { crate::ram_code::load() };
     let crystal = board::crystal_starts();
     let p = embassy_stm32::init(board::clocks(crystal));
+    if crystal {
+        board::watch_crystal();
+    }
     // The embassy time driver (TIM15) and the console's UART must not delay the sample interrupt.
     embassy_stm32::interrupt::TIM1_BRK_TIM15.set_priority(Priority::P1);
     embassy_stm32::interrupt::LPUART1.set_priority(Priority::P2);
@@ -380,6 +383,20 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 d.reference_name()
             );
         }
+    }
+}
+
+/// The crystal failed while running (the clock security system, [`board::watch_crystal`]): the system clock is now
+/// HSI16 without the PLL, the sample clock about 10 times slower, and nothing the estimators compute means anything.
+/// As on a fault: the amplifier goes to its safe value (the timer, on HSI16 now, loads it within its own period,
+/// about 1 ms) and the board waits for the watchdog; after the reset the crystal does not start, and the firmware
+/// runs from HSI16 and says so.
+#[cortex_m_rt::exception]
+unsafe fn NonMaskableInt() -> ! {
+    board::force_safe_output(SAFE_CODE.load(Ordering::Relaxed));
+    board::clear_crystal_failure();
+    loop {
+        cortex_m::asm::wfi();
     }
 }
 
