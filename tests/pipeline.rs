@@ -274,6 +274,12 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
         let d = BoardDescription { amplifier_swing_v: swing, ..desc };
         assert_eq!(ok.design::<f32>(&d).unwrap_err(), SettingsError::Converter, "{swing:?}");
     }
+    // The level shift built for the swing (0.2-3.1 V onto +-10 V, as the README advises for the whole range): the
+    // same codes reach -9.996 to 9.996 V.
+    let mut wide = ok;
+    wide.amplifier.dac_v_per_command_v = 2.9 / 20.0;
+    let (wide_codes, r) = wide.dac_reach(&desc).unwrap();
+    assert!(wide_codes == codes && (r[0] + 9.99579).abs() < 1e-5 && (r[1] - 9.99579).abs() < 1e-5, "{r:?}");
     // A full-swing DAC (an unbuffered or external one): every code, and the limits as they are.
     let full = BoardDescription { amplifier_swing_v: [0.0, 3.3], ..desc };
     let cfg = ok.design::<f32>(&full).unwrap();
