@@ -95,6 +95,11 @@ impl OutputLimits {
     /// the output stayed where it was.
     pub const MAX_RAMP_TO_SAFE_S: f64 = 0.1;
 
+    /// The limits within `reach` (the commands the DAC reaches, V, lowest first): the clamp in force.
+    pub fn within(&self, [low, high]: [f64; 2]) -> [f64; 2] {
+        [self.min_v.max(low), self.max_v.min(high)]
+    }
+
     /// The slowest slew limit allowed with a DAC whose output spans `dac_span_v` (the commands of its first and last
     /// codes within its swing, V: [`PipelineSettings::dac_reach`]): its end farthest from the safe value, reached back
     /// in [`Self::MAX_RAMP_TO_SAFE_S`] (87.8 V/s on the board, -8.78 to 8.78 V about 0 V). The DAC's ends, not the
@@ -335,8 +340,7 @@ impl PipelineSettings {
 
     /// The clamp in force, V: the output limits within [`Self::dac_reach`]. `None` where that is.
     pub fn clamp_v(&self, board: &BoardDescription) -> Option<[f64; 2]> {
-        let (_, [low, high]) = self.dac_reach(board)?;
-        Some([self.limits.min_v.max(low), self.limits.max_v.min(high)])
+        Some(self.limits.within(self.dac_reach(board)?.1))
     }
 
     /// Validate and design for the board's converters.
@@ -392,7 +396,7 @@ impl PipelineSettings {
         }
         // The output cannot leave the DAC's reach, so that is where a fault's ramp may start from.
         let min_slew = l.min_slew_v_per_s(reach);
-        let clamp = self.clamp_v(board).ok_or(SettingsError::Converter)?;
+        let clamp = l.within(reach);
         // The floor as the message prints it (6 digits) is accepted.
         if l.max_slew_v_per_s < min_slew * (1.0 - 1e-6) {
             return Err(SettingsError::SlowSlew(min_slew));
