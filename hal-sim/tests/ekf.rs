@@ -460,19 +460,11 @@ fn creep_does_not_reach_the_estimators() {
 /// plays delay nothing at a PRBS's levels). The linear model of the stage at the amplitude it is driven with.
 #[test]
 fn hysteresis_shows_as_the_gain_at_the_drives_amplitude() {
-    use hal_sim::experiment::{run, window_mean};
-    use hal_sim::sim::Scenario;
-    let design = HekfDesign::default();
     let means = |hysteresis: bool| {
-        let h = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || Hekf::<f64>::new(design.design()),
-            || Hekf::<f32>::new(design.design()),
-            |b, _| b.plant.hysteresis = hysteresis.then(hal_sim::plant::Hysteresis::default),
-        );
-        window_mean(&h.f64, 75.0, 100.0).0
+        hekf_on_the_board(200.0, (75.0, 100.0), |b| {
+            b.plant.hysteresis = hysteresis.then(hal_sim::plant::Hysteresis::default)
+        })
+        .0
     };
     let (with, without) = (means(true), means(false));
     let ratio = [with.a0 / without.a0, with.a1 / without.a1, with.b0 / without.b0];
@@ -490,20 +482,9 @@ fn hysteresis_shows_as_the_gain_at_the_drives_amplitude() {
 /// from the crystal, 50 ppm): `a0` moved by 1.03 times `2 e`, `a1` by 1.41-1.42 times `e`, `b0` by 1.14 times `2 e`.
 #[test]
 fn a_sample_clock_off_by_e_sets_a0_and_b0_off_by_2e() {
-    use hal_sim::experiment::{rel_errors, run, window_mean};
-    use hal_sim::sim::Scenario;
-    let design = HekfDesign::default();
     let errors = |e: f64| {
-        let h = run(
-            Scenario::Prbs,
-            30.0,
-            1,
-            || Hekf::<f64>::new(design.design()),
-            || Hekf::<f32>::new(design.design()),
-            |b, _| b.plant.sample_period_s *= 1.0 + e,
-        );
-        let (mean, truth) = window_mean(&h.f64, 10.0, 15.0);
-        rel_errors(&mean, &truth)
+        let (mean, truth) = hekf_on_the_board(30.0, (10.0, 15.0), |b| b.plant.sample_period_s *= 1.0 + e);
+        hal_sim::experiment::rel_errors(&mean, &truth)
     };
     let base = errors(0.0);
     for e in [0.005, -0.005] {
@@ -518,4 +499,23 @@ fn a_sample_clock_off_by_e_sets_a0_and_b0_off_by_2e() {
         assert!((ratio[0] - 1.0).abs() < 0.05, "{e}: a0 {ratio:?}");
         assert!((1.0..1.6).contains(&ratio[1]) && (1.0..1.25).contains(&ratio[2]), "{e}: a1, b0 {ratio:?}");
     }
+}
+
+/// The hybrid EKF (the paper's PRBS tuning) on the full board's PRBS for `duration_s`, the board changed by `adjust`:
+/// the f64 estimate's mean over `window` and the truth's.
+fn hekf_on_the_board(
+    duration_s: f64,
+    (t0, t1): (f64, f64),
+    adjust: impl FnOnce(&mut hal_sim::board::BoardSettings),
+) -> (StageParams<f64>, StageParams<f64>) {
+    let design = HekfDesign::default();
+    let h = hal_sim::experiment::run(
+        hal_sim::sim::Scenario::Prbs,
+        duration_s,
+        1,
+        || Hekf::<f64>::new(design.design()),
+        || Hekf::<f32>::new(design.design()),
+        |b, _| adjust(b),
+    );
+    hal_sim::experiment::window_mean(&h.f64, t0, t1)
 }
