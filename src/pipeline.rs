@@ -68,6 +68,13 @@ impl Default for AmplifierFrontEnd {
     }
 }
 
+impl AmplifierFrontEnd {
+    /// The command, V, that a DAC output of `dac_v` gives at the amplifier's input.
+    pub fn command_v(&self, dac_v: f64) -> f64 {
+        (dac_v - self.dac_offset_v) / self.dac_v_per_command_v
+    }
+}
+
 /// Output limits, at the amplifier input.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OutputLimits {
@@ -331,9 +338,7 @@ impl PipelineSettings {
     /// no two codes.
     pub fn dac_reach(&self, board: &BoardDescription) -> Option<([u32; 2], [f64; 2])> {
         let codes = board.amplifier_codes()?;
-        let a = &self.amplifier;
-        let [p, q] =
-            codes.map(|c| (c as f64 * board.amplifier.volts_per_code() - a.dac_offset_v) / a.dac_v_per_command_v);
+        let [p, q] = codes.map(|c| self.amplifier.command_v(c as f64 * board.amplifier.volts_per_code()));
         // An inverting front end (a negative gain) turns the order round.
         Some((codes, [p.min(q), p.max(q)]))
     }

@@ -314,21 +314,20 @@ const KHZ_W: f64 = 2.0 * PI * 1000.0;
 
 /// A controller must not follow an EKF the ARX or the RLS has not confirmed. The firmware's interrupt body (f32,
 /// `Lab`), the damper retuned at 10 Hz from 2 s on from the hybrid EKF's estimate in the status snapshot, as a
-/// controller on the board would, by one of two rules. "No disagreement" ([`disagreement`] is `None` and the hybrid
-/// EKF adapts): on the 1 kHz stage the comparison has no verdict from 2.1 to 10.3 s (the RLS, converging, apart from
-/// the ARX), the rule lets the wrong estimate through from 2.2 s, and the loop drives the output to its clamp (8.78 V,
-/// the DAC's reach, within the 10 V limits; 3 675 samples limited; with a DAC reaching 10 V, 4 040, and the loop then
-/// ran at 2-6 V and pushed the hybrid EKF further off, f0 362 -> 292 Hz). [`trusted_ekf_estimate`] (a verdict, and it is agreement): never retuned there, the output the
-/// PRBS's 1 V; on the paper's stage, where the verdict is agreement throughout, both rules retune every 0.1 s and the
-/// loop damps as in the tests above (0.150). From the start instead of 2 s, the trusted rule took the initial
-/// parameters (every estimator starts at them, so they agree) and that loop left the 1 kHz mode undamped (-0.0001),
-/// the command up to 5.4 V, 11 286 samples limited: a controller must also give the estimators time after a start
-/// or a restart. And on
-/// the 1 kHz stage taken as the README's "Another stage" says (`tune stage arx` after 5 s, 2 s for the EKFs), the
-/// trusted rule follows the hybrid EKF from then on: 0.010 -> 0.028 with 0.1 asked for, the command within 4.7 V.
-/// The chain lags about 240 degrees there (its 1 kHz filters at their cut-off), so the band-pass takes the other
-/// sign, and a gain several times the paper stage's makes up for the filters' and the stage's smaller gains: the
-/// simple design gets a third of what it asks there.
+/// controller on the board would, by one of two rules. "No disagreement" ([`disagreement`] is `None` and the hybrid EKF
+/// adapts): on the 1 kHz stage the comparison has no verdict from 2.1 to 10.3 s (the RLS, converging, apart from the
+/// ARX), the rule lets the wrong estimate through from 2.2 s, and the loop drives the output to its clamp (8.78 V, the
+/// DAC's reach, within the 10 V limits; 3 675 samples limited; with a DAC reaching 10 V, 4 040, and the loop then ran
+/// at 2-6 V and pushed the hybrid EKF further off, f0 362 -> 292 Hz). [`trusted_ekf_estimate`] (a verdict, and it is
+/// agreement): never retuned there, the output the PRBS's 1 V; on the paper's stage, where the verdict is agreement
+/// throughout, both rules retune every 0.1 s and the loop damps as in the tests above (0.150). From the start instead
+/// of 2 s, the trusted rule took the initial parameters (every estimator starts at them, so they agree) and that loop
+/// left the 1 kHz mode undamped (-0.0001), the command up to 5.4 V, 11 286 samples limited: a controller must also give
+/// the estimators time after a start or a restart. And on the 1 kHz stage taken as the README's "Another stage" says
+/// (`tune stage arx` after 5 s, 2 s for the EKFs), the trusted rule follows the hybrid EKF from then on: 0.010 -> 0.028
+/// with 0.1 asked for, the command within 4.7 V. The chain lags about 240 degrees there (its 1 kHz filters at their
+/// cut-off), so the band-pass takes the other sign, and a gain several times the paper stage's makes up for the
+/// filters' and the stage's smaller gains: the simple design gets a third of what it asks there.
 #[test]
 fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
     let naive = |s: &Status<f32>| {

@@ -463,7 +463,8 @@ fn the_output_is_clamped_and_slew_limited_as_configured_at_run_time() {
     let reply = lab.send("excite constant -10\n");
     assert_eq!(
         notes(&reply),
-        ["note: the excitation spans -10 V to -10 V, beyond the clamp's -8.78418 V to 8.78418 V: the clamp will clip it"]
+        ["note: the excitation spans -10 V to -10 V, beyond the clamp's -8.78418 V to 8.78418 V: the clamp will clip \
+          it"]
     );
     assert_eq!(verdict(&reply), "ok excite constant -10 V (running)");
     let last = *lab.run(3000).last().unwrap();

@@ -3,8 +3,8 @@
 //!
 //! - **DAC**: 12 bits over 0-3.3 V, its output within the buffered G474 DAC's specified swing (0.2 to 3.1 V: a code
 //!   beyond gives the swing's end); the output is decoded back to the amplifier-input voltage through the front end
-//!   (0-3.3 V onto +-10 V, so -8.79 to 8.79 V) and held over the sample period. Like the firmware's timer-triggered DAC, a
-//!   code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
+//!   (0-3.3 V onto +-10 V, so -8.79 to 8.79 V) and held over the sample period. Like the firmware's timer-triggered
+//!   DAC, a code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
 //! - **ADC timing**: the firmware centres the oversampling window on the sample instant, so the reading is the
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
 //! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
@@ -219,8 +219,7 @@ impl StageBoard for SimBoard {
         let code = code.min(dac.max_code());
         let [low, high] = self.settings.dac.swing_v;
         let v_dac = (code as f64 * dac.volts_per_code()).max(low).min(high);
-        let a = &self.settings.amplifier;
-        self.last_u_v = (v_dac - a.dac_offset_v) / a.dac_v_per_command_v;
+        self.last_u_v = self.settings.amplifier.command_v(v_dac);
         self.plant.advance(self.last_u_v);
     }
 

@@ -29,14 +29,14 @@
 //! 170 MHz, so TIM2 counts at 170 MHz. ADC12 kernel clock = SYSCLK; embassy's ADC driver divides it by 4 to
 //! 42.5 MHz (limit 60 MHz).
 //!
-//! The sample period is the time base of every estimate: the firmware takes it for exactly 100 us, and a clock off
-//! by a fraction `e` sets every frequency the estimators give off by `e` and `a0` by `2 e` (the stage seen on a
-//! stretched time axis), `a1` and `b0` by more (on the simulated board at 0.5 %: 1.4 `e` and 2.3 `e`). A crystal is within about 50 ppm. The HSI16 RC oscillator, which
-//! clocked the firmware before, is factory-trimmed only to about 1 % and drifts by about as much again with
-//! temperature (STM32 datasheets, "HSI16 oscillator characteristics"): `a0` a few % off, against the 0.1 % the
-//! estimators reach. If the crystal does not start within 50 ms ([`crystal_starts`]: not fitted, or its solder
-//! bridges changed) the firmware still runs, from HSI16 / 4 * 85 / 2 (the same 170 MHz), and says so in the log.
-//! A crystal that fails while running is caught by the clock security system ([`watch_crystal`]).
+//! The sample period is the time base of every estimate: the firmware takes it for exactly 100 us, and a clock off by a
+//! fraction `e` sets every frequency the estimators give off by `e` and `a0` by `2 e` (the stage seen on a stretched
+//! time axis), `a1` and `b0` by more (on the simulated board at 0.5 %: 1.4 `e` and 2.3 `e`). A crystal is within about
+//! 50 ppm. The HSI16 RC oscillator, which clocked the firmware before, is factory-trimmed only to about 1 % and drifts
+//! by about as much again with temperature (STM32 datasheets, "HSI16 oscillator characteristics"): `a0` a few % off,
+//! against the 0.1 % the estimators reach. If the crystal does not start within 50 ms ([`crystal_starts`]: not fitted,
+//! or its solder bridges changed) the firmware still runs, from HSI16 / 4 * 85 / 2 (the same 170 MHz), and says so in
+//! the log. A crystal that fails while running is caught by the clock security system ([`watch_crystal`]).
 //!
 //! ## Sample clock (10 kHz), all in hardware
 //! TIM2 counts 0..16 999 (170 MHz / 17 000 = 10 kHz).
