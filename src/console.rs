@@ -568,7 +568,7 @@ impl Controller {
                 )?;
             }
             Command::Record(r) => {
-                if self.board.probe.bits > 16 || self.board.amplifier.bits > 16 {
+                if self.board.probe.max_code > 0xFFFF || self.board.amplifier.max_code > 0xFFFF {
                     return Err(Refusal::Text("record: the v1 stream carries 16-bit codes; this board's are wider"));
                 }
                 self.recording = r != Recording::Off;

@@ -13,7 +13,14 @@ use crate::estimator::EstimatorBank;
 use crate::pipeline::{Pipeline, PipelineConfig, SampleOutput};
 use crate::Real;
 
-/// A converter's code range and the voltage it spans: code `c` is `c * full_scale_v / 2^bits` volts.
+/// A converter's code range and the voltage it spans: code `c` is `c * full_scale_v / 2^bits` volts, and the codes
+/// run from 0 to `max_code`.
+///
+/// `max_code` is `2^bits - 1` for a plain converter ([`ConverterFormat::new`]) but not for an oversampling one
+/// ([`ConverterFormat::oversampled`]): the G474's ADC accumulating 64 12-bit conversions and shifting the sum right
+/// by 2 delivers 16-bit codes whose largest is `4095 * 64 / 4 = 65520`, not 65535 (RM0440, "Oversampler", the table
+/// of maximum results). Over-range is judged from the largest code the converter delivers, so the margin a
+/// [`crate::pipeline::FaultSettings`] asks for is the same at both ends.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct ConverterFormat {
@@ -21,16 +28,51 @@ pub struct ConverterFormat {
     pub bits: u8,
     /// Voltage of code `2^bits` (the reference), V.
     pub full_scale_v: f64,
+    /// The largest code the converter delivers (at or near its full scale): `2^bits - 1` or less, or `2^bits` for an
+    /// oversampler that shifts out more bits than its accumulation added and rounds up to the full scale.
+    pub max_code: u32,
 }
 
 impl ConverterFormat {
-    /// The largest code.
-    pub const fn max_code(&self) -> u32 {
-        ((1u64 << self.bits) - 1) as u32
+    /// A converter whose codes span all of `bits`: 0 to `2^bits - 1`.
+    pub const fn new(bits: u8, full_scale_v: f64) -> Self {
+        let max_code = if bits == 0 || bits > 32 { 0 } else { u32::MAX >> (32 - bits as u32) };
+        ConverterFormat { bits, full_scale_v, max_code }
     }
+
+    /// An oversampling ADC: `ratio` conversions of `native_bits` each summed and shifted right by `shift`, rounded to
+    /// nearest (as the STM32 oversamplers do). The largest code is the sum of `ratio` full-scale conversions, shifted
+    /// and rounded. `bits` is `native_bits + log2(ratio) - shift`; a `ratio` that is not a power of two from 1 to 256,
+    /// or a shift beyond the sum's width, gives a format the pipeline refuses ([`ConverterFormat::is_valid`]). The
+    /// STM32's data register holds 16 bits and drops the rest without saturating: keep `bits` at 16 or fewer there.
+    pub const fn oversampled(native_bits: u8, ratio: u32, shift: u8, full_scale_v: f64) -> Self {
+        let valid = native_bits > 0
+            && native_bits <= 24
+            && ratio.is_power_of_two()
+            && ratio <= 256
+            && (shift as u32) <= native_bits as u32 + ratio.trailing_zeros();
+        if !valid {
+            return ConverterFormat { bits: 0, full_scale_v, max_code: 0 };
+        }
+        let bits = native_bits as u32 + ratio.trailing_zeros() - shift as u32;
+        let sum = ((1u64 << native_bits) - 1) * ratio as u64;
+        let max_code = if shift == 0 { sum } else { (sum + (1 << (shift - 1))) >> shift };
+        ConverterFormat { bits: bits as u8, full_scale_v, max_code: max_code as u32 }
+    }
+
     /// Volts per code.
     pub fn volts_per_code(&self) -> f64 {
         self.full_scale_v / (1u64 << self.bits) as f64
+    }
+
+    /// Whether the pipeline can work with it: 1 to 24 bits, a positive finite full scale, and a largest code from
+    /// half the range to `2^bits`.
+    pub fn is_valid(&self) -> bool {
+        (1..=24).contains(&self.bits)
+            && self.full_scale_v.is_finite()
+            && self.full_scale_v > 0.0
+            && self.max_code <= 1 << self.bits
+            && self.max_code >= 1 << (self.bits - 1)
     }
 }
 
@@ -65,7 +107,7 @@ impl BoardDescription {
             return None;
         }
         let first = libm::ceil(low / a.volts_per_code()).max(0.0);
-        let last = libm::floor(high / a.volts_per_code()).min(a.max_code() as f64);
+        let last = libm::floor(high / a.volts_per_code()).min(a.max_code as f64);
         (first < last).then_some([first as u32, last as u32])
     }
 }
@@ -141,4 +183,54 @@ where
     out.board_faults = board.sample_faults();
     pipeline.count_board_faults(out.board_faults);
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ConverterFormat;
+
+    /// RM0440 (and the other STM32 reference manuals), "Oversampler", the table of maximum results for a raw
+    /// conversion of 0xFFF: the sum shifted and rounded to nearest, where the result fits in 16 bits.
+    #[test]
+    fn an_oversampled_adc_tops_out_where_the_reference_manual_says() {
+        for (ratio, shift, max) in [
+            (2, 0, 0x1FFE),
+            (16, 0, 0xFFF0),
+            (32, 1, 0xFFF0),
+            (64, 2, 0xFFF0),
+            (256, 4, 0xFFF0),
+            (64, 6, 0x0FFF),
+            (32, 6, 0x0800),
+            (256, 8, 0x0FFF),
+        ] {
+            let f = ConverterFormat::oversampled(12, ratio, shift, 3.3);
+            assert_eq!(f.max_code, max, "{ratio}x, shift {shift}");
+            assert!(f.is_valid(), "{ratio}x, shift {shift}: {f:?}");
+        }
+        let g474 = ConverterFormat::oversampled(12, 64, 2, 3.3);
+        assert_eq!((g474.bits, g474.max_code), (16, 65_520));
+        // One code is full scale / 2^bits whichever way the bits came.
+        assert_eq!(g474.volts_per_code(), ConverterFormat::new(16, 3.3).volts_per_code());
+        assert_eq!(ConverterFormat::oversampled(12, 1, 0, 3.3), ConverterFormat::new(12, 3.3));
+    }
+
+    #[test]
+    fn formats_the_pipeline_cannot_use_are_invalid() {
+        assert_eq!(ConverterFormat::new(12, 3.3).max_code, 4095);
+        assert_eq!(ConverterFormat::new(24, 3.3).max_code, 0xFF_FFFF);
+        for bad in [
+            ConverterFormat::oversampled(12, 48, 0, 3.3),
+            ConverterFormat::oversampled(12, 512, 0, 3.3),
+            ConverterFormat::oversampled(12, 4, 15, 3.3),
+            ConverterFormat::oversampled(0, 4, 0, 3.3),
+            ConverterFormat::new(0, 3.3),
+            ConverterFormat::new(25, 3.3),
+            ConverterFormat::new(12, 0.0),
+            ConverterFormat::new(12, f64::NAN),
+            ConverterFormat { max_code: 4097, ..ConverterFormat::new(12, 3.3) },
+            ConverterFormat { max_code: 2047, ..ConverterFormat::new(12, 3.3) },
+        ] {
+            assert!(!bad.is_valid(), "{bad:?}");
+        }
+    }
 }

@@ -6,9 +6,10 @@
 //! [`Vectors`] file. The harness embeds that file, replays the probe codes through the same [`Workload`] on the
 //! Cortex-M4F and compares: every DAC code, and the final estimates bit for bit.
 //!
-//! File layout (little-endian): magic `NPV2`, `u32` sample count, the [`BoardDescription`] (`u8` bits and `f64`
-//! full scale of the probe, the same of the amplifier, two `f64` of the DAC's swing, `u8` actuation delay), the
-//! [`Results`], then per sample the `u32` probe code and the `u32` DAC code. (`NPV1`, before the swing, is refused.)
+//! File layout (little-endian): magic `NPV3`, `u32` sample count, the [`BoardDescription`] (`u8` bits, `f64` full
+//! scale and `u32` largest code of the probe, the same of the amplifier, two `f64` of the DAC's swing, `u8` actuation
+//! delay), the [`Results`], then per sample the `u32` probe code and the `u32` DAC code. (`NPV1`, before the swing,
+//! and `NPV2`, before the largest code, are refused.)
 
 use crate::estimator::{Estimator, FilteredSample};
 use crate::estimators::arx::{ArxConfig, ArxDesign, ArxEstimator, ArxRls};
@@ -151,14 +152,14 @@ pub struct Vectors<'a> {
 /// Why a vectors file was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum VectorsError {
-    /// It does not start with `NPV2`.
+    /// It does not start with `NPV3`.
     Magic,
     /// It ends before its header says.
     Truncated,
 }
 
-const MAGIC: &[u8; 4] = b"NPV2";
-const HEADER: usize = 4 + 4 + 2 * (1 + 8) + 2 * 8 + 1;
+const MAGIC: &[u8; 4] = b"NPV3";
+const HEADER: usize = 4 + 4 + 2 * (1 + 8 + 4) + 2 * 8 + 1;
 
 impl<'a> Vectors<'a> {
     /// Parse `bytes` (no copy).
@@ -169,7 +170,8 @@ impl<'a> Vectors<'a> {
         let mut r = Reader { buf: bytes, at: 4 };
         let parsed = (|| {
             let n = r.u32()? as usize;
-            let mut converter = || Some(ConverterFormat { bits: r.u8()?, full_scale_v: f64::from_bits(r.u64()?) });
+            let mut converter =
+                || Some(ConverterFormat { bits: r.u8()?, full_scale_v: f64::from_bits(r.u64()?), max_code: r.u32()? });
             let (probe, amplifier) = (converter()?, converter()?);
             let swing = [f64::from_bits(r.u64()?), f64::from_bits(r.u64()?)];
             let board =
@@ -206,6 +208,7 @@ impl<'a> Vectors<'a> {
         for c in [board.probe, board.amplifier] {
             w.put(&[c.bits]);
             w.put(&c.full_scale_v.to_bits().to_le_bytes());
+            w.put(&c.max_code.to_le_bytes());
         }
         for v in board.amplifier_swing_v {
             w.put(&v.to_bits().to_le_bytes());
@@ -266,8 +269,8 @@ mod tests {
     #[test]
     fn vectors_round_trip_and_refuse_damage() {
         let board = BoardDescription {
-            probe: ConverterFormat { bits: 16, full_scale_v: 3.3 },
-            amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
+            probe: ConverterFormat::oversampled(12, 64, 2, 3.3),
+            amplifier: ConverterFormat::new(12, 3.3),
             amplifier_swing_v: [0.2, 3.1],
             actuation_delay_samples: 1,
         };
@@ -281,6 +284,9 @@ mod tests {
         assert_eq!((v.sample(0), v.sample(1)), (samples[0], samples[1]));
         assert_eq!(Vectors::parse(&bytes[..bytes.len() - 1]).unwrap_err(), VectorsError::Truncated);
         assert_eq!(Vectors::parse(b"NPV1").unwrap_err(), VectorsError::Magic, "the format before the DAC's swing");
+        let mut old = bytes.clone();
+        old[..4].copy_from_slice(b"NPV2");
+        assert_eq!(Vectors::parse(&old).unwrap_err(), VectorsError::Magic, "the format before the largest code");
         assert_eq!(Vectors::parse(&bytes[..10]).unwrap_err(), VectorsError::Truncated);
     }
 }

@@ -120,7 +120,8 @@ impl OutputLimits {
 /// Fault detection settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FaultSettings {
-    /// A probe code within this many codes of either end of the range is an over-range.
+    /// A probe code within this many codes of either end of the range (0 and the converter's
+    /// [`crate::hal::ConverterFormat::max_code`]) is an over-range.
     pub over_range_margin_codes: u32,
     /// This many identical consecutive probe codes while the command moves is a stuck probe.
     pub stuck_samples: u32,
@@ -194,7 +195,8 @@ pub enum SettingsError {
     SlowSlew(f64),
     /// A front-end gain is zero or not finite; names the side.
     FrontEnd(&'static str),
-    /// A converter format with 0 or more than 24 bits, or a non-positive full scale, or a DAC swing
+    /// A converter format with 0 or more than 24 bits, a non-positive full scale or a largest code outside its bits
+    /// ([`crate::hal::ConverterFormat::is_valid`]), or a DAC swing
     /// ([`BoardDescription::amplifier_swing_v`]) that holds fewer than two of its codes.
     Converter,
     /// The safe value is beyond what the DAC reaches with this front end ([`PipelineSettings::dac_reach`]); carries
@@ -233,7 +235,11 @@ impl core::fmt::Display for SettingsError {
                 write!(f, "{which} front end: gains must be finite and non-zero")
             }
             SettingsError::Converter => {
-                write!(f, "converter format: 1 to 24 bits, a positive full scale, and a DAC swing of two codes or more")
+                write!(
+                    f,
+                    "converter format: 1 to 24 bits, a positive full scale, a largest code within the bits, and a \
+                     DAC swing of two codes or more"
+                )
             }
             SettingsError::DacReach([low, high]) => write!(
                 f,
@@ -390,7 +396,7 @@ impl PipelineSettings {
             return Err(SettingsError::FrontEnd("amplifier"));
         }
         for c in [probe_adc, amplifier_dac] {
-            if c.bits == 0 || c.bits > 24 || !(c.full_scale_v.is_finite() && c.full_scale_v > 0.0) {
+            if !c.is_valid() {
                 return Err(SettingsError::Converter);
             }
         }
@@ -452,9 +458,9 @@ impl PipelineSettings {
                 scale: T::of(vpc_out / a.dac_v_per_command_v),
                 offset: T::of(-a.dac_offset_v / a.dac_v_per_command_v),
             },
-            dac_max_code: amplifier_dac.max_code(),
+            dac_max_code: amplifier_dac.max_code,
             probe_low_code: margin,
-            probe_high_code: probe_adc.max_code().saturating_sub(margin),
+            probe_high_code: probe_adc.max_code.saturating_sub(margin),
             min_v: T::of(clamp[0]),
             max_v: T::of(clamp[1]),
             max_step_v: T::of(l.max_slew_v_per_s / fs),

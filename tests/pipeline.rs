@@ -63,6 +63,41 @@ fn every_estimator_in_the_bank_sees_every_sample_and_the_replica_of_the_output()
     assert_eq!((sim.pipeline.estimators.0.resets, sim.pipeline.estimators.1.resets), (1, 1));
 }
 
+/// The largest code the simulated board's ADC (the G474's, 64x oversampled and shifted by 2) delivers: 65520.
+fn adc_top(sim: &Simulation<impl EstimatorBank<f64>>) -> u32 {
+    sim.board.description().probe.max_code
+}
+
+/// The over-range margin (16 codes, one native 12-bit code) counts from the codes the ADC delivers at each end: the
+/// oversampled G474 ADC stops at 65520, not 65535, so a margin from 65535 would flag only a fully saturated reading
+/// at the top and a reading within 15 codes of 0 at the bottom. The simulated ADC saturates where the real one does.
+#[test]
+fn the_over_range_margin_is_the_same_at_both_ends_of_the_adc() {
+    let sim = paper_sim(());
+    assert_eq!(adc_top(&sim), 65_520);
+    let margin = nanopos_id::pipeline::FaultSettings::default().over_range_margin_codes;
+    let flagged = |code: u32| {
+        let mut sim = paper_sim(());
+        sim.step();
+        sim.board.forced_probe_code = Some(code);
+        sim.step().1.faults.contains(Faults::PROBE_OVER_RANGE)
+    };
+    let top = adc_top(&sim);
+    for code in [0, margin - 1, top - margin + 1, top] {
+        assert!(flagged(code), "code {code}");
+    }
+    for code in [margin, 32_768, top - margin] {
+        assert!(!flagged(code), "code {code}");
+    }
+    // A probe beyond the ADC's range (its offset above the 3.3 V reference) reads the top code, and is over-range.
+    let (mut board, pipeline) = Scenario::Prbs.settings(2.0, 1);
+    board.probe.adc_offset_v = 3.4;
+    let mut sim = Simulation::new(board, &pipeline, ()).unwrap();
+    let (_, out) = sim.step();
+    assert_eq!(out.probe_code, top);
+    assert!(out.faults.contains(Faults::PROBE_OVER_RANGE));
+}
+
 #[test]
 fn an_over_range_probe_stops_the_excitation_and_the_estimators_until_cleared() {
     let mut sim = paper_sim((Recorder::<f64>::default(),));
@@ -71,7 +106,7 @@ fn an_over_range_probe_stops_the_excitation_and_the_estimators_until_cleared() {
     }
     let before = sim.pipeline.estimators.0.seen.len();
     let u_before = sim.pipeline.command_v();
-    sim.board.forced_probe_code = Some(0xFFFF);
+    sim.board.forced_probe_code = Some(adc_top(&sim));
     let (_, out) = sim.step();
     assert!(out.faults.contains(Faults::PROBE_OVER_RANGE));
     assert!(out.estimator_input.is_none());
@@ -181,7 +216,7 @@ fn a_slew_under_one_dac_code_per_sample_still_ramps() {
     let u: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
     // Up the code staircase: one code per 49 samples, at 0.1 V after 0.1 s.
     assert!((u[500] - 0.05).abs() <= lsb && (u[1001] - 0.1).abs() <= lsb / 2.0 + 1e-9, "{} {}", u[500], u[1001]);
-    sim.board.forced_probe_code = Some(0xFFFF);
+    sim.board.forced_probe_code = Some(adc_top(&sim));
     let back: Vec<f64> = (0..1100).map(|_| sim.step().1.u_v).collect();
     let safe_at = back.iter().position(|v| v.abs() < lsb / 2.0);
     assert!(safe_at.is_some_and(|k| k <= 1002), "{safe_at:?}");
@@ -225,7 +260,7 @@ fn the_samples_the_limits_change_are_counted() {
     // A latched fault ramps the output to the safe value through the slew limit: not counted.
     let (_, mut sim) = limited(ExcitationDesign::constant(5.0), 10);
     assert_eq!(sim.pipeline.fault_counters().limited, 1, "0 -> 2.5 V limited, 2.5 -> 5 V not");
-    sim.board.forced_probe_code = Some(0xFFFF);
+    sim.board.forced_probe_code = Some(adc_top(&sim));
     for _ in 0..5 {
         sim.step();
     }
@@ -439,7 +474,7 @@ fn a_fault_or_a_non_finite_external_command_sends_the_output_safe() {
         sim.step_adding(|_| 3.0);
     }
     assert!(sim.pipeline.command_v() > 1.5);
-    sim.board.forced_probe_code = Some(0xFFFF);
+    sim.board.forced_probe_code = Some(adc_top(&sim));
     sim.step_adding(|_| 3.0);
     sim.board.forced_probe_code = None;
     for _ in 0..3 {

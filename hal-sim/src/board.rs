@@ -9,9 +9,9 @@
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
 //! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
 //! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
-//!   by `shift`, giving `12 + log2(ratio) - shift` bits (the firmware's 64x and shift 2: 16 bits). Each conversion
-//!   carries its
-//!   own input-referred noise (`conversion_noise_lsb`, in 12-bit LSB RMS; 1 LSB assumed); averaging divides it by
+//!   by `shift`, giving `12 + log2(ratio) - shift` bits (the firmware's 64x and shift 2: 16 bits, from 0 to
+//!   `4095 * 64 / 4 = 65520`, where a reading beyond the reference stops). Each conversion carries its own
+//!   input-referred noise (`conversion_noise_lsb`, in 12-bit LSB RMS; 1 LSB assumed); averaging divides it by
 //!   `sqrt(ratio)`, and it dithers the 12-bit quantisation so the average resolves below one 12-bit code. The model
 //!   draws the averaged noise directly (one normal per sample, not `ratio`) and rounds to the output code.
 //!
@@ -53,8 +53,7 @@ impl Default for AdcModel {
 impl AdcModel {
     /// The delivered code's format.
     pub fn format(&self) -> ConverterFormat {
-        let bits = self.native_bits as u32 + self.oversampling.trailing_zeros() - self.shift as u32;
-        ConverterFormat { bits: bits as u8, full_scale_v: self.vref_v }
+        ConverterFormat::oversampled(self.native_bits, self.oversampling, self.shift, self.vref_v)
     }
 }
 
@@ -80,7 +79,7 @@ impl Default for DacModel {
 impl DacModel {
     /// The code format.
     pub fn format(&self) -> ConverterFormat {
-        ConverterFormat { bits: self.bits, full_scale_v: self.vref_v }
+        ConverterFormat::new(self.bits, self.vref_v)
     }
 }
 
@@ -205,7 +204,7 @@ impl StageBoard for SimBoard {
         let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
         let noise_v = adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt();
         let v = v + noise_v * self.adc_noise.next_normal();
-        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code() as f64) as u32;
+        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code as f64) as u32;
         self.forced_probe_code.unwrap_or(code)
     }
 
@@ -216,7 +215,7 @@ impl StageBoard for SimBoard {
             // The DAC's holding register: the previous code goes out now (mid-scale before the first write).
             _ => self.pending_code.replace(code).unwrap_or(1 << (dac.bits - 1)),
         };
-        let code = code.min(dac.max_code());
+        let code = code.min(dac.max_code);
         let [low, high] = self.settings.dac.swing_v;
         let v_dac = (code as f64 * dac.volts_per_code()).max(low).min(high);
         self.last_u_v = self.settings.amplifier.command_v(v_dac);

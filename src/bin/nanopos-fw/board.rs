@@ -68,11 +68,16 @@ const TIMER_HZ: u32 = 170_000_000;
 pub const TICKS_PER_SAMPLE: u32 = TIMER_HZ / SAMPLE_RATE_HZ;
 /// ADC1 channel of PA0.
 const PROBE_CHANNEL: u8 = 1;
-/// Oversampling: 2^(OVSR + 1) = 64 conversions, shifted right by 2: 12 + 6 - 2 = 16-bit codes.
-const OVERSAMPLING_RATIO_CODE: u8 = 5;
+/// Oversampling: 64 conversions, their sum shifted right by 2 (rounded): 12 + 6 - 2 = 16-bit codes, the largest
+/// 4095 * 64 / 4 = 65520 (RM0440, "Oversampler": beyond 16 bits the data register would drop the top bits).
+const OVERSAMPLING_RATIO: u32 = 64;
 const OVERSAMPLING_SHIFT: u8 = 2;
+/// The ratio as ADC_CFGR2.OVSR codes it: 2^(OVSR + 1).
+const OVERSAMPLING_RATIO_CODE: u8 = OVERSAMPLING_RATIO.trailing_zeros() as u8 - 1;
+const PROBE_FORMAT: ConverterFormat = ConverterFormat::oversampled(12, OVERSAMPLING_RATIO, OVERSAMPLING_SHIFT, 3.3);
+const _: () = assert!(PROBE_FORMAT.bits == 16 && PROBE_FORMAT.max_code == 65_520);
 /// Conversion window: 64 * (6.5 + 12.5) ADC cycles at 42.5 MHz, in timer ticks (170 MHz: 4 ticks per ADC cycle).
-const WINDOW_TICKS: u32 = 64 * 19 * 4;
+const WINDOW_TICKS: u32 = OVERSAMPLING_RATIO * 19 * 4;
 /// ADC12 EXTSEL code of TIM2_CC2 (RM0440, ADC1/2 external triggers: EXT3).
 const ADC_TRIGGER_TIM2_CC2: u8 = 3;
 /// DAC TSEL code of TIM2_TRGO (RM0440, DAC1 triggers: 4).
@@ -175,8 +180,8 @@ pub fn clocks(crystal: bool) -> embassy_stm32::Config {
 
 /// The board's converters and timing, as the pipeline needs them.
 pub const DESCRIPTION: BoardDescription = BoardDescription {
-    probe: ConverterFormat { bits: 16, full_scale_v: 3.3 },
-    amplifier: ConverterFormat { bits: 12, full_scale_v: 3.3 },
+    probe: PROBE_FORMAT,
+    amplifier: ConverterFormat::new(12, 3.3),
     // DAC1 channel 1 with its output buffer on (it drives the reconstruction filter): specified from 0.2 V to
     // VREF+ - 0.2 V, which the pipeline keeps the output within (codes 249 to 3847: -8.78 to 8.78 V with the level
     // shift of `settings`).
