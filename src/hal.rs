@@ -18,8 +18,8 @@ use crate::Real;
 ///
 /// `max_code` is `2^bits - 1` for a plain converter ([`ConverterFormat::new`]) but not for an oversampling one
 /// ([`ConverterFormat::oversampled`]): the G474's ADC accumulating 64 12-bit conversions and shifting the sum right
-/// by 2 delivers 16-bit codes whose largest is `4095 * 64 / 4 = 65520`, not 65535 (RM0440, "Oversampler", the table
-/// of maximum results). Over-range is judged from the largest code the converter delivers, so the margin a
+/// by 2 delivers 16-bit codes whose largest is `4095 * 64 / 4 = 65520`, not 65535 (the STM32 reference manuals,
+/// "Oversampler", their table of maximum results). Over-range is judged from the largest code the converter delivers, so the margin a
 /// [`crate::pipeline::FaultSettings`] asks for is the same at both ends.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
@@ -189,8 +189,9 @@ where
 mod tests {
     use super::ConverterFormat;
 
-    /// RM0440 (and the other STM32 reference manuals), "Oversampler", the table of maximum results for a raw
-    /// conversion of 0xFFF: the sum shifted and rounded to nearest, where the result fits in 16 bits.
+    /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
+    /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 describes the
+    /// same oversampler): the sum shifted and rounded to nearest, where the result fits in 16 bits.
     #[test]
     fn an_oversampled_adc_tops_out_where_the_reference_manual_says() {
         for (ratio, shift, max) in [

@@ -69,7 +69,8 @@ pub const TICKS_PER_SAMPLE: u32 = TIMER_HZ / SAMPLE_RATE_HZ;
 /// ADC1 channel of PA0.
 const PROBE_CHANNEL: u8 = 1;
 /// Oversampling: 64 conversions, their sum shifted right by 2 (rounded): 12 + 6 - 2 = 16-bit codes, the largest
-/// 4095 * 64 / 4 = 65520 (RM0440, "Oversampler": beyond 16 bits the data register would drop the top bits).
+/// 4095 * 64 / 4 = 65520 (the reference manual's "Oversampler": beyond 16 bits the data register would drop the
+/// top bits, without saturating).
 const OVERSAMPLING_RATIO: u32 = 64;
 const OVERSAMPLING_SHIFT: u8 = 2;
 /// The ratio as ADC_CFGR2.OVSR codes it: 2^(OVSR + 1).
