@@ -190,8 +190,8 @@ mod tests {
     use super::ConverterFormat;
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
-    /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 describes the
-    /// same oversampler): the sum shifted and rounded to nearest, where the result fits in 16 bits.
+    /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not available
+    /// here, its ADC has the same OVSR/OVSS oversampler): the sum shifted and rounded to nearest, where the result fits in 16 bits.
     #[test]
     fn an_oversampled_adc_tops_out_where_the_reference_manual_says() {
         for (ratio, shift, max) in [
