@@ -1013,6 +1013,22 @@ fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
     assert!(gate.may_feed(lab.isr.status().samples));
 }
 
+/// The recording's stream carries 16-bit codes: a board whose ADC gives more (the simulated ADC summing 256
+/// conversions without a shift: 20 bits, largest code 1 048 320) is refused `record`, with the reason; the G474's
+/// 64x / 4 (16 bits, largest code 65 520) records.
+#[test]
+fn record_refuses_codes_wider_than_its_stream() {
+    let (mut board, settings) = Lab::settings(None);
+    (board.adc.oversampling, board.adc.shift) = (256, 0);
+    assert_eq!((board.adc.format().bits, board.adc.format().max_code), (20, 1_048_320));
+    let mut lab = Lab::on_board(board, settings);
+    for line in ["record on\n", "record burst 10\n"] {
+        let reply = lab.send(line);
+        assert_eq!(reply, "error: record: the v1 stream carries 16-bit codes; this board's are wider\n", "{line}");
+    }
+    assert!(Lab::new().send("record burst 10\n").starts_with("ok record burst 10"));
+}
+
 #[test]
 fn a_recording_carries_exactly_what_the_interrupt_saw() {
     let mut lab = Lab::new();
