@@ -1026,7 +1026,8 @@ fn record_refuses_codes_wider_than_its_stream() {
         let reply = lab.send(line);
         assert_eq!(reply, "error: record: the v1 stream carries 16-bit codes; this board's are wider\n", "{line}");
     }
-    assert!(Lab::new().send("record burst 10\n").starts_with("ok record burst 10"));
+    let reply = Lab::new().send("record burst 10\n");
+    assert!(reply.starts_with("# nanopos-record v2 ") && reply.ends_with("ok record burst 10\n"), "{reply}");
 }
 
 #[test]
