@@ -122,9 +122,12 @@ async fn main(spawner: Spawner) {
         );
     }
     defmt::info!(
-        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe 16-bit, DAC 12-bit, cycle budget {=u32}, reset cause {}, console LPUART1 {=u32} baud",
+        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, cycle budget {=u32}, reset cause {}, console LPUART1 {=u32} baud",
         board::SAMPLE_RATE_HZ,
         if running { "PRBS 1 V running" } else { "excitation stopped" },
+        board::DESCRIPTION.probe.bits,
+        board::DESCRIPTION.probe.max_code,
+        board::DESCRIPTION.amplifier.bits,
         CYCLES_PER_SAMPLE,
         cause,
         board::CONSOLE_BAUD
