@@ -19,8 +19,8 @@ use crate::Real;
 /// `max_code` is `2^bits - 1` for a plain converter ([`ConverterFormat::new`]) but not for an oversampling one
 /// ([`ConverterFormat::oversampled`]): the G474's ADC accumulating 64 12-bit conversions and shifting the sum right
 /// by 2 delivers 16-bit codes whose largest is `4095 * 64 / 4 = 65520`, not 65535 (the STM32 reference manuals,
-/// "Oversampler", their table of maximum results). Over-range is judged from the largest code the converter delivers, so the margin a
-/// [`crate::pipeline::FaultSettings`] asks for is the same at both ends.
+/// "Oversampler", their table of maximum results). Over-range is judged from the largest code the converter
+/// delivers, so the margin a [`crate::pipeline::FaultSettings`] asks for is the same at both ends.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub struct ConverterFormat {
@@ -190,8 +190,9 @@ mod tests {
     use super::ConverterFormat;
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
-    /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not available
-    /// here, its ADC has the same OVSR/OVSS oversampler): the sum shifted and rounded to nearest, where the result fits in 16 bits.
+    /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not
+    /// available here, its ADC has the same OVSR/OVSS oversampler): the sum shifted and rounded to nearest, where
+    /// the result fits in 16 bits.
     #[test]
     fn an_oversampled_adc_tops_out_where_the_reference_manual_says() {
         for (ratio, shift, max) in [
