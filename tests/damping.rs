@@ -322,8 +322,11 @@ const KHZ_W: f64 = 2.0 * PI * 1000.0;
 /// agreement): never retuned there, the output the PRBS's 1 V; on the paper's stage, where the verdict is agreement
 /// throughout, both rules retune every 0.1 s and the loop damps as in the tests above (0.150). From the start instead
 /// of 2 s, the trusted rule took the initial parameters (every estimator starts at them, so they agree) and that loop
-/// left the 1 kHz mode undamped (-0.0001), the command up to 5.4 V, 11 286 samples limited: a controller must also give
-/// the estimators time after a start or a restart. And on the 1 kHz stage taken as the README's "Another stage" says
+/// left the 1 kHz mode undamped (-0.0001), the command up to 5.4 V, 11 286 samples limited, until the rule asked for
+/// a model that explains the measurement ([`nanopos_id::instrument::response_ratio`]): before the first sample there
+/// is no innovation RMS, and from 0.1 s on the EKFs disagreed there (their ratio 0 to 5), so it never retunes now. A
+/// controller should still give the estimators time after a start or a restart: agreement at the initial
+/// parameters is no evidence. And on the 1 kHz stage taken as the README's "Another stage" says
 /// (`tune stage arx` after 5 s, 2 s for the EKFs), the trusted rule follows the hybrid EKF from then on: 0.010 -> 0.028
 /// with 0.1 asked for, the command within 4.7 V. The chain lags about 240 degrees there (its 1 kHz filters at their
 /// cut-off), so the band-pass takes the other sign, and a gain several times the paper stage's makes up for the
@@ -359,9 +362,7 @@ fn a_controller_follows_an_ekf_only_once_a_reference_confirms_it() {
                     let clamp = lab.isr.config().max_v;
                     assert!(retunes > 0 && u_peak >= clamp - 0.01 && limited > 1000, "{u_peak} {clamp}")
                 }
-                // Once, at the start, from the initial parameters: the loop then does not damp.
-                ("1 kHz", "trusted from the start") => assert!(retunes == 1 && zeta < 0.005, "{retunes} {zeta}"),
-                ("1 kHz", _) => assert!(retunes == 0 && u_peak <= 1.01 && limited == 0),
+                ("1 kHz", _) => assert!(retunes == 0 && u_peak <= 1.01 && limited == 0, "{rule}: {retunes}"),
                 _ => assert!(retunes == 180 && u_peak < 2.5 && zeta > 0.13),
             }
         }

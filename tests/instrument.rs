@@ -10,7 +10,8 @@ use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{
-    disagreement, Change, EventWatch, Instrument, News, RecordStatus, WatchdogGate, RECORD_BUFFER,
+    compare_ekfs, disagreement, response_ratio, trusted_ekf_estimate, Change, EventWatch, Instrument, News,
+    RecordStatus, WatchdogGate, RECORD_BUFFER,
 };
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
 use nanopos_id::record::{decode_frame, RawSample, FRAME_SAMPLES};
@@ -1939,5 +1940,90 @@ fn the_ekfs_basin_from_the_papers_initial_parameters() {
             200.0 | 700.0 | 1300.0 => assert_eq!(wrong, 0b110, "{f0} Hz"),
             _ => {}
         }
+    }
+}
+
+/// A limit, measured: a disconnected probe (the ADC reading the divider's mid-scale and the noise, no stage: here a
+/// stage of zero gain) is no fault. Nothing is over-range or stuck (the noise moves the 16-bit code every sample),
+/// the excitation runs, every estimator reads `adapting`, and they fit the noise, the EKFs on the pre-filter's own
+/// resonance. What shows it is the gain: every estimator's below 1 % of the paper stage's 0.114 um/V (measured
+/// 1e-4 to 8e-4) and of the initial parameters' 0.083. The EKFs' disagreement note comes and goes (its advice, `tune
+/// stage arx`, does not apply). The hybrid EKF's noise fit agreed with the ARX at 17 of these 300 looks, which
+/// `trusted_ekf_estimate` then gave a controller until it asked for a model that explains the measurement
+/// (`instrument::response_ratio`, about 1.5 here against the 10 it asks): now at none. Telling the user that the
+/// probe sees nothing needs the output's response measured in the interrupt: not done (README, Safety).
+#[test]
+fn a_disconnected_probe_is_no_fault_but_every_gain_collapses() {
+    let mut lab = Lab::with_stage(Some(StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 }));
+    let (mut disagreeing, mut trusted) = (0, 0);
+    for _ in 0..300 {
+        lab.run(1000);
+        let status = lab.isr.status();
+        disagreeing += disagreement(&status).is_some() as u32;
+        trusted += trusted_ekf_estimate(&status, 2).is_some() as u32;
+        assert!(status.faults.is_empty(), "{:?}", status.faults);
+    }
+    let status = lab.isr.status();
+    for (i, (p, h)) in status.estimates.iter().enumerate() {
+        let gain = (p.b0 / p.a0).abs();
+        println!("{}: gain {gain:.2e} um/V, {}", ESTIMATOR_NAMES[i], h.state());
+        assert!(gain < 0.01 * 0.0833, "{}: {gain}", ESTIMATOR_NAMES[i]);
+        assert_eq!(h.adaptation, Adaptation::Adapting);
+    }
+    println!("looks (of 300, 0.1 s apart) disagreeing {disagreeing}, hybrid EKF trusted {trusted}");
+    assert!(disagreeing > 0);
+    assert_eq!(trusted, 0);
+}
+
+/// The measurement behind `instrument::TRUSTED_RESPONSE_RATIO` (about 40 s; `cargo test --release --test instrument
+/// -- --ignored --nocapture response_ratio_where`): at every look (0.1 s apart, from 2 s on) where the hybrid EKF
+/// adapts and agrees with the reference (the trusted rule without its response test), the range of its
+/// `response_ratio`, and at how many looks the rule now gives the estimate. Printed, not asserted: the assertions
+/// are the tests that use the rule (`tests/damping.rs`, `a_disconnected_probe_...` above).
+#[test]
+#[ignore]
+fn response_ratio_where_the_trusted_rule_gave_the_estimate() {
+    let w200 = 2.0 * std::f64::consts::PI * 200.0;
+    let dead = Some(StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 });
+    let triangle: &[&str] = &["tuning triangle\n", "excite triangle 1 10\n"];
+    type Run<'a> = (&'a str, Option<StageParams<f64>>, &'a [&'a str], usize);
+    let runs: [Run; 11] = [
+        ("paper, prbs", None, &[], 200),
+        ("paper, triangle", None, triangle, 200),
+        ("paper, prbs 50 mV", None, &["excite prbs 0.05\n"], 60),
+        ("paper, prbs 10 mV", None, &["excite prbs 0.01\n"], 60),
+        ("paper, multisine", None, &["excite multisine 1 200 800\n"], 60),
+        ("1 kHz, tune stage arx at 11 s", Some(KHZ_STAGE), &[], 20),
+        ("200 Hz", Some(StageParams { a0: w200 * w200, a1: 0.02 * w200, b0: 0.1 * w200 * w200 }), &[], 40),
+        ("disconnected, prbs", dead, &[], 200),
+        ("disconnected, prbs 0.1 V", dead, &["excite prbs 0.1\n"], 100),
+        ("disconnected, triangle", dead, triangle, 100),
+        ("disconnected, multisine", dead, &["excite multisine 1 200 800\n"], 100),
+    ];
+    for (what, stage, commands, seconds) in runs {
+        let mut lab = Lab::with_stage(stage);
+        for c in commands {
+            assert!(verdict(&lab.send(c)).starts_with("ok"), "{what}: {c}");
+        }
+        let (mut agreed, mut trusted, mut low, mut high) = (0, 0, f32::MAX, 0.0f32);
+        for look in 1..=seconds * 10 {
+            lab.run(1000);
+            if stage == Some(KHZ_STAGE) && look == 110 {
+                assert!(lab.send("tune stage arx\n").contains("ok tune stage"));
+            }
+            let status = lab.isr.status();
+            let adapting = status.estimates[2].1.adaptation == Adaptation::Adapting;
+            let agrees = compare_ekfs(&status).is_some_and(|d| !d.ekfs.contains(2));
+            if look < 20 || !(adapting && agrees) {
+                continue;
+            }
+            agreed += 1;
+            trusted += trusted_ekf_estimate(&status, 2).is_some() as u32;
+            let ratio = response_ratio(&status, 2).unwrap_or(f32::NAN);
+            (low, high) = (low.min(ratio), high.max(ratio));
+        }
+        println!(
+            "{what:32} agreeing at {agreed:5} looks, response ratio {low:9.3} to {high:9.3}, trusted at {trusted:5}"
+        );
     }
 }
