@@ -7,7 +7,8 @@
 //!   DAC, a code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
 //! - **ADC timing**: the firmware centres the oversampling window on the sample instant, so the reading is the
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
-//! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed.
+//! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed; optionally mains
+//!   pickup, sinusoids on the reading ([`BoardSettings::hum`]; none by default).
 //! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
 //!   by `shift`, giving `12 + log2(ratio) - shift` bits (the firmware's 64x and shift 2: 16 bits, from 0 to
 //!   `4095 * 64 / 4 = 65520`, where a reading beyond the reference stops). Each conversion carries its own
@@ -102,6 +103,18 @@ pub struct BoardSettings {
     pub amplifier: AmplifierFrontEnd,
     /// Samples between writing a code and the DAC output (0 or 1).
     pub actuation_delay_samples: u8,
+    /// Mains pickup on the probe's reading: sinusoids added to the displacement the ADC converts (through the
+    /// sensor's cable or supply: the lab's 50 or 60 Hz and its odd harmonics). None by default.
+    pub hum: [Tone; 2],
+}
+
+/// A sinusoid on the probe's reading: `amplitude_um sin(2 pi freq_hz t)` (0: none).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Tone {
+    /// Peak amplitude, um.
+    pub amplitude_um: f64,
+    /// Frequency, Hz.
+    pub freq_hz: f64,
 }
 
 impl Default for BoardSettings {
@@ -115,6 +128,7 @@ impl Default for BoardSettings {
             probe: ProbeFrontEnd::default(),
             amplifier: AmplifierFrontEnd::default(),
             actuation_delay_samples: 1,
+            hum: [Tone::default(); 2],
         }
     }
 }
@@ -197,7 +211,11 @@ impl StageBoard for SimBoard {
     }
 
     fn read_probe(&mut self) -> u32 {
-        let y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let mut y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        for tone in self.settings.hum.iter().filter(|t| t.amplitude_um != 0.0) {
+            let t_s = self.plant.sample() as f64 * self.settings.plant.sample_period_s;
+            y_um += tone.amplitude_um * (2.0 * std::f64::consts::PI * tone.freq_hz * t_s).sin();
+        }
         let adc = &self.settings.adc;
         let format = adc.format();
         let v = self.settings.probe.adc_offset_v + self.adc_v_per_um() * y_um;

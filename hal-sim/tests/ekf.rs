@@ -519,3 +519,93 @@ fn hekf_on_the_board(
     );
     hal_sim::experiment::window_mean(&h.f64, t0, t1)
 }
+
+/// Mains pickup on the probe (the lab's 50 Hz, and 150 Hz, its strongest odd harmonic), measured on the paper's
+/// PRBS experiment: the window means' errors of the hybrid EKF and the continuous-time RLS against no hum. Measured:
+/// the hybrid EKF within 0.002 % of its errors without hum up to 100 nm at both 50 and 150 Hz (30 times the noise
+/// floor's RMS); the RLS up to 0.15 % in `a0` and 0.5 % in `a1` and `b0` there (within its 1 %), 0.04 % at 20 nm.
+#[test]
+#[ignore = "measurement: cargo test --release -p hal-sim --test ekf -- --ignored --nocapture mains_hum"]
+fn estimates_under_mains_hum() {
+    use hal_sim::board::Tone;
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    use hal_sim::sim::Scenario;
+    use nanopos_id::estimators::crls::{Crls, CrlsDesign};
+    let tone = |amplitude_nm: f64, freq_hz: f64| Tone { amplitude_um: amplitude_nm * 1e-3, freq_hz };
+    let cases: [(&str, [Tone; 2]); 7] = [
+        ("none", [Tone::default(); 2]),
+        ("50 Hz, 5 nm", [tone(5.0, 50.0), Tone::default()]),
+        ("50 Hz, 20 nm", [tone(20.0, 50.0), Tone::default()]),
+        ("50 Hz, 100 nm", [tone(100.0, 50.0), Tone::default()]),
+        ("150 Hz, 20 nm", [tone(20.0, 150.0), Tone::default()]),
+        ("60 + 180 Hz, 20 nm each", [tone(20.0, 60.0), tone(20.0, 180.0)]),
+        ("50 + 150 Hz, 100 nm each", [tone(100.0, 50.0), tone(100.0, 150.0)]),
+    ];
+    let (hekf, crls) = (HekfDesign::default(), CrlsDesign::default());
+    for (name, hum) in cases {
+        let h = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || Hekf::<f64>::new(hekf.design()),
+            || Hekf::<f32>::new(hekf.design()),
+            |b, _| b.hum = hum,
+        );
+        let r = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || Crls::<f64>::new(crls.design()),
+            || Crls::<f32>::new(crls.design()),
+            |b, _| b.hum = hum,
+        );
+        for (est, hist) in [("hekf", &h.f64), ("rls", &r.f64)] {
+            let (m1, t1) = window_mean(hist, 75.0, 100.0);
+            let (m2, t2) = window_mean(hist, 175.0, 200.0);
+            let (e1, e2) = (rel_errors(&m1, &t1), rel_errors(&m2, &t2));
+            eprintln!(
+                "{name:26} {est:5}: a0 {:+.3}% {:+.3}%  a1 {:+.3}% {:+.3}%  b0 {:+.3}% {:+.3}%",
+                e1[0] * 100.0,
+                e2[0] * 100.0,
+                e1[1] * 100.0,
+                e2[1] * 100.0,
+                e1[2] * 100.0,
+                e2[2] * 100.0
+            );
+        }
+    }
+}
+
+/// Mains pickup does not bias the hybrid EKF: 100 nm at both 50 and 150 Hz on the probe's reading (30 times the
+/// noise floor's RMS; the pre-filter's 100 Hz high-pass passes half of the 50 Hz) moves its window means by less
+/// than 0.01 % of the truth (measured 0.002 %: the model's innovations take the hum for noise, uncorrelated with
+/// the input). The whole table: `estimates_under_mains_hum`.
+#[test]
+fn mains_hum_on_the_probe_leaves_the_hybrid_ekf_where_it_was() {
+    use hal_sim::board::Tone;
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    use hal_sim::sim::Scenario;
+    let design = HekfDesign::default();
+    let hum = [Tone { amplitude_um: 0.1, freq_hz: 50.0 }, Tone { amplitude_um: 0.1, freq_hz: 150.0 }];
+    let errors = |hum: [Tone; 2]| {
+        let h = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || Hekf::<f64>::new(design.design()),
+            || Hekf::<f32>::new(design.design()),
+            |b, _| b.hum = hum,
+        );
+        [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
+            let (m, t) = window_mean(&h.f64, t0, t1);
+            rel_errors(&m, &t)
+        })
+    };
+    let (quiet, hummed) = (errors([Tone::default(); 2]), errors(hum));
+    for w in 0..2 {
+        for p in 0..3 {
+            let moved = hummed[w][p] - quiet[w][p];
+            assert!(moved.abs() < 1e-4, "window {w}, parameter {p}: {:+.4} %", moved * 100.0);
+        }
+    }
+}
