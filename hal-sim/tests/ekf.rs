@@ -521,15 +521,17 @@ fn hekf_on_the_board(
 }
 
 /// Mains pickup on the probe (the lab's 50 Hz, and 150 Hz, its strongest odd harmonic), measured on the paper's
-/// PRBS experiment: the window means' errors of the hybrid EKF and the continuous-time RLS against no hum. Measured:
-/// the hybrid EKF within 0.002 % of its errors without hum up to 100 nm at both 50 and 150 Hz (30 times the noise
-/// floor's RMS); the RLS up to 0.15 % in `a0` and 0.5 % in `a1` and `b0` there (within its 1 %), 0.04 % at 20 nm.
+/// PRBS experiment: every estimator's window means' errors against no hum. Measured: both EKFs within 0.002 % of
+/// their errors without hum up to 100 nm at both 50 and 150 Hz (30 times the noise floor's RMS); the continuous-time
+/// RLS moved by up to 0.17 % in `a0` and 0.5 % in `a1` and `b0` there, the ARX by 0.17 % in `a0`, 0.7 % in `a1` and
+/// 0.5 % in `b0`; at 20 nm both by under 0.05 % but the ARX's `a1` (0.04 % at 50 Hz, 0.09 % at 60 + 180 Hz).
 #[test]
 #[ignore = "measurement: cargo test --release -p hal-sim --test ekf -- --ignored --nocapture mains_hum"]
 fn estimates_under_mains_hum() {
     use hal_sim::board::Tone;
     use hal_sim::experiment::{rel_errors, run, window_mean};
     use hal_sim::sim::Scenario;
+    use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
     use nanopos_id::estimators::crls::{Crls, CrlsDesign};
     let tone = |amplitude_nm: f64, freq_hz: f64| Tone { amplitude_um: amplitude_nm * 1e-3, freq_hz };
     let cases: [(&str, [Tone; 2]); 7] = [
@@ -541,7 +543,7 @@ fn estimates_under_mains_hum() {
         ("60 + 180 Hz, 20 nm each", [tone(20.0, 60.0), tone(20.0, 180.0)]),
         ("50 + 150 Hz, 100 nm each", [tone(100.0, 50.0), tone(100.0, 150.0)]),
     ];
-    let (hekf, crls) = (HekfDesign::default(), CrlsDesign::default());
+    let (hekf, crls, arx) = (HekfDesign::default(), CrlsDesign::default(), ArxDesign::default());
     for (name, hum) in cases {
         let h = run(
             Scenario::Prbs,
@@ -559,7 +561,23 @@ fn estimates_under_mains_hum() {
             || Crls::<f32>::new(crls.design()),
             |b, _| b.hum = hum,
         );
-        for (est, hist) in [("hekf", &h.f64), ("rls", &r.f64)] {
+        let c = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || Cekf::<f64>::new(hekf.design()),
+            || Cekf::<f32>::new(hekf.design()),
+            |b, _| b.hum = hum,
+        );
+        let x = run(
+            Scenario::Prbs,
+            200.0,
+            1,
+            || ArxEstimator::<f64>::new(arx.design()),
+            || ArxEstimator::<f32>::new(arx.design()),
+            |b, _| b.hum = hum,
+        );
+        for (est, hist) in [("hekf", &h.f64), ("ekf", &c.f64), ("rls", &r.f64), ("arx", &x.f64)] {
             let (m1, t1) = window_mean(hist, 75.0, 100.0);
             let (m2, t2) = window_mean(hist, 175.0, 200.0);
             let (e1, e2) = (rel_errors(&m1, &t1), rel_errors(&m2, &t2));
