@@ -38,6 +38,10 @@ enum Command {
         /// negative for a fall: the stage's b0 (and the truth's) at the rate
         #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
         gain_drift: f64,
+        /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
+        /// --hum 150:5)
+        #[arg(long, value_name = "HZ:NM")]
+        hum: Vec<hal_sim::cmd::HumArg>,
         /// Output CSV file.
         #[arg(long)]
         out: PathBuf,
@@ -121,6 +125,10 @@ enum Command {
         /// negative for a fall (stopping at zero)
         #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
         gain_drift: f64,
+        /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
+        /// --hum 150:5)
+        #[arg(long, value_name = "HZ:NM")]
+        hum: Vec<hal_sim::cmd::HumArg>,
     },
     /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
     Decode {
@@ -180,7 +188,7 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, out } => {
+        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, hum, out } => {
             let args = simulate::SimulateArgs {
                 scenario: scenario.into(),
                 duration_s: duration,
@@ -188,6 +196,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 hysteresis,
                 creep,
                 gain_drift_pct_per_min: gain_drift,
+                hum,
                 out: &out,
             };
             simulate::run(&args).map(|_| ())
@@ -305,12 +314,13 @@ fn run(cli: Cli) -> Result<(), CliError> {
             }
             Ok(())
         }
-        Command::Console { status_every, stage, payload_off, gain_drift } => {
+        Command::Console { status_every, stage, payload_off, gain_drift, hum } => {
             let args = hal_sim::cmd::console::ConsoleArgs {
                 status_every_s: status_every,
                 stage,
                 payload_off,
                 gain_drift_pct_per_min: gain_drift,
+                hum,
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(

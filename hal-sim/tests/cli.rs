@@ -91,6 +91,23 @@ fn simulate_drifts_the_gain_and_the_truth_on_request() {
     assert_eq!(rows(&["--gain-drift", "0"], "zero.csv"), still, "no drift: the same file");
 }
 
+/// `--hum HZ:NM` adds mains pickup to the reading: the same command and truth, the reading moved by the tone (to the
+/// ADC's 1.5 nm code and the noise: the two runs share the noise's seed).
+#[test]
+fn simulate_adds_mains_hum_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = |extra: &[&str], name: &str| simulated_rows(dir.path(), "0.1", extra, name);
+    let (quiet, hum) = (rows(&[], "quiet.csv"), rows(&["--hum", "50:100", "--hum", "150:20"], "hum.csv"));
+    for (k, (q, h)) in quiet.iter().zip(&hum).enumerate() {
+        assert_eq!((h[0], h[1], h[3], h[4], h[5]), (q[0], q[1], q[3], q[4], q[5]), "row {k}: t, u and the truth");
+        let t = h[0];
+        let tone =
+            0.1 * (2.0 * std::f64::consts::PI * 50.0 * t).sin() + 0.02 * (2.0 * std::f64::consts::PI * 150.0 * t).sin();
+        assert!((h[2] - q[2] - tone).abs() < 2e-3, "row {k}: {} against {} + {tone}", h[2], q[2]);
+    }
+    assert_eq!(rows(&["--hum", "50:0"], "zero.csv"), quiet, "no amplitude: the same file");
+}
+
 #[test]
 fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
     let dir = tempfile::tempdir().unwrap();
@@ -259,6 +276,15 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (
             &["simulate", "--scenario", "prbs", "--gain-drift", "-50", "--out", "x.csv"],
             "--gain-drift -50: the gain would reach zero after 120 s, within the run's 200 s",
+        ),
+        (&["simulate", "--scenario", "prbs", "--hum", "50", "--out", "x.csv"], "'50': expected HZ:NM"),
+        (&["simulate", "--scenario", "prbs", "--hum", "0:20", "--out", "x.csv"], "'0:20': expected HZ:NM"),
+        (&["simulate", "--scenario", "prbs", "--hum", "6000:20", "--out", "x.csv"], "Nyquist"),
+        (&["simulate", "--scenario", "prbs", "--hum", "50:-1", "--out", "x.csv"], "'50:-1'"),
+        (&["simulate", "--scenario", "prbs", "--hum", "50:NaN", "--out", "x.csv"], "'50:NaN'"),
+        (
+            &["simulate", "--scenario", "prbs", "--hum", "50:1", "--hum", "150:1", "--hum", "250:1", "--out", "x.csv"],
+            "--hum: at most 2 tones (3 given)",
         ),
         (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),

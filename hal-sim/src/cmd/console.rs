@@ -77,7 +77,7 @@ impl std::str::FromStr for PayloadOff {
 }
 
 /// The command line's options.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct ConsoleArgs {
     /// The stage instead of the paper's (and no payload change).
     pub stage: Option<StageArg>,
@@ -87,6 +87,8 @@ pub struct ConsoleArgs {
     pub payload_off: Option<PayloadOff>,
     /// The piezo's gain drift, % of its starting value per minute.
     pub gain_drift_pct_per_min: f64,
+    /// Mains pickup on the probe's reading (at most two tones).
+    pub hum: Vec<super::HumArg>,
 }
 
 /// Run the session: `input` is what the link receives, `link` what it sends back, `log` where the periodic status
@@ -120,6 +122,7 @@ pub fn run(
     }
     let (mut board, settings) = Lab::settings(args.stage.map(|s| s.0));
     board.plant.gain_drift_per_s = super::gain_drift_per_s(args.gain_drift_pct_per_min)?;
+    board.hum = super::hum_tones(&args.hum)?;
     let rate_hz = 1.0 / board.plant.sample_period_s;
     if let Some(PayloadOff(off)) = args.payload_off {
         board.plant.change_at_sample = off.map_or(u64::MAX, |t| (t * rate_hz).round() as u64);

@@ -1049,6 +1049,7 @@ mod tests {
             hysteresis: false,
             creep: false,
             gain_drift_pct_per_min: 0.0,
+            hum: Vec::new(),
             out: &input,
         };
         crate::cmd::simulate::run(&sim).unwrap();

@@ -151,6 +151,41 @@ pub fn gain_drift_per_s(pct_per_min: f64) -> Result<f64, CliError> {
     Ok(pct_per_min / 100.0 / 60.0)
 }
 
+/// `--hum HZ:NM`: a sinusoid of mains pickup on the probe's reading ([`crate::board::BoardSettings::hum`]), its
+/// frequency in Hz (below the board's Nyquist frequency) and peak amplitude in nm (up to the probe's range).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HumArg(pub crate::board::Tone);
+
+impl std::str::FromStr for HumArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || {
+            format!(
+                "'{s}': expected HZ:NM, a frequency in Hz (above 0, below the board's 5 kHz Nyquist frequency) and a \
+                 peak amplitude in nm (0 to 50 000, the probe's range), as 50:20"
+            )
+        };
+        let (hz, nm) = s.split_once(':').ok_or_else(bad)?;
+        let (hz, nm) = (hz.trim().parse::<f64>().map_err(|_| bad())?, nm.trim().parse::<f64>().map_err(|_| bad())?);
+        if !(hz > 0.0 && hz < 5e3 && (0.0..=5e4).contains(&nm)) {
+            return Err(bad());
+        }
+        Ok(HumArg(crate::board::Tone { amplitude_um: nm * 1e-3, freq_hz: hz }))
+    }
+}
+
+/// The board's [`crate::board::BoardSettings::hum`] from the `--hum` options given (at most two).
+pub fn hum_tones(hum: &[HumArg]) -> Result<[crate::board::Tone; 2], CliError> {
+    let mut tones = [crate::board::Tone::default(); 2];
+    if hum.len() > tones.len() {
+        return fail(format!("--hum: at most {} tones ({} given)", tones.len(), hum.len()));
+    }
+    for (t, h) in tones.iter_mut().zip(hum) {
+        *t = h.0;
+    }
+    Ok(tones)
+}
+
 /// Shorthand for building a [`CliError`].
 pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))

@@ -1,10 +1,11 @@
 //! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] [--gain-drift PCT_PER_MIN]
-//! --out FILE.csv`
+//! [--hum HZ:NM]... --out FILE.csv`
 //!
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
-//! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it). Writes `t,u,y,a0,a1,b0` per
+//! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it), and mains pickup on the probe
+//! ([`crate::board::BoardSettings::hum`]). Writes `t,u,y,a0,a1,b0` per
 //! sample: time (s), the commanded input as output by the DAC (V), the probe reading (um), and the true stage
 //! parameters at that sample.
 
@@ -31,6 +32,8 @@ pub struct SimulateArgs<'a> {
     pub creep: bool,
     /// The piezo's gain drift, % of its value at the start per minute (0: none).
     pub gain_drift_pct_per_min: f64,
+    /// Mains pickup on the probe's reading (at most two tones).
+    pub hum: Vec<super::HumArg>,
     /// Where to write.
     pub out: &'a Path,
 }
@@ -58,6 +61,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     board.plant.hysteresis = args.hysteresis.then(crate::plant::Hysteresis::default);
     board.plant.creep = args.creep.then(crate::plant::Creep::default);
     board.plant.gain_drift_per_s = drift_per_s;
+    board.hum = super::hum_tones(&args.hum)?;
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
