@@ -752,6 +752,22 @@ const DISAGREEMENT_NOTE: &str = "note: ekf,hekf disagree with arx on the resonan
                                  wrong solution; the arx cannot, but converges more slowly. Once its estimate \
                                  holds, start the EKFs there: tune stage arx";
 
+/// A run of the firmware on the simulated board: what, the stage (`None`: the paper's), the commands sent at the
+/// start, seconds.
+type Run<'a> = (&'a str, Option<StageParams<f64>>, &'a [&'a str], usize);
+
+/// The console's commands for the paper's smoothed triangle with its tuning.
+const TRIANGLE: &[&str] = &["tuning triangle\n", "excite triangle 1 10\n"];
+
+/// A disconnected probe: a stage of zero gain, the ADC reading the divider's mid-scale and the noise.
+const DISCONNECTED: StageParams<f64> = StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 };
+
+/// A 200 Hz stage, damping 0.01, gain 0.1 um/V.
+const STAGE_200_HZ: StageParams<f64> = {
+    let w = 2.0 * std::f64::consts::PI * 200.0;
+    StageParams { a0: w * w, a1: 0.02 * w, b0: 0.1 * w * w }
+};
+
 /// The EKFs' disagreement with the estimators linear in their parameters ([`disagreement`]), looked at every 0.1 s
 /// as the telemetry does: never on the paper's stage (PRBS and triangle over the whole experiment, through the
 /// payload's removal and the RLS's 13 s to follow it; a 50 mV PRBS, at which the ARX takes 35-58 s; a multisine),
@@ -761,11 +777,9 @@ const DISAGREEMENT_NOTE: &str = "note: ekf,hekf disagree with arx on the resonan
 /// the EKFs' stay within 1.14 times on the paper's runs (1.25 is the bound).
 #[test]
 fn the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers() {
-    let w200 = 2.0 * std::f64::consts::PI * 200.0;
     let inverted = StageParams { b0: -8.08e5, a1: 77.6, a0: 7.06e6 };
-    let triangle: &[&str] = &["tuning triangle\n", "excite triangle 1 10\n"];
-    // (what, the stage, commands, seconds) and whether it disagrees at any look; whether the watch told it, when.
-    type Run<'a> = (&'a str, Option<StageParams<f64>>, &'a [&'a str], usize);
+    let triangle = TRIANGLE;
+    // Whether it disagrees at any look; whether the watch told it, when.
     let runs: [Run; 8] = [
         ("paper prbs", None, &[], 200),
         ("paper triangle", None, triangle, 200),
@@ -774,7 +788,7 @@ fn the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers() {
         ("inverted prbs", Some(inverted), &[], 20),
         ("inverted triangle", Some(inverted), triangle, 20),
         ("1 kHz", Some(KHZ_STAGE), &[], 20),
-        ("200 Hz", Some(StageParams { a0: w200 * w200, a1: 0.02 * w200, b0: 0.1 * w200 * w200 }), &[], 40),
+        ("200 Hz", Some(STAGE_200_HZ), &[], 40),
     ];
     for (what, stage, commands, seconds) in runs {
         let mut lab = Lab::with_stage(stage);
@@ -1954,7 +1968,7 @@ fn the_ekfs_basin_from_the_papers_initial_parameters() {
 /// probe sees nothing needs the output's response measured in the interrupt: not done (README, Safety).
 #[test]
 fn a_disconnected_probe_is_no_fault_but_every_gain_collapses() {
-    let mut lab = Lab::with_stage(Some(StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 }));
+    let mut lab = Lab::with_stage(Some(DISCONNECTED));
     let (mut disagreeing, mut trusted) = (0, 0);
     for _ in 0..300 {
         lab.run(1000);
@@ -1983,10 +1997,8 @@ fn a_disconnected_probe_is_no_fault_but_every_gain_collapses() {
 #[test]
 #[ignore]
 fn response_ratio_where_the_trusted_rule_gave_the_estimate() {
-    let w200 = 2.0 * std::f64::consts::PI * 200.0;
-    let dead = Some(StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 });
-    let triangle: &[&str] = &["tuning triangle\n", "excite triangle 1 10\n"];
-    type Run<'a> = (&'a str, Option<StageParams<f64>>, &'a [&'a str], usize);
+    let dead = Some(DISCONNECTED);
+    let triangle = TRIANGLE;
     let runs: [Run; 11] = [
         ("paper, prbs", None, &[], 200),
         ("paper, triangle", None, triangle, 200),
@@ -1994,7 +2006,7 @@ fn response_ratio_where_the_trusted_rule_gave_the_estimate() {
         ("paper, prbs 10 mV", None, &["excite prbs 0.01\n"], 60),
         ("paper, multisine", None, &["excite multisine 1 200 800\n"], 60),
         ("1 kHz, tune stage arx at 11 s", Some(KHZ_STAGE), &[], 20),
-        ("200 Hz", Some(StageParams { a0: w200 * w200, a1: 0.02 * w200, b0: 0.1 * w200 * w200 }), &[], 40),
+        ("200 Hz", Some(STAGE_200_HZ), &[], 40),
         ("disconnected, prbs", dead, &[], 200),
         ("disconnected, prbs 0.1 V", dead, &["excite prbs 0.1\n"], 100),
         ("disconnected, triangle", dead, triangle, 100),

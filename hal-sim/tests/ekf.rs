@@ -174,8 +174,6 @@ fn a_prefilter_placed_for_the_boards_second_mode_meets_the_b0_goal_in_both_windo
 #[test]
 #[ignore = "diagnosis: which board effect biases the estimate (run with --ignored --nocapture)"]
 fn hekf_bias_by_board_effect() {
-    use hal_sim::experiment::{rel_errors, run, window_mean};
-    use hal_sim::sim::Scenario;
     let design = HekfDesign::default();
     type Adjust = fn(&mut hal_sim::board::BoardSettings, &mut nanopos_id::pipeline::PipelineSettings);
     let cases: [(&str, Adjust); 6] = [
@@ -190,26 +188,9 @@ fn hekf_bias_by_board_effect() {
         }),
     ];
     for (name, adjust) in cases {
-        let h = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || Hekf::<f64>::new(design.design()),
-            || Hekf::<f32>::new(design.design()),
-            adjust,
-        );
-        let (m1, t1) = window_mean(&h.f64, 75.0, 100.0);
-        let (m2, t2) = window_mean(&h.f64, 175.0, 200.0);
-        let (e1, e2) = (rel_errors(&m1, &t1), rel_errors(&m2, &t2));
-        eprintln!(
-            "{name:28}: a0 {:+.3}% {:+.3}%  a1 {:+.3}% {:+.3}%  b0 {:+.3}% {:+.3}%",
-            e1[0] * 100.0,
-            e2[0] * 100.0,
-            e1[1] * 100.0,
-            e2[1] * 100.0,
-            e1[2] * 100.0,
-            e2[2] * 100.0
-        );
+        let errors =
+            paper_window_errors(|| Hekf::<f64>::new(design.design()), || Hekf::<f32>::new(design.design()), adjust);
+        eprintln!("{name:28}: {}", percent_line(errors));
     }
 }
 
@@ -520,6 +501,35 @@ fn hekf_on_the_board(
     hal_sim::experiment::window_mean(&h.f64, t0, t1)
 }
 
+/// The f64 run's window means' errors against the truth (75-100 s, 175-200 s) on the paper's PRBS experiment, the
+/// board and pipeline as `adjust` leaves them.
+fn paper_window_errors<E64: Estimator<f64>, E32: Estimator<f32>>(
+    make64: impl FnOnce() -> E64,
+    make32: impl FnOnce() -> E32,
+    adjust: impl FnOnce(&mut hal_sim::board::BoardSettings, &mut nanopos_id::pipeline::PipelineSettings),
+) -> [[f64; 3]; 2] {
+    use hal_sim::experiment::{rel_errors, run, window_mean};
+    let h = run(hal_sim::sim::Scenario::Prbs, 200.0, 1, make64, make32, adjust);
+    [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
+        let (m, t) = window_mean(&h.f64, t0, t1);
+        rel_errors(&m, &t)
+    })
+}
+
+/// [`paper_window_errors`] in percent, a0, a1, b0, each for both windows.
+fn percent_line([e1, e2]: [[f64; 3]; 2]) -> String {
+    let p = |x: f64| x * 100.0;
+    format!(
+        "a0 {:+.3}% {:+.3}%  a1 {:+.3}% {:+.3}%  b0 {:+.3}% {:+.3}%",
+        p(e1[0]),
+        p(e2[0]),
+        p(e1[1]),
+        p(e2[1]),
+        p(e1[2]),
+        p(e2[2])
+    )
+}
+
 /// Mains pickup on the probe (the lab's 50 Hz, and 150 Hz, its strongest odd harmonic), measured on the paper's
 /// PRBS experiment: every estimator's window means' errors against no hum. Measured: both EKFs within 0.002 % of
 /// their errors without hum up to 100 nm at both 50 and 150 Hz (30 times the noise floor's RMS); the continuous-time
@@ -529,8 +539,6 @@ fn hekf_on_the_board(
 #[ignore = "measurement: cargo test --release -p hal-sim --test ekf -- --ignored --nocapture mains_hum"]
 fn estimates_under_mains_hum() {
     use hal_sim::board::Tone;
-    use hal_sim::experiment::{rel_errors, run, window_mean};
-    use hal_sim::sim::Scenario;
     use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};
     use nanopos_id::estimators::crls::{Crls, CrlsDesign};
     let tone = |amplitude_nm: f64, freq_hz: f64| Tone { amplitude_um: amplitude_nm * 1e-3, freq_hz };
@@ -543,53 +551,27 @@ fn estimates_under_mains_hum() {
         ("60 + 180 Hz, 20 nm each", [tone(20.0, 60.0), tone(20.0, 180.0)]),
         ("50 + 150 Hz, 100 nm each", [tone(100.0, 50.0), tone(100.0, 150.0)]),
     ];
-    let (hekf, crls, arx) = (HekfDesign::default(), CrlsDesign::default(), ArxDesign::default());
+    let (ekf, crls, arx) = (HekfDesign::default(), CrlsDesign::default(), ArxDesign::default());
     for (name, hum) in cases {
-        let h = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || Hekf::<f64>::new(hekf.design()),
-            || Hekf::<f32>::new(hekf.design()),
-            |b, _| b.hum = hum,
-        );
-        let r = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || Crls::<f64>::new(crls.design()),
-            || Crls::<f32>::new(crls.design()),
-            |b, _| b.hum = hum,
-        );
-        let c = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || Cekf::<f64>::new(hekf.design()),
-            || Cekf::<f32>::new(hekf.design()),
-            |b, _| b.hum = hum,
-        );
-        let x = run(
-            Scenario::Prbs,
-            200.0,
-            1,
-            || ArxEstimator::<f64>::new(arx.design()),
-            || ArxEstimator::<f32>::new(arx.design()),
-            |b, _| b.hum = hum,
-        );
-        for (est, hist) in [("hekf", &h.f64), ("ekf", &c.f64), ("rls", &r.f64), ("arx", &x.f64)] {
-            let (m1, t1) = window_mean(hist, 75.0, 100.0);
-            let (m2, t2) = window_mean(hist, 175.0, 200.0);
-            let (e1, e2) = (rel_errors(&m1, &t1), rel_errors(&m2, &t2));
-            eprintln!(
-                "{name:26} {est:5}: a0 {:+.3}% {:+.3}%  a1 {:+.3}% {:+.3}%  b0 {:+.3}% {:+.3}%",
-                e1[0] * 100.0,
-                e2[0] * 100.0,
-                e1[1] * 100.0,
-                e2[1] * 100.0,
-                e1[2] * 100.0,
-                e2[2] * 100.0
-            );
+        let hummed = |b: &mut hal_sim::board::BoardSettings, _: &mut _| b.hum = hum;
+        let rows = [
+            ("hekf", paper_window_errors(|| Hekf::<f64>::new(ekf.design()), || Hekf::<f32>::new(ekf.design()), hummed)),
+            ("ekf", paper_window_errors(|| Cekf::<f64>::new(ekf.design()), || Cekf::<f32>::new(ekf.design()), hummed)),
+            (
+                "rls",
+                paper_window_errors(|| Crls::<f64>::new(crls.design()), || Crls::<f32>::new(crls.design()), hummed),
+            ),
+            (
+                "arx",
+                paper_window_errors(
+                    || ArxEstimator::<f64>::new(arx.design()),
+                    || ArxEstimator::<f32>::new(arx.design()),
+                    hummed,
+                ),
+            ),
+        ];
+        for (est, errors) in rows {
+            eprintln!("{name:26} {est:5}: {}", percent_line(errors));
         }
     }
 }
@@ -601,23 +583,14 @@ fn estimates_under_mains_hum() {
 #[test]
 fn mains_hum_on_the_probe_leaves_the_hybrid_ekf_where_it_was() {
     use hal_sim::board::Tone;
-    use hal_sim::experiment::{rel_errors, run, window_mean};
-    use hal_sim::sim::Scenario;
     let design = HekfDesign::default();
     let hum = [Tone { amplitude_um: 0.1, freq_hz: 50.0 }, Tone { amplitude_um: 0.1, freq_hz: 150.0 }];
     let errors = |hum: [Tone; 2]| {
-        let h = run(
-            Scenario::Prbs,
-            200.0,
-            1,
+        paper_window_errors(
             || Hekf::<f64>::new(design.design()),
             || Hekf::<f32>::new(design.design()),
             |b, _| b.hum = hum,
-        );
-        [(75.0, 100.0), (175.0, 200.0)].map(|(t0, t1)| {
-            let (m, t) = window_mean(&h.f64, t0, t1);
-            rel_errors(&m, &t)
-        })
+        )
     };
     let (quiet, hummed) = (errors([Tone::default(); 2]), errors(hum));
     for w in 0..2 {
