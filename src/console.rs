@@ -14,7 +14,7 @@ use crate::control::{Command, EstimatorSet, ExcitationChoice, ParseError, Record
 use crate::estimators::{Expected, Tuning, TuningConfig, TuningKey, Unrunnable};
 use crate::excitation::{ExcitationDesign, Waveform};
 use crate::hal::BoardDescription;
-use crate::instrument::{self, disagreement, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
+use crate::instrument::{self, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
 use crate::pipeline::{Faults, PipelineConfig, PipelineSettings, SettingsError};
 use crate::record::RecordHeader;
 use crate::text::Num;
@@ -590,14 +590,16 @@ impl Controller {
         Ok(Some(change))
     }
 
-    /// `status`'s note: the EKFs' [`disagreement`] with the estimators linear in their parameters; else a
-    /// resonance too fast for the continuous EKF while it runs ([`instrument::fast_resonance`]).
+    /// `status`'s note: the EKFs' [`disagreement`] with the estimators linear in their parameters; else an EKF
+    /// model that explains little of the measurement ([`instrument::weak_response`]); else a resonance too fast for
+    /// the continuous EKF while it runs ([`instrument::fast_resonance`]).
     fn status_note<T: Real>(&self, s: &Status<T>) -> Option<StatusNote> {
-        match disagreement(s) {
+        let verdict = instrument::compare_ekfs(s);
+        match verdict.filter(|d| d.ekfs.0 != 0) {
             Some(d) => Some(StatusNote::Disagreement(d)),
-            None => {
+            None => instrument::weak_response_given(s, verdict).map(StatusNote::WeakResponse).or_else(|| {
                 instrument::fast_resonance_given(s, self.settings.sample_rate_hz, false).map(StatusNote::FastResonance)
-            }
+            }),
         }
     }
 
@@ -645,6 +647,17 @@ impl Controller {
                      tune stage {reference}",
                     d.ekf_names(),
                     Num(DISAGREEMENT_F0_RATIO, 6)
+                );
+            }
+            Some(StatusNote::WeakResponse(r)) => {
+                return writeln!(
+                    w,
+                    "note: {}'s model explains little of the measurement: the response it allows the excitation is {} \
+                     times its innovations, under the {} a trusted estimate needs. Is the probe connected and seeing \
+                     the stage, and the excitation large enough?",
+                    ESTIMATOR_NAMES[r.ekf],
+                    Num(r.ratio, 2),
+                    Num(instrument::TRUSTED_RESPONSE_RATIO, 2)
                 );
             }
             Some(StatusNote::FastResonance(f)) => {
@@ -880,6 +893,8 @@ enum StatusNote {
     Disagreement(crate::instrument::Disagreement),
     /// The continuous EKF runs at a resonance beyond [`instrument::FAST_RESONANCE_WT`].
     FastResonance(instrument::FastResonance),
+    /// The EKFs' model explains little of the measurement.
+    WeakResponse(instrument::WeakResponse),
 }
 
 /// Where a resonance in a note is from: an estimator's estimate, or `tune initial`.

@@ -485,6 +485,37 @@ fn resonance_given<T: Real>(status: &Status<T>, disagreement: Option<Disagreemen
     (f0.is_finite() && f0 > 0.0).then_some((f0, i))
 }
 
+/// An EKF whose model explains little of the measurement ([`weak_response`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WeakResponse {
+    /// The EKF (an index in [`crate::control::ESTIMATOR_NAMES`]: 1 or 2).
+    pub ekf: usize,
+    /// Its [`response_ratio`].
+    pub ratio: f64,
+}
+
+/// The hybrid EKF (else the continuous one), adapting, with a [`response_ratio`] under [`TRUSTED_RESPONSE_RATIO`]
+/// while [`compare_ekfs`] finds the EKFs agreeing with the ARX or the RLS: the estimators agree on a model that
+/// explains little of the measurement, so [`trusted_ekf_estimate`] refuses it. On the simulated board: a
+/// disconnected probe (the estimators fit its noise and agree), or an excitation too small for the stage (a PRBS of
+/// 10 mV on the paper's stage, at a quarter of the looks). Not where they disagree (that is the news there) nor
+/// where there is no verdict: on the 1 kHz stage from 2 to 10 s, the RLS and the ARX apart, the EKFs on a wrong
+/// solution have ratios of 0 to 5 too.
+pub fn weak_response<T: Real>(status: &Status<T>) -> Option<WeakResponse> {
+    weak_response_given(status, compare_ekfs(status))
+}
+
+/// [`weak_response`] for a caller that has [`compare_ekfs`]' verdict already.
+pub(crate) fn weak_response_given<T: Real>(status: &Status<T>, verdict: Option<Disagreement>) -> Option<WeakResponse> {
+    if verdict.is_none_or(|d| d.ekfs.0 != 0) {
+        return None;
+    }
+    let adapting = |i: usize| status.selected.contains(i) && status.estimates[i].1.adaptation == Adaptation::Adapting;
+    let ekf = [2, 1].into_iter().find(|&i| adapting(i))?;
+    let ratio = response_ratio(status, ekf)?.to_f64()?;
+    (ratio < TRUSTED_RESPONSE_RATIO).then_some(WeakResponse { ekf, ratio })
+}
+
 /// What a resonance beyond [`FAST_RESONANCE_WT`] does to the EKFs, as the console's and `identify`'s notes say it.
 pub const FAST_RESONANCE_EFFECT: &str = "the continuous EKF's one RK4 step a sample leaves its a1 low (on the \
     simulated board -1.3 % at w T 0.5, -5.2 % at 0.63, -20 % at 0.82); the hybrid EKF's substeps keep it within 1 %";
@@ -542,6 +573,8 @@ pub struct EventWatch {
     disagreeing: u8,
     /// Looks in a row at which the resonance was too fast for the continuous EKF ([`fast_resonance`]).
     fast: u8,
+    /// Looks in a row at which the EKFs' model explained little of the measurement ([`weak_response`]).
+    weak: u8,
     /// The interrupt's sample rate, Hz (f32: the watch lives in the telemetry task's static state).
     sample_rate_hz: f32,
 }
@@ -581,13 +614,15 @@ pub struct News {
     pub disagreement: Option<Disagreement>,
     /// The [`fast_resonance`], on the look that completes [`WARNING_LOOKS`] of it in a row; once per spell.
     pub fast_resonance: Option<FastResonance>,
+    /// The [`weak_response`], on the look that completes [`WARNING_LOOKS`] of it in a row; once per spell.
+    pub weak_response: Option<WeakResponse>,
 }
 
 impl EventWatch {
     /// Nothing seen yet, for an interrupt at `sample_rate_hz`.
     pub const fn new(sample_rate_hz: f32) -> Self {
         let seen = Counts { resets: [0; 4], deadline_misses: 0, adc_overruns: 0, limited: 0 };
-        EventWatch { seen, limited_before: false, disagreeing: 0, fast: 0, sample_rate_hz }
+        EventWatch { seen, limited_before: false, disagreeing: 0, fast: 0, weak: 0, sample_rate_hz }
     }
 
     /// The counts' growth since the last look. A count that went down was restarted (a new tuning restarts the
@@ -610,6 +645,8 @@ impl EventWatch {
         let disagreeing = found.is_some_and(|d| d.ekfs.0 != 0);
         let fast = fast_resonance_given(status, self.sample_rate_hz as f64, disagreeing);
         self.fast = if fast.is_some() { self.fast.saturating_add(1) } else { 0 };
+        let weak = weak_response_given(status, found);
+        self.weak = if weak.is_some() { self.weak.saturating_add(1) } else { 0 };
         let news = News {
             resets: core::array::from_fn(|i| grown(now.resets[i], self.seen.resets[i])),
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
@@ -618,6 +655,7 @@ impl EventWatch {
             limiting: limited > 0 && self.limited_before,
             disagreement: found.filter(|_| disagreeing && self.disagreeing == WARNING_LOOKS),
             fast_resonance: fast.filter(|_| self.fast == WARNING_LOOKS),
+            weak_response: weak.filter(|_| self.weak == WARNING_LOOKS),
         };
         self.limited_before = limited > 0;
         self.seen = now;
@@ -752,6 +790,37 @@ mod tests {
         let mut st = status(|_| ());
         st.excitation_level.power = 0.0;
         assert_eq!(trusted_ekf_estimate(&st, 2), None);
+    }
+
+    #[test]
+    fn a_weak_response_is_told_only_where_the_ekfs_agree_with_the_reference() {
+        assert_eq!(weak_response(&status(|_| ())), None, "784");
+        // The hybrid EKF's ratio 7.84 (innovations 10 times larger, the input 10 times smaller).
+        let weak = |e: &mut [(StageParams<f32>, Health); 4]| {
+            (e[1].1.innovation_rms_um, e[2].1.innovation_rms_um) = (0.05, 0.05)
+        };
+        let mut st = status(weak);
+        st.excitation_level.power = 0.01;
+        let r = weak_response(&st).unwrap();
+        assert!(r.ekf == 2 && (r.ratio - 7.8375).abs() < 1e-3, "{r:?}");
+        // The continuous EKF's when the hybrid one does not run or adapt.
+        st.selected = EstimatorSet(0b1011);
+        assert_eq!(weak_response(&st).map(|r| r.ekf), Some(1));
+        st.estimates[1].1.adaptation = Adaptation::Frozen;
+        assert_eq!(weak_response(&st), None, "no EKF adapting");
+        // Not where they disagree (that note stands), nor without a verdict (the RLS and the ARX apart).
+        let mut st = status(|e| {
+            weak(e);
+            e[2].0 = moved(2.0)
+        });
+        st.excitation_level.power = 0.01;
+        assert_eq!(weak_response(&st), None);
+        let mut st = status(|e| {
+            weak(e);
+            e[0].0 = moved(2.0)
+        });
+        st.excitation_level.power = 0.01;
+        assert_eq!((compare_ekfs(&st), weak_response(&st)), (None, None));
     }
 
     #[test]

@@ -10,8 +10,8 @@ use nanopos_id::estimator::{Adaptation, Estimator};
 use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{
-    compare_ekfs, disagreement, response_ratio, trusted_ekf_estimate, Change, EventWatch, Instrument, News,
-    RecordStatus, WatchdogGate, RECORD_BUFFER,
+    compare_ekfs, disagreement, response_ratio, trusted_ekf_estimate, weak_response, Change, EventWatch, Instrument,
+    News, RecordStatus, WatchdogGate, RECORD_BUFFER,
 };
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
 use nanopos_id::record::{decode_frame, RawSample, FRAME_SAMPLES};
@@ -795,18 +795,22 @@ fn the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers() {
         for c in commands {
             assert!(verdict(&lab.send(c)).starts_with("ok"), "{what}: {c}");
         }
-        let (mut watch, mut told, mut last) = (EventWatch::new(1e4), vec![], None);
+        let (mut watch, mut told, mut last, mut weak) = (EventWatch::new(1e4), vec![], None, vec![]);
         for look in 1..=seconds * 10 {
             lab.run(1000);
             let status = lab.isr.status();
             if disagreement(&status).is_some() {
                 last = Some(look);
             }
-            if let Some(d) = watch.look(&status).disagreement {
+            let news = watch.look(&status);
+            if let Some(d) = news.disagreement {
                 told.push((look, d.ekf_names()));
             }
+            weak.extend(news.weak_response.map(|r| (look, r.ratio)));
         }
-        println!("{what}: last disagreeing at look {last:?}, told {told:?}");
+        println!("{what}: last disagreeing at look {last:?}, told {told:?}, weak response told {weak:?}");
+        // The EKFs' model explains the measurement on every stage here, the probe connected.
+        assert!(weak.is_empty(), "{what}: {weak:?}");
         match what {
             "inverted prbs" | "inverted triangle" => assert!(told.is_empty(), "{what}: {told:?}"),
             "1 kHz" => assert_eq!(told, [(20, "ekf,hekf")], "{what}"),
@@ -1960,33 +1964,57 @@ fn the_ekfs_basin_from_the_papers_initial_parameters() {
 /// A limit, measured: a disconnected probe (the ADC reading the divider's mid-scale and the noise, no stage: here a
 /// stage of zero gain) is no fault. Nothing is over-range or stuck (the noise moves the 16-bit code every sample),
 /// the excitation runs, every estimator reads `adapting`, and they fit the noise, the EKFs on the pre-filter's own
-/// resonance. What shows it is the gain: every estimator's below 1 % of the paper stage's 0.114 um/V (measured
-/// 1e-4 to 8e-4) and of the initial parameters' 0.083. The EKFs' disagreement note comes and goes (its advice, `tune
-/// stage arx`, does not apply). The hybrid EKF's noise fit agreed with the ARX at 17 of these 300 looks, which
-/// `trusted_ekf_estimate` then gave a controller until it asked for a model that explains the measurement
-/// (`instrument::response_ratio`, about 1.5 here against the 10 it asks): now at none. Telling the user that the
-/// probe sees nothing needs the output's response measured in the interrupt: not done (README, Safety).
+/// resonance. The gain shows it: every estimator's below 5 % of the paper stage's 0.114 um/V (measured 3e-4 to
+/// 8e-4 with the PRBS, 3e-3 to 4e-3 with the triangle). Where the EKFs agree with the ARX (with the PRBS at 17 of
+/// these 300 looks, the rest disagreeing (187) or without a verdict; with the triangle at 295), `trusted_ekf_estimate`
+/// gave their noise fit to a controller until it asked for a model that explains the measurement
+/// (`instrument::response_ratio`, 0.01 to 4 here against the 10 it asks): now never, and `status` notes the weak
+/// response there, the telemetry after 2 s of it (with the triangle: at 2.5 s). Where they disagree, the
+/// disagreement's note stands, its advice (`tune stage arx`) beside the point. Telling the probe's silence for what
+/// it is needs the output's response measured in the interrupt: not done (README, Safety).
 #[test]
 fn a_disconnected_probe_is_no_fault_but_every_gain_collapses() {
-    let mut lab = Lab::with_stage(Some(DISCONNECTED));
-    let (mut disagreeing, mut trusted) = (0, 0);
-    for _ in 0..300 {
-        lab.run(1000);
+    for (what, commands) in [("prbs", &[][..]), ("triangle", TRIANGLE)] {
+        let mut lab = Lab::with_stage(Some(DISCONNECTED));
+        for c in commands {
+            assert!(verdict(&lab.send(c)).starts_with("ok"), "{c}");
+        }
+        let (mut disagreeing, mut trusted, mut weak, mut watch, mut told) = (0, 0, 0, EventWatch::new(1e4), vec![]);
+        for look in 1..=300 {
+            lab.run(1000);
+            let status = lab.isr.status();
+            assert!(status.faults.is_empty(), "{what}: {:?}", status.faults);
+            disagreeing += disagreement(&status).is_some() as u32;
+            trusted += trusted_ekf_estimate(&status, 2).is_some() as u32;
+            told.extend(watch.look(&status).weak_response.map(|r| (look, r.ekf)));
+            if weak_response(&status).is_some() {
+                weak += 1;
+                // `status` says so, in a line the console's buffer holds.
+                let reply = lab.status_reply();
+                let note = reply.lines().find(|l| l.starts_with("note: ")).unwrap_or_default();
+                assert!(note.starts_with("note: hekf's model explains little of the measurement: "), "{reply}");
+                let question = "Is the probe connected and seeing the stage, and the excitation large enough?";
+                assert!(note.ends_with(question), "{note}");
+                assert!(note.len() < nanopos_id::console::REPLY_BYTES);
+            }
+        }
         let status = lab.isr.status();
-        disagreeing += disagreement(&status).is_some() as u32;
-        trusted += trusted_ekf_estimate(&status, 2).is_some() as u32;
-        assert!(status.faults.is_empty(), "{:?}", status.faults);
+        for (i, (p, h)) in status.estimates.iter().enumerate() {
+            let gain = (p.b0 / p.a0).abs();
+            println!("{what}: {}: gain {gain:.2e} um/V, {}", ESTIMATOR_NAMES[i], h.state());
+            assert!(gain < 0.05 * 0.114, "{what}: {}: {gain}", ESTIMATOR_NAMES[i]);
+            assert_eq!(h.adaptation, Adaptation::Adapting);
+        }
+        println!(
+            "{what}: looks (of 300, 0.1 s apart) disagreeing {disagreeing}, weak response {weak} (told {told:?}), \
+             hybrid EKF trusted {trusted}"
+        );
+        assert_eq!(trusted, 0, "{what}");
+        match what {
+            "prbs" => assert!(disagreeing > 0 && weak > 0, "{disagreeing} {weak}"),
+            _ => assert!(weak > 200 && told.first().is_some_and(|&(look, ekf)| look <= 60 && ekf == 2), "{told:?}"),
+        }
     }
-    let status = lab.isr.status();
-    for (i, (p, h)) in status.estimates.iter().enumerate() {
-        let gain = (p.b0 / p.a0).abs();
-        println!("{}: gain {gain:.2e} um/V, {}", ESTIMATOR_NAMES[i], h.state());
-        assert!(gain < 0.01 * 0.0833, "{}: {gain}", ESTIMATOR_NAMES[i]);
-        assert_eq!(h.adaptation, Adaptation::Adapting);
-    }
-    println!("looks (of 300, 0.1 s apart) disagreeing {disagreeing}, hybrid EKF trusted {trusted}");
-    assert!(disagreeing > 0);
-    assert_eq!(trusted, 0);
 }
 
 /// The measurement behind `instrument::TRUSTED_RESPONSE_RATIO` (about 40 s; `cargo test --release --test instrument

@@ -378,6 +378,14 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                 f.wt
             );
         }
+        if let Some(r) = news.weak_response {
+            defmt::warn!(
+                "{=str}'s model explains little of the measurement for 2 s (its response ratio {=f64}, under {=f64}): is the probe connected and seeing the stage, and the excitation large enough? (see `status`)",
+                ESTIMATOR_NAMES[r.ekf],
+                r.ratio,
+                nanopos_id::instrument::TRUSTED_RESPONSE_RATIO
+            );
+        }
         if let Some(d) = news.disagreement {
             defmt::warn!(
                 "{=str} disagree with {=str} on the resonance or the gain's sign for 2 s: the EKFs are local and may have settled on a wrong solution, or the {=str} has not converged yet (see `status`)",
