@@ -425,6 +425,43 @@ fn a_diverged_estimate_is_null_in_the_summary() {
     }
 }
 
+/// A disconnected probe's record: the board's PRBS as the command, a reading of noise alone (3.3 nm RMS, the
+/// simulated board's floor). Every model leaves all of the reading unexplained, and a note says so per window; the
+/// simulated stage's own record gets none (its best model leaves 1 % of the reading).
+#[test]
+fn identify_notes_a_reading_that_does_not_follow_the_input() {
+    let dir = tempfile::tempdir().unwrap();
+    simulate_prbs(dir.path(), "3");
+    let out = nanopos_sim(&["identify", "--input", "run.csv", "--window", "2:3"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        !String::from_utf8_lossy(&out.stderr).contains("barely follows"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = std::fs::read_to_string(dir.path().join("run.csv")).unwrap();
+    let mut noise = hal_sim::noise::NormalStream::new(7);
+    let mut dead = String::from("t,u,y\n");
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        dead += &format!("{},{},{:?}\n", f[0], f[1], 3.3e-3 * noise.next_normal());
+    }
+    std::fs::write(dir.path().join("dead.csv"), dead).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "dead.csv", "--window", "1:2", "--window", "2:3"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    for w in ["1:2", "2:3"] {
+        let note = format!("nanopos-sim: note: window {w}: the best model (");
+        let line = stderr.lines().find(|l| l.starts_with(&note) && l.contains("barely follows the input"));
+        assert!(
+            line.is_some_and(
+                |l| l.ends_with("Is the probe connected and seeing the stage, and the input large enough?")
+            ),
+            "{w}: {stderr}"
+        );
+    }
+}
+
 #[test]
 fn validation_rmse_on_noise_only_data_is_the_noise() {
     // u = 0 and y = white noise of 2 nm RMS: every model predicts 0, so the RMSE is the noise's RMS.

@@ -99,6 +99,9 @@ pub struct WindowFigures {
     pub held: f64,
     /// Numeric resets in the window (sampled with the 100 Hz rows; 0 for the truth).
     pub resets: u32,
+    /// RMS of the reading `y` about its mean over the window, nm: what a model has to explain (the same for every
+    /// estimator of the window; [`EXPLAINED_MIN`]).
+    pub reading_rms_nm: f64,
 }
 
 /// The result of a run.
@@ -407,6 +410,7 @@ fn identify_blocks<T: Real>(
             ));
         }
         let validation = |p: &StageParams<f64>| validation_rmse_nm(p, &keep.t, &keep.u, &keep.y, dt, w);
+        let reading_rms_nm = reading_rms_nm(&keep.t, &keep.y, w);
         let figures = (0..names.len())
             .map(|col| {
                 let mean = mean_params(rows.iter().map(|&i| estimates[i][col]));
@@ -421,7 +425,15 @@ fn identify_blocks<T: Real>(
                 // Counted from the row before the window (the record's start: none yet).
                 let before = rows[0].checked_sub(1).map_or(0, |i| health(i).numeric_resets);
                 let resets = health(rows[rows.len() - 1]).numeric_resets.wrapping_sub(before);
-                WindowFigures { mean, rmse_nm: validation(&mean), innovation_rms_nm, starved, held, resets }
+                WindowFigures {
+                    mean,
+                    rmse_nm: validation(&mean),
+                    innovation_rms_nm,
+                    starved,
+                    held,
+                    resets,
+                    reading_rms_nm,
+                }
             })
             .collect();
         let window_truth = record.has_truth.then(|| {
@@ -433,6 +445,7 @@ fn identify_blocks<T: Real>(
                 starved: f64::NAN,
                 held: f64::NAN,
                 resets: 0,
+                reading_rms_nm,
             }
         });
         summary.push((*w, figures, window_truth));
@@ -529,6 +542,20 @@ fn run_group<T: Real>(
     }
     rows
 }
+
+/// RMS (nm) of `y` about its mean over the window (`NaN` if it holds no sample).
+pub fn reading_rms_nm(t: &[f64], y: &[f64], w: &Window) -> f64 {
+    let inside: Vec<f64> = t.iter().zip(y).filter(|(&t, _)| t >= w.t0 && t < w.t1).map(|(_, &y)| y).collect();
+    let n = inside.len() as f64;
+    let mean = inside.iter().sum::<f64>() / n;
+    1e3 * (inside.iter().map(|y| (y - mean) * (y - mean)).sum::<f64>() / n).sqrt()
+}
+
+/// The least share of the reading's RMS ([`WindowFigures::reading_rms_nm`]) the best model's validation RMSE must
+/// leave out: above `1 / EXPLAINED_MIN` of it the models explain little of the reading, and a note asks whether the
+/// probe sees the stage. On the paper's simulated records the best model leaves 1-2 % (PRBS) and 3-4 % (triangle)
+/// of the reading; on a reading of noise alone (a disconnected probe) all of it.
+pub const EXPLAINED_MIN: f64 = 3.0;
 
 /// SPEC section 7: RMSE (nm) between `y'` and model (1) with `p` driven by `u'` over the window.
 pub fn validation_rmse_nm(p: &StageParams<f64>, t: &[f64], u: &[f64], y: &[f64], dt: f64, w: &Window) -> f64 {
@@ -683,6 +710,18 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 show(w.t1.min(last))
             ));
         }
+        // A reading the best model explains little of: noise alone (a disconnected probe) or an input too small.
+        if let Some(b) = best_fit(figs).filter(|&b| figs[b].rmse_nm * EXPLAINED_MIN > figs[b].reading_rms_nm) {
+            notes.push(format!(
+                "window {}:{}: the best model ({}'s) leaves {} nm RMS of the reading's {} nm unexplained: the reading \
+                 barely follows the input. Is the probe connected and seeing the stage, and the input large enough?",
+                w.t0,
+                w.t1,
+                r.names[b],
+                sig(figs[b].rmse_nm),
+                sig(figs[b].reading_rms_nm)
+            ));
+        }
         // The hybrid EKF's mean, unless another estimator's model fits the window far better ([`misfit`]: the EKFs
         // settled on a wrong solution, as on a stage far from the initial parameters): then that one's, as the
         // board's console takes the ARX's or the RLS's resonance where the EKFs disagree with them.
@@ -772,11 +811,16 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
 /// The estimator whose validation RMSE in the window is the lowest, when `f`'s is more than [`MISFIT`] times it (or
 /// not finite).
 fn misfit(figs: &[WindowFigures], f: &WindowFigures) -> Option<usize> {
-    let best = (0..figs.len())
-        .filter(|&i| figs[i].rmse_nm.is_finite())
-        .min_by(|&a, &b| figs[a].rmse_nm.total_cmp(&figs[b].rmse_nm))?;
+    let best = best_fit(figs)?;
     let worse = !f.rmse_nm.is_finite() || f.rmse_nm > MISFIT * figs[best].rmse_nm;
     (worse && figs[best].rmse_nm > 0.0).then_some(best)
+}
+
+/// The estimator whose validation RMSE in the window is the lowest (of those that are finite).
+fn best_fit(figs: &[WindowFigures]) -> Option<usize> {
+    (0..figs.len())
+        .filter(|&i| figs[i].rmse_nm.is_finite())
+        .min_by(|&a, &b| figs[a].rmse_nm.total_cmp(&figs[b].rmse_nm))
 }
 
 /// How many times the best estimator's validation RMSE in a window another's may reach before a note says so. On the
