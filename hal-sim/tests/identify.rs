@@ -426,8 +426,8 @@ fn a_diverged_estimate_is_null_in_the_summary() {
 }
 
 /// A disconnected probe's record: the board's PRBS as the command, a reading of noise alone (3.3 nm RMS, the
-/// simulated board's floor). Every model leaves all of the reading unexplained, and a note says so per window; the
-/// simulated stage's own record gets none (its best model leaves 1 % of the reading).
+/// simulated board's floor). The best model's response to the input is a small part of the reading, and a note says
+/// so per window; the simulated stage's own record gets none (its best model's response is the reading's).
 #[test]
 fn identify_notes_a_reading_that_does_not_follow_the_input() {
     let dir = tempfile::tempdir().unwrap();
