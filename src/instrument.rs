@@ -427,11 +427,16 @@ pub fn compare_ekfs<T: Real>(status: &Status<T>) -> Option<Disagreement> {
 /// given only if the response it allows the excitation stands [`TRUSTED_RESPONSE_RATIO`] times above the EKF's
 /// innovation RMS ([`response_ratio`]).
 pub fn trusted_ekf_estimate<T: Real>(status: &Status<T>, ekf: usize) -> Option<StageParams<T>> {
-    let (params, health) = status.estimates.get(ekf).filter(|_| ekf == 1 || ekf == 2)?;
-    let adapting = status.selected.contains(ekf) && health.adaptation == Adaptation::Adapting;
+    let (params, _) = status.estimates.get(ekf).filter(|_| ekf == 1 || ekf == 2)?;
+    let adapting = adapts(status, ekf);
     let agrees = compare_ekfs(status).is_some_and(|d| !d.ekfs.contains(ekf));
     let responds = response_ratio(status, ekf).is_some_and(|r| r >= T::of(TRUSTED_RESPONSE_RATIO));
     (adapting && agrees && responds).then_some(*params)
+}
+
+/// Whether estimator `i` runs and adapts (not frozen, not starved).
+fn adapts<T: Real>(status: &Status<T>, i: usize) -> bool {
+    status.selected.contains(i) && status.estimates[i].1.adaptation == Adaptation::Adapting
 }
 
 /// The least [`response_ratio`] at which [`trusted_ekf_estimate`] gives an EKF's estimate. Measured on the simulated
@@ -513,8 +518,7 @@ pub(crate) fn weak_response_given<T: Real>(status: &Status<T>, verdict: Option<D
     if verdict.is_none_or(|d| d.ekfs.0 != 0) {
         return None;
     }
-    let adapting = |i: usize| status.selected.contains(i) && status.estimates[i].1.adaptation == Adaptation::Adapting;
-    let ekf = [2, 1].into_iter().find(|&i| adapting(i))?;
+    let ekf = [2, 1].into_iter().find(|&i| adapts(status, i))?;
     let ratio = response_ratio(status, ekf)?.to_f64()?;
     (ratio < TRUSTED_RESPONSE_RATIO).then_some(WeakResponse { ekf, ratio })
 }

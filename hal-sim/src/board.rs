@@ -212,8 +212,8 @@ impl StageBoard for SimBoard {
 
     fn read_probe(&mut self) -> u32 {
         let mut y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let t_s = self.plant.sample() as f64 * self.settings.plant.sample_period_s;
         for tone in self.settings.hum.iter().filter(|t| t.amplitude_um != 0.0) {
-            let t_s = self.plant.sample() as f64 * self.settings.plant.sample_period_s;
             y_um += tone.amplitude_um * (2.0 * std::f64::consts::PI * tone.freq_hz * t_s).sin();
         }
         let adc = &self.settings.adc;
