@@ -45,6 +45,77 @@ impl<'a> Elf<'a> {
         let names = self.u32_at(names_header + 16) as usize;
         self.sections().find(|&h| self.str_at(names + self.u32_at(h) as usize) == name)
     }
+    /// Every symbol: value, size, type (`STT_*`) and name.
+    fn symbols(&self) -> impl Iterator<Item = (u64, u64, u8, &'a str)> + '_ {
+        let symtab = self.section(".symtab").expect("symbols");
+        let strtab = self.sections().nth(self.u32_at(symtab + 24) as usize).expect("the symbols' strings");
+        let (sym_off, sym_size) = (self.u32_at(symtab + 16) as usize, self.u32_at(symtab + 20) as usize);
+        let strings = self.u32_at(strtab + 16) as usize;
+        (sym_off..sym_off + sym_size).step_by(16).map(move |s| {
+            (
+                self.u32_at(s + 4),
+                self.u32_at(s + 8),
+                self.0[s + 12] & 0xF,
+                self.str_at(strings + self.u32_at(s) as usize),
+            )
+        })
+    }
+    /// Every function: start address (the Thumb bit cleared), size and name.
+    fn functions(&self) -> Vec<(u64, u64, &'a str)> {
+        const STT_FUNC: u8 = 2;
+        self.symbols().filter(|s| s.2 == STT_FUNC).map(|(value, size, _, name)| (value & !1, size, name)).collect()
+    }
+    /// Where the byte at `addr` (a run-time address: `.ramtext`'s are in the CCM) is in the file.
+    fn file_offset(&self, addr: u64) -> Option<usize> {
+        const SHT_NOBITS: u64 = 8;
+        const SHF_ALLOC: u64 = 2;
+        self.sections()
+            .find(|&h| {
+                let (kind, flags, start, size) =
+                    (self.u32_at(h + 4), self.u32_at(h + 8), self.u32_at(h + 12), self.u32_at(h + 20));
+                kind != SHT_NOBITS && flags & SHF_ALLOC != 0 && (start..start + size).contains(&addr)
+            })
+            .map(|h| (self.u32_at(h + 16) + addr - self.u32_at(h + 12)) as usize)
+    }
+    /// The Thumb instructions of `len` bytes from `start`: address, first halfword, and the second of a 32-bit one.
+    fn instructions(&self, start: u64, len: u64) -> Vec<(u64, u16, Option<u16>)> {
+        let at = self.file_offset(start).unwrap_or_else(|| panic!("no code at {start:#x}"));
+        let halfword = |pc: u64| self.u16_at(at + (pc - start) as usize) as u16;
+        let mut out = Vec::new();
+        let mut pc = start;
+        while pc + 2 <= start + len {
+            let h1 = halfword(pc);
+            if h1 >> 11 >= 0b11101 && pc + 4 <= start + len {
+                out.push((pc, h1, Some(halfword(pc + 2))));
+                pc += 4;
+            } else {
+                out.push((pc, h1, None));
+                pc += 2;
+            }
+        }
+        out
+    }
+}
+
+/// Where a 32-bit branch with link (BL, BLX) or wide branch (B.W, a tail call) at `pc` goes.
+fn branch_target(pc: u64, h1: u16, h2: u16) -> Option<u64> {
+    let (h1, h2) = (h1 as i64, h2 as i64);
+    if h1 >> 11 != 0b11110 || !matches!(h2 & 0xD000, 0xD000 | 0xC000 | 0x9000) {
+        return None;
+    }
+    let s = (h1 >> 10) & 1;
+    let (i1, i2) = (1 ^ ((h2 >> 13) & 1) ^ s, 1 ^ ((h2 >> 11) & 1) ^ s);
+    let imm = (s << 24 | i1 << 23 | i2 << 22 | (h1 & 0x3FF) << 12 | (h2 & 0x7FF) << 1) << 39 >> 39;
+    let base = if h2 & 0xD000 == 0xC000 { (pc + 4) & !3 } else { pc + 4 };
+    Some((base as i64 + imm) as u64)
+}
+
+/// `CPSID` (interrupts or faults off), or `MSR` to PRIMASK, BASEPRI, BASEPRI_MAX or FAULTMASK.
+fn masks_interrupts(h1: u16, h2: Option<u16>) -> bool {
+    match h2 {
+        None => h1 & 0xFFF8 == 0xB670 && h1 & 0x7 != 0,
+        Some(h2) => h1 & 0xFFF0 == 0xF380 && h2 & 0xFF00 == 0x8800 && (0x10..=0x13).contains(&(h2 & 0xFF)),
+    }
 }
 
 fn section_sizes(elf: &Elf) -> Sizes {
@@ -90,6 +161,7 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     let (flash, ram) = (sizes.text + sizes.data, sizes.data + sizes.bss);
     let ccm_code = check_ram_code(&elf);
     check_stack_below_statics(&elf);
+    check_logger_leaves_interrupts_on(&elf, &root);
     let report = format!(
         "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}, \"ccm_code\": {ccm_code}}}\n",
         sizes.text, sizes.data, sizes.bss
@@ -108,15 +180,7 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
 /// the top of RAM, above them.
 fn check_stack_below_statics(elf: &Elf) {
     const RAM_START: u64 = 0x2000_0000;
-    let symtab = elf.section(".symtab").expect("symbols");
-    let strtab = elf.sections().nth(elf.u32_at(symtab + 24) as usize).expect("the symbols' strings");
-    let (sym_off, sym_size, strings) =
-        (elf.u32_at(symtab + 16) as usize, elf.u32_at(symtab + 20) as usize, elf.u32_at(strtab + 16) as usize);
-    let stack_start = (sym_off..sym_off + sym_size)
-        .step_by(16)
-        .find(|&s| elf.str_at(strings + elf.u32_at(s) as usize) == "_stack_start")
-        .map(|s| elf.u32_at(s + 4))
-        .expect("a _stack_start symbol");
+    let stack_start = elf.symbols().find(|s| s.3 == "_stack_start").map(|s| s.0).expect("a _stack_start symbol");
     for name in [".data", ".bss", ".uninit"] {
         let h = elf.section(name).unwrap_or_else(|| panic!("a {name} section"));
         let addr = elf.u32_at(h + 12);
@@ -157,16 +221,8 @@ fn check_ram_code(elf: &Elf) -> u64 {
     }
 
     // The symbols placed there.
-    let symtab = elf.section(".symtab").expect("symbols");
-    let strtab = elf.sections().nth(u32_at(symtab + 24) as usize).expect("the symbols' strings");
-    let (sym_off, sym_size) = (u32_at(symtab + 16) as usize, u32_at(symtab + 20) as usize);
-    let strings = u32_at(strtab + 16) as usize;
-    let in_ccm = |needle: &str| {
-        (sym_off..sym_off + sym_size).step_by(16).any(|s| {
-            let value = u32_at(s + 4) & !1;
-            elf.str_at(strings + u32_at(s) as usize).contains(needle) && (addr..addr + size).contains(&value)
-        })
-    };
+    let in_ccm =
+        |needle: &str| elf.symbols().any(|s| s.3.contains(needle) && (addr..addr + size).contains(&(s.0 & !1)));
     let placed = [
         "ADC1_2",
         "EkfCore$LT$T$GT$3rk4",
@@ -187,37 +243,9 @@ fn check_ram_code(elf: &Elf) -> u64 {
 /// function but `sqrtf` (the covariance bounds' repair), directly or through a long-branch veneer. libm's `sinf`
 /// works in f64: the triangle excitation took 2 778 instructions a sample through it (BENCHMARKS.md).
 fn check_sample_path_calls(elf: &Elf, ram_addr: u64, ram_size: u64) {
-    let symtab = elf.section(".symtab").expect("symbols");
-    let strtab = elf.sections().nth(elf.u32_at(symtab + 24) as usize).expect("the symbols' strings");
-    let (sym_off, sym_size) = (elf.u32_at(symtab + 16) as usize, elf.u32_at(symtab + 20) as usize);
-    let strings = elf.u32_at(strtab + 16) as usize;
-    const STT_FUNC: u64 = 2;
-    // (address, size, name) of every function.
-    let functions: Vec<(u64, u64, &str)> = (sym_off..sym_off + sym_size)
-        .step_by(16)
-        .filter(|&s| elf.0[s + 12] as u64 & 0xF == STT_FUNC)
-        .map(|s| (elf.u32_at(s + 4) & !1, elf.u32_at(s + 8), elf.str_at(strings + elf.u32_at(s) as usize)))
-        .collect();
-    let text = elf.section(".ramtext").unwrap();
-    let file_at = |a: u64| (elf.u32_at(text + 16) + a - ram_addr) as usize;
-    // The 32-bit Thumb branches with link (BL, BLX) and wide branches (B.W, tail calls) in a function's bytes.
-    let targets = |start: u64, len: u64| {
-        let mut out = Vec::new();
-        let mut pc = start;
-        while pc + 4 <= start + len {
-            let (h1, h2) = (elf.u16_at(file_at(pc)) as i64, elf.u16_at(file_at(pc) + 2) as i64);
-            if h1 >> 11 == 0b11110 && matches!(h2 & 0xD000, 0xD000 | 0xC000 | 0x9000) {
-                let s = (h1 >> 10) & 1;
-                let (i1, i2) = (1 ^ ((h2 >> 13) & 1) ^ s, 1 ^ ((h2 >> 11) & 1) ^ s);
-                let imm = (s << 24 | i1 << 23 | i2 << 22 | (h1 & 0x3FF) << 12 | (h2 & 0x7FF) << 1) << 39 >> 39;
-                let base = if h2 & 0xD000 == 0xC000 { (pc + 4) & !3 } else { pc + 4 };
-                out.push((base as i64 + imm) as u64);
-                pc += 4;
-            } else {
-                pc += 2;
-            }
-        }
-        out
+    let functions = elf.functions();
+    let targets = |start: u64, len: u64| -> Vec<u64> {
+        elf.instructions(start, len).into_iter().filter_map(|(pc, h1, h2)| branch_target(pc, h1, h2?)).collect()
     };
     let name_at = |a: u64| functions.iter().find(|f| f.0 == a).map(|f| f.2);
     let mut callees = Vec::new();
@@ -233,4 +261,51 @@ fn check_sample_path_calls(elf: &Elf, ram_addr: u64, ram_size: u64) {
         |n: &str| n.contains("aeabi_d") || n.contains("aeabi_f2d") || (n.contains("libm") && !n.contains("sqrtf"));
     let bad: Vec<_> = callees.iter().filter(|(_, to)| forbidden(to)).collect();
     assert!(bad.is_empty(), "the sample path calls software double or libm: {bad:?}");
+}
+
+/// The defmt logger neither masks interrupts nor waits for the host (defmt-rtt's `drop-on-contention` and
+/// `disable-blocking-mode`, `Cargo.toml`). Its default writes each log frame with every interrupt masked, so the
+/// sample interrupt waited for every telemetry line, and once `probe-rs run` has put the channel in blocking mode
+/// (it does, for defmt) it spins there while the buffer is full: a host that stops reading stopped the sample clock,
+/// the console and, in the panic handler, the fault handler's safe output. Checked on the linked code: the logger's
+/// entry points and the functions they call (but the panic path's, whose handler masks interrupts on purpose)
+/// contain no `CPSID` and no `MSR` to the masking registers; the same scan finds the sample interrupt's own lock
+/// (`cortex_m::interrupt::free` in `ADC1_2`), which shows it sees one. The features from `cargo tree`.
+fn check_logger_leaves_interrupts_on(elf: &Elf, root: &Path) {
+    let functions = elf.functions();
+    let function = |name: &str| *functions.iter().find(|f| f.2 == name).unwrap_or_else(|| panic!("no {name}"));
+    // The instructions that mask, in `from` and what it calls (a function once, the panic path not followed).
+    let masking = |from: &str| {
+        let (mut todo, mut seen, mut found) = (vec![function(from)], Vec::new(), Vec::new());
+        while let Some((start, len, name)) = todo.pop() {
+            if seen.contains(&start) || name.contains("panicking") {
+                continue;
+            }
+            seen.push(start);
+            for (pc, h1, h2) in elf.instructions(start, len) {
+                if masks_interrupts(h1, h2) {
+                    found.push(format!("{name} at {pc:#x}"));
+                }
+                let callee = h2.and_then(|h2| branch_target(pc, h1, h2));
+                todo.extend(callee.and_then(|a| functions.iter().find(|f| f.0 == a && f.1 > 0)));
+            }
+        }
+        (found, seen.len())
+    };
+    let (isr, _) = masking("ADC1_2");
+    assert!(!isr.is_empty(), "the scan does not see ADC1_2's lock");
+    for entry in ["_defmt_acquire", "_defmt_write", "_defmt_release", "_defmt_timestamp"] {
+        let (found, scanned) = masking(entry);
+        assert!(scanned >= 1 && found.is_empty(), "the logger masks interrupts: {found:?}");
+    }
+    let out = Command::new(env!("CARGO"))
+        .current_dir(root)
+        .args(["tree", "-e", "features", "-i", "defmt-rtt", "--target", "thumbv7em-none-eabihf", "--prefix", "none"])
+        .output()
+        .expect("run cargo tree");
+    let tree = String::from_utf8_lossy(&out.stdout);
+    for feature in ["drop-on-contention", "disable-blocking-mode"] {
+        assert!(tree.contains(&format!("defmt-rtt feature \"{feature}\"")), "defmt-rtt without {feature}:\n{tree}");
+    }
+    println!("firmware: the defmt logger leaves interrupts on and never waits for the host");
 }
