@@ -100,6 +100,14 @@ bind_interrupts!(struct Irqs {
 /// A receive error of the console's link (overrun, framing, noise, parity) since the console last looked.
 static CONSOLE_RX_ERROR: AtomicBool = AtomicBool::new(false);
 
+/// Set by the first panic (the panic handler logs only that one).
+static PANICKED: AtomicBool = AtomicBool::new(false);
+
+/// True the first time it is asked: the panic handler's guard against a panic while it logs a panic.
+pub fn first_panic() -> bool {
+    !PANICKED.swap(true, Ordering::Relaxed)
+}
+
 /// Bound ahead of embassy's handler of LPUART1, which clears the receive errors and, in its buffered reader, only
 /// logs them (embassy-stm32 0.6: `read` never returns an error): notes them for [`take_console_rx_error`].
 pub struct ConsoleRxErrors;
@@ -316,9 +324,10 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
 
     let mut uart_config = UartConfig::default();
     uart_config.baudrate = CONSOLE_BAUD;
-    let tx_buf = cortex_m::singleton!(: [u8; 1024] = [0; 1024]).expect("console buffers taken once");
-    let rx_buf =
-        cortex_m::singleton!(: [u8; CONSOLE_RX_BYTES] = [0; CONSOLE_RX_BYTES]).expect("console buffers taken once");
+    // One singleton for both (one taken flag and its padding, not two).
+    let (tx_buf, rx_buf) =
+        cortex_m::singleton!(: ([u8; 1024], [u8; CONSOLE_RX_BYTES]) = ([0; 1024], [0; CONSOLE_RX_BYTES]))
+            .expect("console buffers taken once");
     let console = BufferedUart::new(p.LPUART1, p.PA3, p.PA2, tx_buf, rx_buf, Irqs, uart_config)
         .expect("LPUART1 at 921 600 baud from a 170 MHz clock");
     Parts { console, watchdog: IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US) }
@@ -330,9 +339,18 @@ pub fn start_sample_clock() {
 }
 
 /// Drive the amplifier to `code` (its safe value) and keep it there: usable from a fault handler. The timer keeps
-/// running in hardware, so the next update (within 100 us) loads it.
+/// running in hardware, so the next update (within 100 us) loads it. Never inlined: `tests/firmware.rs` checks
+/// that it is the panic handler's first call.
+#[inline(never)]
 pub fn force_safe_output(code: u16) {
     pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code));
+}
+
+/// Raise a HardFault (`udf`), with the UsageFault that an undefined instruction would raise first turned off.
+pub fn hard_fault() -> ! {
+    // SAFETY: clears SHCSR.USGFAULTENA (bit 18) only; the handlers of the faults that remain are ours.
+    unsafe { (*cortex_m::peripheral::SCB::PTR).shcsr.modify(|v| v & !(1 << 18)) };
+    cortex_m::asm::udf()
 }
 
 /// The board seen from the sample interrupt. Reading the probe acknowledges the conversion, notes an ADC overrun

@@ -36,7 +36,6 @@ use nanopos_id::pipeline::{FaultCounters, Faults};
 use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
-use panic_probe as _;
 
 /// Cycles per sample period at 170 MHz.
 const CYCLES_PER_SAMPLE: u32 = 17_000;
@@ -413,9 +412,27 @@ unsafe fn NonMaskableInt() -> ! {
     }
 }
 
-/// Any fault (a panic ends here too, through panic-probe's `udf`): the amplifier goes to its safe value; the
-/// sample timer keeps running in hardware and loads it within one sample period. Nothing feeds the watchdog any
-/// more, so 0.5 s later the board resets, and comes back with the excitation stopped.
+/// A panic: interrupts off (the sample interrupt writes no further code), the amplifier to its safe value (the
+/// sample timer, running in hardware, loads it within one sample period), then the message to the log, then a
+/// HardFault. In that order because the fault may never be handled here: `probe-rs run` catches HardFaults by
+/// default, halting the core at the vector to print a backtrace, before [`HardFault`] could put the output safe
+/// (panic-probe, which this replaces, logged and faulted, and left the output to the fault handler). The log is
+/// never waited for (defmt-rtt's `disable-blocking-mode`). Nothing feeds the watchdog any more: 0.5 s later the
+/// board resets, and comes back with the excitation stopped.
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    cortex_m::interrupt::disable();
+    board::force_safe_output(SAFE_CODE.load(Ordering::Relaxed));
+    // Once: a panic while logging this one (the logger taken by the code that panicked) goes straight to the fault.
+    if board::first_panic() {
+        defmt::error!("{}", defmt::Display2Format(info));
+    }
+    board::hard_fault()
+}
+
+/// Any fault (a panic ends here too, unless a debugger catches the fault first): the amplifier goes to its safe
+/// value; the sample timer keeps running in hardware and loads it within one sample period. Nothing feeds the
+/// watchdog any more, so 0.5 s later the board resets, and comes back with the excitation stopped.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     board::force_safe_output(SAFE_CODE.load(Ordering::Relaxed));
