@@ -79,9 +79,11 @@ const PROBE_FORMAT: ConverterFormat = ConverterFormat::oversampled(12, OVERSAMPL
 const _: () = assert!(PROBE_FORMAT.bits == 16 && PROBE_FORMAT.max_code == 65_520);
 /// Conversion window: 64 * (6.5 + 12.5) ADC cycles at 42.5 MHz, in timer ticks (170 MHz: 4 ticks per ADC cycle).
 const WINDOW_TICKS: u32 = OVERSAMPLING_RATIO * 19 * 4;
-/// ADC12 EXTSEL code of TIM2_CC2 (RM0440, ADC1/2 external triggers: EXT3).
+/// ADC12 EXTSEL code of TIM2_CC2 (RM0440, ADC1/2 external triggers: EXT3; stm32-data's STM32G474RE metadata, as
+/// stm32-metapac 21 ships it, agrees: ADC1's `ADC_EXT_TRG3` is `TIM2_CC2`).
 const ADC_TRIGGER_TIM2_CC2: u8 = 3;
-/// DAC TSEL code of TIM2_TRGO (RM0440, DAC1 triggers: 4).
+/// DAC TSEL code of TIM2_TRGO (RM0440, DAC1 triggers: 4; stm32-data agrees: DAC1's `DAC_CHX_TRG4` is `TIM2_TRGO`,
+/// TSEL 0 being the software trigger).
 const DAC_TRIGGER_TIM2_TRGO: u8 = 4;
 /// Console baud rate (the ST-LINK/V3 virtual COM port supports it; continuous recording needs it).
 pub const CONSOLE_BAUD: u32 = 921_600;
