@@ -350,7 +350,8 @@ pub fn force_safe_output(code: u16) {
 
 /// Raise a HardFault (`udf`), with the UsageFault that an undefined instruction would raise first turned off.
 pub fn hard_fault() -> ! {
-    // SAFETY: clears SHCSR.USGFAULTENA (bit 18) only; the handlers of the faults that remain are ours.
+    // SAFETY: a read-modify-write of SHCSR that clears USGFAULTENA (bit 18) only, by the panic handler, with
+    // interrupts masked; the undefined instruction then escalates to the HardFault, whose handler is ours.
     unsafe { (*cortex_m::peripheral::SCB::PTR).shcsr.modify(|v| v & !(1 << 18)) };
     cortex_m::asm::udf()
 }
