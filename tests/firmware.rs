@@ -311,27 +311,32 @@ fn check_logger_leaves_interrupts_on(elf: &Elf, root: &Path) {
     println!("firmware: the defmt logger leaves interrupts on and never waits for the host");
 }
 
-/// The panic handler masks interrupts and puts the output safe (`board::force_safe_output`, its first call) before
-/// it logs or faults: `probe-rs run` halts the core at the HardFault vector by default, so a panic that left the safe
+/// The panic handlers (Rust's and defmt's) mask interrupts and put the output safe (`board::force_safe_output`,
+/// their first call) before they log or fault: `probe-rs run` halts the core at the HardFault vector by default, so a panic that left the safe
 /// output to the HardFault handler (panic-probe's way) held the last command until the watchdog reset the board.
 fn check_panic_puts_the_output_safe_first(elf: &Elf) {
     let functions = elf.functions();
-    let &(start, len, _) =
-        functions.iter().find(|f| f.2.contains("rust_begin_unwind")).expect("the panic handler, rust_begin_unwind");
-    let code = elf.instructions(start, len);
-    let first_call = code
-        .iter()
-        .position(|&(pc, h1, h2)| h2.and_then(|h2| branch_target(pc, h1, h2)).is_some())
-        .expect("a call in the panic handler");
-    let (pc, h1, h2) = code[first_call];
-    let callee = branch_target(pc, h1, h2.unwrap()).and_then(|a| functions.iter().find(|f| f.0 == a));
-    assert!(
-        callee.is_some_and(|f| f.2.contains("force_safe_output")),
-        "the panic handler calls {callee:?} first, not board::force_safe_output"
-    );
-    assert!(
-        code[..first_call].iter().any(|&(_, h1, h2)| masks_interrupts(h1, h2)),
-        "the panic handler does not mask interrupts before it puts the output safe"
-    );
-    println!("firmware: the panic handler masks interrupts and puts the output safe first");
+    // Rust's panic handler, and defmt's (`defmt::panic!`, `unwrap!`).
+    for handler in ["rust_begin_unwind", "_defmt_panic"] {
+        let &(start, len, _) = functions
+            .iter()
+            .find(|f| f.2.contains(handler) && !f.2.contains("default"))
+            .unwrap_or_else(|| panic!("the panic handler {handler}"));
+        let code = elf.instructions(start, len);
+        let first_call = code
+            .iter()
+            .position(|&(pc, h1, h2)| h2.and_then(|h2| branch_target(pc, h1, h2)).is_some())
+            .unwrap_or_else(|| panic!("a call in {handler}"));
+        let (pc, h1, h2) = code[first_call];
+        let callee = branch_target(pc, h1, h2.unwrap()).and_then(|a| functions.iter().find(|f| f.0 == a));
+        assert!(
+            callee.is_some_and(|f| f.2.contains("force_safe_output")),
+            "{handler} calls {callee:?} first, not board::force_safe_output"
+        );
+        assert!(
+            code[..first_call].iter().any(|&(_, h1, h2)| masks_interrupts(h1, h2)),
+            "{handler} does not mask interrupts before it puts the output safe"
+        );
+    }
+    println!("firmware: the panic handlers mask interrupts and put the output safe first");
 }

@@ -421,10 +421,24 @@ unsafe fn NonMaskableInt() -> ! {
 /// board resets, and comes back with the excitation stopped.
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
+    fail(Some(info))
+}
+
+/// `defmt::panic!`, and defmt's `unwrap!` and `expect!` (embassy's own checks use them), which have logged their
+/// message already: as [`panic`], without a second message ("explicit panic", defmt's default handing on to
+/// `core::panic!`).
+#[defmt::panic_handler]
+fn defmt_panic() -> ! {
+    fail(None)
+}
+
+/// Interrupts off, the output safe, `info` logged (once: a panic while logging one, the logger taken by the code
+/// that panicked, goes straight on), the HardFault.
+#[inline(always)]
+fn fail(info: Option<&core::panic::PanicInfo>) -> ! {
     cortex_m::interrupt::disable();
     board::force_safe_output(SAFE_CODE.load(Ordering::Relaxed));
-    // Once: a panic while logging this one (the logger taken by the code that panicked) goes straight to the fault.
-    if board::first_panic() {
+    if let Some(info) = info.filter(|_| board::first_panic()) {
         defmt::error!("{}", defmt::Display2Format(info));
     }
     board::hard_fault()
