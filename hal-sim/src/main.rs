@@ -321,11 +321,13 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 payload_off,
                 gain_drift_pct_per_min: gain_drift,
                 hum,
+                interrupted: Some(interrupted_by_ctrl_c()),
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
                     "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (status, excite, \
-                     tune, record, ... as in the README), Ctrl-D ends the session"
+                     tune, record, ... as in the README); Ctrl-D or Ctrl-C ends the session (a recording is stopped \
+                     and its end line sent; a second Ctrl-C quits at once)"
                 );
             }
             let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
@@ -372,4 +374,20 @@ fn main() -> ExitCode {
             ExitCode::from(2)
         }
     }
+}
+
+/// A flag that the first Ctrl-C (SIGINT) sets; the second ends the process at once (exit code 130, as the shell
+/// reports a process the signal ended). Without a handler (it could not be installed) Ctrl-C ends it at once too.
+fn interrupted_by_ctrl_c() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let flag = std::sync::Arc::new(AtomicBool::new(false));
+    let set = flag.clone();
+    if let Err(e) = ctrlc::set_handler(move || {
+        if set.swap(true, Ordering::Relaxed) {
+            std::process::exit(130);
+        }
+    }) {
+        eprintln!("nanopos-sim: note: Ctrl-C will end the session without its end line ({e})");
+    }
+    flag
 }

@@ -173,3 +173,50 @@ fn a_session_with_the_payload_off_when_asked_and_a_drifting_gain() {
         assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{args:?}: {stderr}");
     }
 }
+
+/// Ctrl-C (SIGINT) ends the session as the input's end does, with the input still open: a `record on` is stopped and
+/// its end line goes out, so the capture decodes whole (exit code 0). While a long burst runs to its end, a second
+/// Ctrl-C quits at once (exit code 130, the burst's end line lost: asked for twice).
+#[test]
+fn ctrl_c_ends_the_session_with_its_recording_whole() {
+    let interrupt = |child: &std::process::Child| {
+        let kill = Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("run kill");
+        assert!(kill.success());
+    };
+    let session = |typed: &[u8], interrupts: usize| {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+            .arg("console")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("run nanopos-sim console");
+        let mut input = child.stdin.take().expect("stdin");
+        input.write_all(typed).expect("type");
+        for _ in 0..interrupts {
+            std::thread::sleep(std::time::Duration::from_millis(500));
+            interrupt(&child);
+        }
+        let started = std::time::Instant::now();
+        let out = child.wait_with_output().expect("the session ends");
+        drop(input);
+        (out, started.elapsed())
+    };
+
+    let (out, _) = session(b"record on\n", 1);
+    let link = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(link.contains("ok record off"), "{link}");
+    assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples="), "{link}");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cap.txt"), &link).unwrap();
+    let decoded = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    let stderr = String::from_utf8_lossy(&decoded.stderr);
+    assert!(decoded.status.success() && !stderr.contains("note:"), "{stderr}");
+
+    // A burst of 20 s: the first Ctrl-C waits for it, the second does not.
+    let (out, waited) = session(b"record burst 200000\n", 2);
+    assert_eq!(out.status.code(), Some(130), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(waited < std::time::Duration::from_secs(5), "{waited:?}");
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("# nanopos-record end"));
+}

@@ -23,7 +23,8 @@ use super::CliError;
 use crate::lab::Lab;
 use nanopos_id::StageParams;
 use std::io::{Read, Write};
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 /// Samples in a step of the session: 10 ms at 10 kHz (the recording's ring holds 0.1 s).
@@ -89,6 +90,8 @@ pub struct ConsoleArgs {
     pub gain_drift_pct_per_min: f64,
     /// Mains pickup on the probe's reading (at most two tones).
     pub hum: Vec<super::HumArg>,
+    /// Set (by a Ctrl-C handler) to end the session as the input's end does.
+    pub interrupted: Option<Arc<AtomicBool>>,
 }
 
 /// Run the session: `input` is what the link receives, `link` what it sends back, `log` where the periodic status
@@ -133,14 +136,16 @@ pub fn run(
     let mut samples = 0u64;
     let mut ended = false;
     loop {
-        // What arrived: every line it completes is executed (its change applied by one sample) and answered.
+        // What arrived: every line it completes is executed (its change applied by one sample) and answered. The
+        // input's end, or an interruption once what arrived is taken, ends the session.
+        let interrupted = args.interrupted.as_ref().is_some_and(|i| i.load(Ordering::Relaxed));
         loop {
             match received.try_recv() {
                 Ok(bytes) => {
                     lab.send_bytes(&bytes);
                 }
-                Err(mpsc::TryRecvError::Empty) => break,
-                Err(mpsc::TryRecvError::Disconnected) => {
+                Err(mpsc::TryRecvError::Empty) if !interrupted => break,
+                Err(_) => {
                     if !ended {
                         ended = true;
                         // A recording until stopped would never end: stopped as the user would.
