@@ -1,7 +1,7 @@
 //! `nanopos-sim console`: the firmware's console on the simulated board, as a user or a script meets it through
 //! standard input and output, and what `decode` and `identify` make of its recording.
 
-use std::io::Write;
+use std::io::{BufRead, Read, Write};
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
@@ -183,7 +183,9 @@ fn ctrl_c_ends_the_session_with_its_recording_whole() {
         let kill = Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("run kill");
         assert!(kill.success());
     };
-    let session = |typed: &[u8], interrupts: usize| {
+    // The interrupts go out once the board has answered the typed line (its Ctrl-C handler is installed by then),
+    // half a second apart; the session's whole output, its exit code and how long it took after the last one.
+    let session = |typed: &str, interrupts: usize| {
         let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
             .arg("console")
             .stdin(Stdio::piped())
@@ -192,20 +194,26 @@ fn ctrl_c_ends_the_session_with_its_recording_whole() {
             .spawn()
             .expect("run nanopos-sim console");
         let mut input = child.stdin.take().expect("stdin");
-        input.write_all(typed).expect("type");
+        input.write_all(typed.as_bytes()).expect("type");
+        let mut link = std::io::BufReader::new(child.stdout.take().expect("stdout"));
+        let mut text = String::new();
+        let reply = format!("ok {}", typed.trim());
+        while !text.lines().any(|l| l == reply) {
+            assert!(link.read_line(&mut text).expect("read the link") > 0, "no reply to {typed}: {text}");
+        }
         for _ in 0..interrupts {
             std::thread::sleep(std::time::Duration::from_millis(500));
             interrupt(&child);
         }
         let started = std::time::Instant::now();
-        let out = child.wait_with_output().expect("the session ends");
+        link.read_to_string(&mut text).expect("read the link");
+        let status = child.wait().expect("the session ends");
         drop(input);
-        (out, started.elapsed())
+        (text, status.code(), started.elapsed())
     };
 
-    let (out, _) = session(b"record on\n", 1);
-    let link = String::from_utf8(out.stdout).unwrap();
-    assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+    let (link, code, _) = session("record on\n", 1);
+    assert_eq!(code, Some(0), "{link}");
     assert!(link.contains("ok record off"), "{link}");
     assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples="), "{link}");
     let dir = tempfile::tempdir().unwrap();
@@ -215,8 +223,8 @@ fn ctrl_c_ends_the_session_with_its_recording_whole() {
     assert!(decoded.status.success() && !stderr.contains("note:"), "{stderr}");
 
     // A burst of 20 s: the first Ctrl-C waits for it, the second does not.
-    let (out, waited) = session(b"record burst 200000\n", 2);
-    assert_eq!(out.status.code(), Some(130), "{}", String::from_utf8_lossy(&out.stderr));
+    let (link, code, waited) = session("record burst 200000\n", 2);
+    assert_eq!(code, Some(130));
     assert!(waited < std::time::Duration::from_secs(5), "{waited:?}");
-    assert!(!String::from_utf8_lossy(&out.stdout).contains("# nanopos-record end"));
+    assert!(!link.contains("# nanopos-record end"));
 }
