@@ -186,7 +186,7 @@ impl From<ScenarioArg> for Scenario {
     }
 }
 
-fn run(cli: Cli) -> Result<(), CliError> {
+fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>) -> Result<(), CliError> {
     match cli.command {
         Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, hum, out } => {
             let args = simulate::SimulateArgs {
@@ -321,7 +321,7 @@ fn run(cli: Cli) -> Result<(), CliError> {
                 payload_off,
                 gain_drift_pct_per_min: gain_drift,
                 hum,
-                interrupted: Some(interrupted_by_ctrl_c()),
+                interrupted,
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
@@ -367,27 +367,15 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    match run(cli) {
+    // The console ends its session at the first Ctrl-C; everything else stops at once, its outputs removed.
+    let interrupted = matches!(cli.command, Command::Console { .. })
+        .then(|| std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false)));
+    hal_sim::cmd::handle_ctrl_c(interrupted.clone());
+    match run(cli, interrupted) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("nanopos-sim: {e}");
             ExitCode::from(2)
         }
     }
-}
-
-/// A flag that the first Ctrl-C (SIGINT) sets; the second ends the process at once (exit code 130, as the shell
-/// reports a process the signal ended). Without a handler (it could not be installed) Ctrl-C ends it at once too.
-fn interrupted_by_ctrl_c() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
-    use std::sync::atomic::{AtomicBool, Ordering};
-    let flag = std::sync::Arc::new(AtomicBool::new(false));
-    let set = flag.clone();
-    if let Err(e) = ctrlc::set_handler(move || {
-        if set.swap(true, Ordering::Relaxed) {
-            std::process::exit(130);
-        }
-    }) {
-        eprintln!("nanopos-sim: note: Ctrl-C will end the session without its end line ({e})");
-    }
-    flag
 }

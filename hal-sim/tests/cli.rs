@@ -610,3 +610,28 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
         no_stray_files(dir.path());
     }
 }
+
+/// Ctrl-C (SIGINT) in the middle of a long `simulate`: exit code 130, and neither the output nor its temporary
+/// (`.NAME.partial-PID`, which the interruption used to leave behind, tens of MB of it by then) is left.
+#[test]
+fn ctrl_c_leaves_no_partial_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .args(["simulate", "--scenario", "prbs", "--duration", "3600", "--out", "run.csv"])
+        .current_dir(dir.path())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run nanopos-sim simulate");
+    let temp = dir.path().join(format!(".run.csv.partial-{}", child.id()));
+    // Interrupted once it has written a few MB (its handler is installed before any output is made).
+    let started = std::time::Instant::now();
+    while std::fs::metadata(&temp).map_or(0, |m| m.len()) < 4 << 20 {
+        assert!(started.elapsed() < std::time::Duration::from_secs(60), "no output after a minute");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let kill = Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("run kill");
+    assert!(kill.success());
+    let out = child.wait_with_output().expect("simulate ends");
+    assert_eq!(out.status.code(), Some(130), "{}", String::from_utf8_lossy(&out.stderr));
+    no_stray_files(dir.path());
+}

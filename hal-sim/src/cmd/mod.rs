@@ -12,6 +12,8 @@ use std::fmt;
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 
 /// A user-facing error: one line that names what was wrong and where.
 #[derive(Debug)]
@@ -191,6 +193,32 @@ pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))
 }
 
+/// The temporaries of the [`OutputFile`]s being written, for [`handle_ctrl_c`] to remove.
+static PARTIALS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn partials() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    PARTIALS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Ctrl-C (SIGINT): the outputs being written are removed (no `.NAME.partial-PID` left behind, no output under its
+/// name) and the process ends with exit code 130, as the shell reports one the signal ended. With `graceful` (the
+/// console), the first Ctrl-C only sets it, for the command to end as the input's end would; the second ends it
+/// at once. Without a handler (it could not be installed) Ctrl-C ends the process as it would anyway.
+pub fn handle_ctrl_c(graceful: Option<Arc<AtomicBool>>) {
+    let installed = ctrlc::set_handler(move || {
+        if graceful.as_ref().is_some_and(|g| !g.swap(true, Ordering::Relaxed)) {
+            return;
+        }
+        for temp in partials().drain(..) {
+            let _ = std::fs::remove_file(temp);
+        }
+        std::process::exit(130);
+    });
+    if let Err(e) = installed {
+        eprintln!("nanopos-sim: note: no Ctrl-C handler ({e}): an interruption may leave a .NAME.partial-PID file");
+    }
+}
+
 /// An output file written under a temporary name in the same directory and renamed into place by
 /// [`OutputFile::commit`]; dropped without commit (an error, a panic), it removes the temporary, so no partial file
 /// is ever left under the requested name.
@@ -242,7 +270,9 @@ impl OutputFile {
                 let name =
                     target.file_name().ok_or_else(|| CliError(format!("{}: not a file name", path.display())))?;
                 let temp = target.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
-                (File::create(&temp).map_err(cannot)?, target, Some(temp))
+                let file = File::create(&temp).map_err(cannot)?;
+                partials().push(temp.clone());
+                (file, target, Some(temp))
             }
         };
         Ok(OutputFile { path: path.to_path_buf(), target, temp, writer: Some(BufWriter::with_capacity(1 << 20, file)) })
@@ -272,16 +302,25 @@ impl OutputFile {
             std::fs::rename(temp, &self.target)
                 .map_err(|e| CliError(format!("{}: cannot move into place: {}", self.path.display(), io_reason(&e))))
         });
-        if let (Err(_), Some(temp)) = (&done, &temp) {
-            let _ = std::fs::remove_file(temp);
+        if let Some(temp) = &temp {
+            forget_partial(temp);
+            if done.is_err() {
+                let _ = std::fs::remove_file(temp);
+            }
         }
         done
     }
 }
 
+/// `temp` renamed into place or removed: no longer one for [`handle_ctrl_c`] to remove.
+fn forget_partial(temp: &Path) {
+    partials().retain(|p| p != temp);
+}
+
 impl Drop for OutputFile {
     fn drop(&mut self) {
         if let (Some(_), Some(temp)) = (self.writer.take(), &self.temp) {
+            forget_partial(temp);
             let _ = std::fs::remove_file(temp);
         }
     }
