@@ -759,6 +759,15 @@ type Run<'a> = (&'a str, Option<StageParams<f64>>, &'a [&'a str], usize);
 /// The console's commands for the paper's smoothed triangle with its tuning.
 const TRIANGLE: &[&str] = &["tuning triangle\n", "excite triangle 1 10\n"];
 
+/// A lab on `stage` (the paper's if `None`) with `commands` sent, each answered `ok`.
+fn lab_with(stage: Option<StageParams<f64>>, commands: &[&str]) -> Lab {
+    let mut lab = Lab::with_stage(stage);
+    for c in commands {
+        assert!(verdict(&lab.send(c)).starts_with("ok"), "{c}");
+    }
+    lab
+}
+
 /// A disconnected probe: a stage of zero gain, the ADC reading the divider's mid-scale and the noise.
 const DISCONNECTED: StageParams<f64> = StageParams { b0: 0.0, a1: 77.6, a0: 7.06e6 };
 
@@ -791,10 +800,7 @@ fn the_ekfs_disagreement_is_told_on_another_stage_and_never_on_the_papers() {
         ("200 Hz", Some(STAGE_200_HZ), &[], 40),
     ];
     for (what, stage, commands, seconds) in runs {
-        let mut lab = Lab::with_stage(stage);
-        for c in commands {
-            assert!(verdict(&lab.send(c)).starts_with("ok"), "{what}: {c}");
-        }
+        let mut lab = lab_with(stage, commands);
         let (mut watch, mut told, mut last, mut weak) = (EventWatch::new(1e4), vec![], None, vec![]);
         for look in 1..=seconds * 10 {
             lab.run(1000);
@@ -1975,10 +1981,7 @@ fn the_ekfs_basin_from_the_papers_initial_parameters() {
 #[test]
 fn a_disconnected_probe_is_no_fault_but_every_gain_collapses() {
     for (what, commands) in [("prbs", &[][..]), ("triangle", TRIANGLE)] {
-        let mut lab = Lab::with_stage(Some(DISCONNECTED));
-        for c in commands {
-            assert!(verdict(&lab.send(c)).starts_with("ok"), "{c}");
-        }
+        let mut lab = lab_with(Some(DISCONNECTED), commands);
         let (mut disagreeing, mut trusted, mut weak, mut watch, mut told) = (0, 0, 0, EventWatch::new(1e4), vec![]);
         for look in 1..=300 {
             lab.run(1000);
@@ -2041,10 +2044,7 @@ fn response_ratio_where_the_trusted_rule_gave_the_estimate() {
         ("disconnected, multisine", dead, &["excite multisine 1 200 800\n"], 100),
     ];
     for (what, stage, commands, seconds) in runs {
-        let mut lab = Lab::with_stage(stage);
-        for c in commands {
-            assert!(verdict(&lab.send(c)).starts_with("ok"), "{what}: {c}");
-        }
+        let mut lab = lab_with(stage, commands);
         let (mut agreed, mut trusted, mut low, mut high) = (0, 0, f32::MAX, 0.0f32);
         for look in 1..=seconds * 10 {
             lab.run(1000);

@@ -3,22 +3,27 @@
 
 use std::io::{BufRead, Read, Write};
 use std::path::Path;
-use std::process::{Command, Output, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 
 fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
 }
 
-/// A console session with `input` typed, then the input's end.
-fn console(args: &[&str], input: &[u8]) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+/// A console session started with `args`, its standard input, output and error piped.
+fn spawn_console(args: &[&str]) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
         .arg("console")
         .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("run nanopos-sim console");
+        .expect("run nanopos-sim console")
+}
+
+/// A console session with `input` typed, then the input's end.
+fn console(args: &[&str], input: &[u8]) -> Output {
+    let mut child = spawn_console(args);
     child.stdin.take().expect("stdin").write_all(input).expect("type");
     child.wait_with_output().expect("the session ends with its input")
 }
@@ -98,12 +103,7 @@ fn the_logged_status_leaves_a_half_received_line_alone() {
 /// a stage the option cannot take is refused with what it takes.
 #[test]
 fn a_session_on_a_stage_of_ones_own() {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .args(["console", "--stage", "-8.08e5,77.6,7.06e6"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .expect("run nanopos-sim console");
+    let mut child = spawn_console(&["--stage", "-8.08e5,77.6,7.06e6"]);
     let mut typed = child.stdin.take().expect("stdin");
     std::thread::sleep(std::time::Duration::from_millis(1000));
     typed.write_all(b"status\n").expect("type");
@@ -126,16 +126,8 @@ fn a_session_on_a_stage_of_ones_own() {
 /// each. Bad values refused with what the options take.
 #[test]
 fn a_session_with_the_payload_off_when_asked_and_a_drifting_gain() {
-    let spawn = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-            .arg("console")
-            .args(args)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .spawn()
-            .expect("run nanopos-sim console")
-    };
-    let mut sessions = [spawn(&["--payload-off", "0.3"]), spawn(&["--payload-off", "never", "--gain-drift", "3000"])];
+    let mut sessions =
+        [spawn_console(&["--payload-off", "0.3"]), spawn_console(&["--payload-off", "never", "--gain-drift", "3000"])];
     let typed: Vec<_> = sessions.iter_mut().map(|c| c.stdin.take().expect("stdin")).collect();
     std::thread::sleep(std::time::Duration::from_millis(1000));
     let hekf_lines: Vec<String> = sessions
@@ -186,13 +178,7 @@ fn ctrl_c_ends_the_session_with_its_recording_whole() {
     // The interrupts go out once the board has answered the typed line (its Ctrl-C handler is installed by then),
     // half a second apart; the session's whole output, its exit code and how long it took after the last one.
     let session = |typed: &str, interrupts: usize| {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-            .arg("console")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("run nanopos-sim console");
+        let mut child = spawn_console(&[]);
         let mut input = child.stdin.take().expect("stdin");
         input.write_all(typed.as_bytes()).expect("type");
         let mut link = std::io::BufReader::new(child.stdout.take().expect("stdout"));
