@@ -24,7 +24,7 @@ use cortex_m_rt::{entry, exception, ExceptionFrame};
 use defmt_semihosting as _;
 use nanopos_id::console::{Controller, REPLY_BYTES};
 use nanopos_id::control::parse;
-use nanopos_id::estimator::{Estimator, FilteredSample};
+use nanopos_id::estimator::{Estimator, FilteredSample, Health};
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
 use nanopos_id::filters::{BiquadState, PrefilterState};
 use nanopos_id::fixed::Q32;
@@ -387,39 +387,72 @@ fn main() -> ! {
     //    costliest excitation, and the loop runs 900 samples more with it (`isr_body_multisine_f32`; the probe's code
     //    then stands still, and 1 000 such samples would latch a stuck probe). The interrupt's worst case is the
     //    largest of the maxima, less the lock and the cycle statistics around it.
+    //    Then the heaviest configuration the console accepts: with the multisine running, `tune ekf substeps 64` and
+    //    `tune prefilter` (a new tuning and a new pipeline configuration, the costliest change to apply) on two
+    //    samples in a row (`isr_body_heaviest_applying`), and 900 samples more (`isr_body_heaviest_f32`) on which the
+    //    probe replays the run's last 900 codes backwards: they move (a probe standing still for 1 000 samples would
+    //    latch a fault), and they do not follow the command, so the EKFs' gates reject samples, the continuous filter
+    //    taking its step again without the measurement (checked below): the costliest branch of a sample, with the
+    //    largest substep count. Their change detection does not fire here (logged); its reopening of a covariance
+    //    sets a few entries.
+    let mut heavy: [Option<Change<f32>>; 2] = Default::default();
+    for (slot, line) in heavy.iter_mut().zip(["tune ekf substeps 64", "tune prefilter 100 600 0.1"]) {
+        let cmd = parse(line.as_bytes()).unwrap_or_else(|_| fail("a console command did not parse"));
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        *slot = ctl.execute::<f32>(cmd, || snapshot, &mut reply).0;
+        if slot.is_none() {
+            defmt::error!("{=str}: {=str}", line, reply.as_str());
+            fail("a console command was not answered as expected");
+        }
+    }
     let mut isr = Instrument::new(start.cfg, &prbs);
     if isr.post(Change { record: Some(None), ..Change::default() }).is_err() {
         fail("the mailbox of a new instrument is full");
     }
-    let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board };
+    let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board, heavy: false };
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut pending = changes.iter_mut().filter_map(Option::take);
-    let (mut applying, mut multisine, mut ended) = (Stats::default(), Stats::default(), None);
+    let mut heavy = heavy.iter_mut().filter_map(Option::take);
+    let [mut applying, mut multisine, mut heaviest_applying, mut heaviest] = [Stats::default(); 4];
+    let mut ended = None;
+    // At the multisine's phase's end: the status snapshot's count, its faults, the estimators' health.
+    let mut at_multisine_end = None;
+    // Samples since the last change: the multisine's phase ends at 900, the heaviest configuration's at 1 800.
     let mut after_changes = 0;
     table.kernel("isr_body_all_f32", |c, s| {
         for k in 0.. {
             let mut changing = false;
             if k >= n {
                 ended.get_or_insert_with(|| (isr.estimates().map(|(p, _)| p), isr.record_status().recorded));
-                if let Some(change) = pending.next() {
+                if after_changes == 900 && at_multisine_end.is_none() {
+                    let (status, insns) = c.count(|| isr.status());
+                    at_multisine_end = Some((insns, status.faults, isr.estimates().map(|(_, h)| h)));
+                }
+                let change = match after_changes {
+                    0 => pending.next(),
+                    900 => heavy.next(),
+                    _ => None,
+                };
+                if let Some(change) = change {
                     if isr.post(change).is_err() {
                         fail("the mailbox was full");
                     }
                     changing = true;
-                } else if after_changes == 900 {
+                    board.heavy = after_changes == 900;
+                } else if after_changes == 1800 {
                     break;
                 } else {
                     after_changes += 1;
                 }
             }
-            board.k = k.min(n - 1);
+            board.k = if board.heavy && !changing { n - 1 - (after_changes - 900) } else { k.min(n - 1) };
             let insns = c.count(|| isr.sample(&mut board)).1;
-            if k < n {
-                s.add(insns);
-            } else if changing {
-                applying.add(insns);
-            } else {
-                multisine.add(insns);
+            match (k < n, changing, board.heavy) {
+                (true, _, _) => s.add(insns),
+                (false, true, false) => applying.add(insns),
+                (false, false, false) => multisine.add(insns),
+                (false, true, true) => heaviest_applying.add(insns),
+                (false, false, true) => heaviest.add(insns),
             }
             if isr.record_status().buffered >= FRAME_SAMPLES {
                 isr.drain_recorded(&mut frame);
@@ -428,11 +461,30 @@ fn main() -> ! {
     });
     table.kernel("isr_body_applying_change", |_, s| *s = applying);
     table.kernel("isr_body_multisine_f32", |_, s| *s = multisine);
-    if !isr.status().faults.is_empty() {
-        fail("the multisine's samples latched a fault: their counts are not the excitation's");
+    table.kernel("isr_body_heaviest_applying", |_, s| *s = heaviest_applying);
+    table.kernel("isr_body_heaviest_f32", |_, s| *s = heaviest);
+    let Some((snapshot_insns, faults, before)) = at_multisine_end else { fail("the multisine's phase did not end") };
+    if !faults.is_empty() || !isr.status().faults.is_empty() {
+        fail("the samples after the run latched a fault: their counts are not the configurations'");
     }
-    // The snapshot the telemetry (10 Hz) and `status` take under the lock, with the interrupt held off meanwhile.
-    table.kernel("status_snapshot", |c, s| s.add(c.count(|| isr.status()).1));
+    // The heaviest phase took the costliest branch: the continuous EKF (index 1) rejected samples, each its step
+    // taken twice.
+    let after = isr.estimates().map(|(_, h)| h);
+    let grew = |i: usize, count: fn(&Health) -> u32| count(&after[i]).saturating_sub(count(&before[i]));
+    let (rejected, changes) =
+        (grew(1, |h| h.rejected_samples), [grew(1, |h| h.changes_detected), grew(2, |h| h.changes_detected)]);
+    defmt::info!(
+        "heaviest phase: the continuous EKF rejected {} samples; changes detected: ekf {}, hekf {}",
+        rejected,
+        changes[0],
+        changes[1]
+    );
+    if rejected == 0 {
+        fail("the heaviest phase took no rejected step of the continuous EKF: its count misses that branch");
+    }
+    // The snapshot the telemetry (10 Hz) and `status` take under the lock, with the interrupt held off meanwhile:
+    // after the multisine's samples.
+    table.kernel("status_snapshot", |_, s| s.add(snapshot_insns));
     let expected = [
         w.pipeline.estimators.0.params(),
         w.pipeline.estimators.1.params(),
@@ -474,6 +526,8 @@ struct VectorBoard<'a> {
     vectors: &'a Vectors<'a>,
     k: usize,
     description: BoardDescription,
+    /// In the heaviest configuration's phase (the probe's codes replayed backwards).
+    heavy: bool,
 }
 
 impl StageBoard for VectorBoard<'_> {
