@@ -185,9 +185,19 @@ where
     out
 }
 
+/// Whether a critical section of `hold` ticks, started when the sample timer (counting `0..period` once a sample)
+/// reads `count`, ends before the sample interrupt is next raised, at the count `raised_at`, with `margin` ticks of
+/// slack on either side of that moment for its jitter. The firmware's thread-mode tasks take the interrupt's state
+/// under a lock that holds the interrupt off; they take it only when this holds (and the interrupt is not pending),
+/// so that holding it delays no sample.
+pub const fn clear_of_sample(count: u32, raised_at: u32, period: u32, hold: u32, margin: u32) -> bool {
+    let since = (count % period + period - raised_at % period) % period;
+    since >= margin && period - since >= hold.saturating_add(margin)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::ConverterFormat;
+    use super::{clear_of_sample, ConverterFormat};
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
     /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not
@@ -214,6 +224,23 @@ mod tests {
         // One code is full scale / 2^bits whichever way the bits came.
         assert_eq!(g474.volts_per_code(), ConverterFormat::new(16, 3.3).volts_per_code());
         assert_eq!(ConverterFormat::oversampled(12, 1, 0, 3.3), ConverterFormat::new(12, 3.3));
+    }
+
+    #[test]
+    fn a_lock_is_clear_of_the_sample_only_well_after_it_and_long_enough_before_the_next() {
+        // The G474's timing: 17 000 ticks a sample, the interrupt raised at 2 432, a hold of 4 000 ticks, 256 of slack.
+        let clear = |count| clear_of_sample(count, 2_432, 17_000, 4_000, 256);
+        // At the moment and within the slack after it (the interrupt may be late, or pending): no.
+        assert!(!clear(2_432) && !clear(2_432 + 255));
+        assert!(clear(2_432 + 256));
+        // Mid-period: yes; the last moment whose hold and slack end before the next sample: 17 000 + 2 432 - 4 256.
+        assert!(clear(9_000) && clear(15_176) && !clear(15_177));
+        // Before the update (counts wrap at 17 000) and just after it, until the interrupt: no.
+        assert!(!clear(16_999) && !clear(0) && !clear(2_431));
+        // Counts beyond the period are taken modulo it; a hold that cannot fit between two samples never is.
+        assert_eq!(clear(17_000 + 9_000), clear(9_000));
+        assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, 16_500, 256)));
+        assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, u32::MAX, 256)));
     }
 
     #[test]

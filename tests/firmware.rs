@@ -163,6 +163,7 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     check_stack_below_statics(&elf);
     check_logger_leaves_interrupts_on(&elf, &root);
     check_panic_puts_the_output_safe_first(&elf);
+    check_tasks_lock_clear_of_samples(&elf);
     let report = format!(
         "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}, \"ccm_code\": {ccm_code}}}\n",
         sizes.text, sizes.data, sizes.bss
@@ -343,4 +344,30 @@ fn check_panic_puts_the_output_safe_first(elf: &Elf) {
         );
     }
     println!("firmware: the panic handlers mask interrupts and put the output safe first");
+}
+
+/// The tasks take the interrupt's state (`with_task`, which holds the interrupts off)
+/// only when the sample interrupt is not due within the hold: `mask_clear_of_sample` masks interrupts and, masked,
+/// asks `board::clear_of_sample` (its arithmetic is `nanopos_id::hal::clear_of_sample`, tested on the host) before it
+/// goes on. (That the tasks take the lock only after it is the source's: `firmware.rs` has no other
+/// `TASK.borrow` outside the interrupt and the start-up.) A snapshot taken without it could hold the sample interrupt off by 2 000 cycles, which with the heaviest
+/// configuration leaves it near its deadline (BENCHMARKS.md).
+fn check_tasks_lock_clear_of_samples(elf: &Elf) {
+    let functions = elf.functions();
+    let instances: Vec<_> =
+        functions.iter().filter(|f| f.2.contains("firmware20mask_clear_of_sample") && f.1 > 0).collect();
+    assert!(instances.len() == 1, "mask_clear_of_sample: {instances:?} (inlined?)");
+    for &&(start, len, name) in &instances {
+        let code = elf.instructions(start, len);
+        let masked = code.iter().position(|&(_, h1, h2)| masks_interrupts(h1, h2));
+        let asks = code.iter().position(|&(pc, h1, h2)| {
+            let callee = h2.and_then(|h2| branch_target(pc, h1, h2));
+            callee.and_then(|a| functions.iter().find(|f| f.0 == a)).is_some_and(|f| f.2.contains("clear_of_sample"))
+        });
+        assert!(
+            matches!((masked, asks), (Some(m), Some(a)) if m < a),
+            "{name} does not ask board::clear_of_sample with interrupts masked (mask at {masked:?}, ask at {asks:?})"
+        );
+    }
+    println!("firmware: the tasks take the lock only clear of a sample");
 }

@@ -79,6 +79,11 @@ const PROBE_FORMAT: ConverterFormat = ConverterFormat::oversampled(12, OVERSAMPL
 const _: () = assert!(PROBE_FORMAT.bits == 16 && PROBE_FORMAT.max_code == 65_520);
 /// Conversion window: 64 * (6.5 + 12.5) ADC cycles at 42.5 MHz, in timer ticks (170 MHz: 4 ticks per ADC cycle).
 const WINDOW_TICKS: u32 = OVERSAMPLING_RATIO * 19 * 4;
+/// TIM2's count when the conversion ends and raises the sample interrupt: the window is centred on the update.
+const CONVERSION_END_TICK: u32 = WINDOW_TICKS / 2;
+/// Slack either side of [`CONVERSION_END_TICK`] for the ADC's trigger and end-of-conversion delays (a few ADC cycles
+/// of 4 ticks) and the interrupt's entry: 1.5 us.
+const CONVERSION_SLACK_TICKS: u32 = 256;
 /// ADC12 EXTSEL code of TIM2_CC2 (RM0440, ADC1/2 external triggers: EXT3; stm32-data's STM32G474RE metadata, as
 /// stm32-metapac 21 ships it, agrees: ADC1's `ADC_EXT_TRG3` is `TIM2_CC2`).
 const ADC_TRIGGER_TIM2_CC2: u8 = 3;
@@ -333,6 +338,22 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
     let console = BufferedUart::new(p.LPUART1, p.PA3, p.PA2, tx_buf, rx_buf, Irqs, uart_config)
         .expect("LPUART1 at 921 600 baud from a 170 MHz clock");
     Parts { console, watchdog: IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US) }
+}
+
+/// Whether the interrupts may be held off for `cycles` now without delaying a sample: the sample interrupt is not
+/// pending and its next conversion ends later than that (`nanopos_id::hal::clear_of_sample`; TIM2 counts CPU cycles).
+/// Asked with the interrupts masked, the answer holds until they are unmasked. Never inlined, so that
+/// `tests/firmware.rs` finds it asked in every taking of the lock.
+#[inline(never)]
+pub fn clear_of_sample(cycles: u32) -> bool {
+    !embassy_stm32::interrupt::InterruptExt::is_pending(embassy_stm32::interrupt::ADC1_2)
+        && nanopos_id::hal::clear_of_sample(
+            pac::TIM2.cnt().read(),
+            CONVERSION_END_TICK,
+            TICKS_PER_SAMPLE,
+            cycles,
+            CONVERSION_SLACK_TICKS,
+        )
 }
 
 /// Start the sample clock.

@@ -10,8 +10,10 @@
 //!
 //! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, a frame of recorded
 //! samples: at most about a kilobyte) and the status snapshot (1 714 instructions, QEMU's `status_snapshot`, the
-//! longest), which delay one interrupt's start inside its slack (14 570 cycles from the conversion's end to the
-//! deadline, against the interrupt's worst 6 384 instructions) and never move the sample instants (hardware-timed).
+//! longest), and takes it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
+//! lock delays no sample interrupt (taken at any moment, it could delay one by about 2 000 cycles, which the
+//! heaviest configuration's interrupt, about 12 000 of the 14 570 cycles from the conversion's end to the deadline,
+//! has not to spare). The sample instants never move (hardware-timed).
 //! The defmt logger takes no lock (defmt-rtt's `drop-on-contention`, `Cargo.toml`).
 
 use crate::board::{self, G474Board, ResetCause, CONSOLE_RX_BYTES};
@@ -64,9 +66,49 @@ static TASK: Mutex<RefCell<Option<&'static mut SampleTask>>> = Mutex::new(RefCel
 /// The DAC code the fault handler writes: the safe value of the configuration in use.
 static SAFE_CODE: AtomicU16 = AtomicU16::new(2048);
 
-/// Run `f` on the interrupt's state under the lock (`None` before it is installed).
+/// The longest the tasks hold the lock: the status snapshot (1 714 instructions on QEMU, `status_snapshot`) or a
+/// change posted (a 1 KiB copy), with room for their loads' extra cycles.
+const LOCK_HOLD_CYCLES: u32 = 4_000;
+
+/// Run `f` on the interrupt's state under the lock (`None` before it is installed), when holding the interrupts off
+/// for [`LOCK_HOLD_CYCLES`] delays no sample ([`mask_clear_of_sample`]).
 fn with_task<R>(f: impl FnOnce(&mut SampleTask) -> R) -> Option<R> {
-    cortex_m::interrupt::free(|cs| TASK.borrow(cs).borrow_mut().as_deref_mut().map(f))
+    let was_active = mask_clear_of_sample();
+    // SAFETY: the interrupts are masked from `mask_clear_of_sample` to the end of this block.
+    let out = unsafe { f_masked(f, &cortex_m::interrupt::CriticalSection::new()) };
+    if was_active {
+        // SAFETY: they were on before `mask_clear_of_sample`; `f` is done with the lock.
+        unsafe { cortex_m::interrupt::enable() };
+    }
+    out
+}
+
+/// `f` on the interrupt's state, in the critical section `cs`.
+#[inline(always)]
+fn f_masked<R>(f: impl FnOnce(&mut SampleTask) -> R, cs: &cortex_m::interrupt::CriticalSection) -> Option<R> {
+    TASK.borrow(cs).borrow_mut().as_deref_mut().map(f)
+}
+
+/// Mask the interrupts at a moment when holding them off for [`LOCK_HOLD_CYCLES`] delays no sample
+/// ([`board::clear_of_sample`]); returns whether they were on before. While the next sample is due sooner, or its
+/// interrupt is pending, it waits for that interrupt to run (spinning with them on: at most the hold and its slack,
+/// about 25 us, and the interrupt). Past two sample periods of waiting (the sample clock stopped, or an interrupt
+/// that leaves no such window) it masks them anyway. One function for every taking of the lock, never inlined:
+/// `tests/firmware.rs` checks it.
+#[inline(never)]
+fn mask_clear_of_sample() -> bool {
+    let start = DWT::cycle_count();
+    loop {
+        let was_active = cortex_m::register::primask::read().is_active();
+        cortex_m::interrupt::disable();
+        if DWT::cycle_count().wrapping_sub(start) >= 2 * CYCLES_PER_SAMPLE || board::clear_of_sample(LOCK_HOLD_CYCLES) {
+            return was_active;
+        }
+        if was_active {
+            // SAFETY: they were on on entry to this iteration; nothing was done with them off.
+            unsafe { cortex_m::interrupt::enable() };
+        }
+    }
 }
 
 #[embassy_executor::main]
