@@ -268,8 +268,9 @@ impl<T: Real> Instrument<T> {
 
     /// A snapshot of everything status reports. The firmware takes it under the lock, holding off the sample
     /// interrupt meanwhile: about 1 700 instructions (QEMU's `status_snapshot`; the ARX's conversion to the stage is
-    /// most of it), so it runs from RAM on the board like the interrupt (src/bin/nanopos-fw/ram_code.rs), to keep the
-    /// delay it can add to a sample well inside the deadline's slack.
+    /// most of it), so it runs from RAM on the board like the interrupt (src/bin/nanopos-fw/ram_code.rs), and the
+    /// firmware takes the lock only when the next sample is due later than that (`with_task` in
+    /// src/bin/nanopos-fw/firmware.rs): it delays no sample.
     #[inline(never)]
     #[cfg_attr(target_os = "none", link_section = ".ramtext.status")]
     pub fn status(&self) -> Status<T> {
