@@ -346,12 +346,12 @@ fn check_panic_puts_the_output_safe_first(elf: &Elf) {
     println!("firmware: the panic handlers mask interrupts and put the output safe first");
 }
 
-/// The tasks take the interrupt's state (`with_task`, which holds the interrupts off)
-/// only when the sample interrupt is not due within the hold: `mask_clear_of_sample` masks interrupts and, masked,
-/// asks `board::clear_of_sample` (its arithmetic is `nanopos_id::hal::clear_of_sample`, tested on the host) before it
-/// goes on. (That the tasks take the lock only after it is the source's: `firmware.rs` has no other
-/// `TASK.borrow` outside the interrupt and the start-up.) A snapshot taken without it could hold the sample interrupt off by 2 000 cycles, which with the heaviest
-/// configuration leaves it near its deadline (BENCHMARKS.md).
+/// The tasks take the interrupt's state (`with_task`, which holds the interrupts off) only when the sample interrupt
+/// is not due within the hold: `mask_clear_of_sample` masks interrupts and, masked, asks `board::clear_of_sample`
+/// (its arithmetic is `nanopos_id::hal::clear_of_sample`, tested on the host) before it goes on. (That the tasks take
+/// the lock only after it is the source's: `firmware.rs` has no other `TASK.borrow` outside the interrupt and the
+/// start-up.) A snapshot taken without it could hold the sample interrupt off by 2 000 cycles, which with the
+/// heaviest configuration leaves it near its deadline (BENCHMARKS.md).
 fn check_tasks_lock_clear_of_samples(elf: &Elf) {
     let functions = elf.functions();
     let instances: Vec<_> =

@@ -21,8 +21,9 @@
 //! the run-time commands and the recording stream use it at 921 600 baud, which continuous recording needs (575
 //! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (about 35 us, up to about 50 us on the
 //! sample that applies a command's change, plus the 10 us of a status snapshot that may hold it off: under the
-//! 87 us a FIFO lasts at this rate). The independent watchdog (IWDG, LSI 32 kHz) resets the board 0.5 s after its
-//! last feed.
+//! 87 us a FIFO lasts at this rate; with `tune ekf substeps 64`, the heaviest configuration, about 70 us and the
+//! snapshot's 10 us come near it, and a byte lost there is a receive error, whose line is refused). The independent
+//! watchdog (IWDG, LSI 32 kHz) resets the board 0.5 s after its last feed.
 //!
 //! ## Clocks
 //! HSE 24 MHz (the Nucleo's crystal X3) / 6 * 85 / 2 = 170 MHz SYSCLK (PLL R, range-1 boost), APB1/APB2 at
