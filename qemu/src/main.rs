@@ -387,20 +387,23 @@ fn main() -> ! {
     //    costliest excitation, and the loop runs 900 samples more with it (`isr_body_multisine_f32`; the probe's code
     //    then stands still, and 1 000 such samples would latch a stuck probe). The interrupt's worst case is the
     //    largest of the maxima, less the lock and the cycle statistics around it.
-    //    Then the heaviest configuration the console accepts: with the multisine running, `tune ekf substeps 64` and
-    //    `tune prefilter` (a new tuning and a new pipeline configuration, the costliest change to apply) on two
-    //    samples in a row (`isr_body_heaviest_applying`), and 900 samples more (`isr_body_heaviest_f32`) on which the
+    //    Then, with the multisine running, `tune prefilter 100 500 0.1` (a new tuning and a new pipeline
+    //    configuration, the costliest change to apply: `isr_body_applying_change_multisine`), and the heaviest
+    //    configuration the console accepts: `tune ekf substeps 64` and `tune prefilter 100 600 0.1` on the next two
+    //    samples (`isr_body_heaviest_applying`), and 900 samples more (`isr_body_heaviest_f32`) on which the
     //    probe replays the run's last 900 codes backwards: they move (a probe standing still for 1 000 samples would
     //    latch a fault), and they do not follow the command, so the EKFs' gates reject samples, the continuous filter
     //    taking its step again without the measurement (checked below): the costliest branch of a sample, with the
     //    largest substep count. Their change detection does not fire here (logged); its reopening of a covariance
     //    sets a few entries.
-    let mut heavy: [Option<Change<f32>>; 2] = Default::default();
-    for (slot, line) in heavy.iter_mut().zip(["tune ekf substeps 64", "tune prefilter 100 600 0.1"]) {
+    let mut heavy: [Option<Change<f32>>; 3] = Default::default();
+    let lines = ["tune prefilter 100 500 0.1", "tune ekf substeps 64", "tune prefilter 100 600 0.1"];
+    for (i, (slot, line)) in heavy.iter_mut().zip(lines).enumerate() {
         let cmd = parse(line.as_bytes()).unwrap_or_else(|_| fail("a console command did not parse"));
         let mut reply = TextBuf::<REPLY_BYTES>::default();
         *slot = ctl.execute::<f32>(cmd, || snapshot, &mut reply).0;
-        if slot.is_none() {
+        // Each a change; the pre-filter's with a new pipeline configuration.
+        if slot.as_ref().is_none_or(|c| c.config.is_some() != (i != 1)) {
             defmt::error!("{=str}: {=str}", line, reply.as_str());
             fail("a console command was not answered as expected");
         }
@@ -413,12 +416,15 @@ fn main() -> ! {
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut pending = changes.iter_mut().filter_map(Option::take);
     let mut heavy = heavy.iter_mut().filter_map(Option::take);
-    let [mut applying, mut multisine, mut heaviest_applying, mut heaviest] = [Stats::default(); 4];
+    let [mut applying, mut multisine, mut applying_multisine, mut heaviest_applying, mut heaviest] =
+        [Stats::default(); 5];
     let mut ended = None;
     // At the multisine's phase's end: the status snapshot's count, its faults, the estimators' health.
     let mut at_multisine_end = None;
     // Samples since the last change: the multisine's phase ends at 900, the heaviest configuration's at 1 800.
     let mut after_changes = 0;
+    // The changes of the last phase applied so far.
+    let mut heavy_applied = 0usize;
     table.kernel("isr_body_all_f32", |c, s| {
         for k in 0.. {
             let mut changing = false;
@@ -439,6 +445,7 @@ fn main() -> ! {
                     }
                     changing = true;
                     board.heavy = after_changes == 900;
+                    heavy_applied += usize::from(board.heavy);
                 } else if after_changes == 1800 {
                     break;
                 } else {
@@ -447,12 +454,13 @@ fn main() -> ! {
             }
             board.k = if board.heavy && !changing { n - 1 - (after_changes - 900) } else { k.min(n - 1) };
             let insns = c.count(|| isr.sample(&mut board)).1;
-            match (k < n, changing, board.heavy) {
+            match (k < n, changing, heavy_applied) {
                 (true, _, _) => s.add(insns),
-                (false, true, false) => applying.add(insns),
-                (false, false, false) => multisine.add(insns),
-                (false, true, true) => heaviest_applying.add(insns),
-                (false, false, true) => heaviest.add(insns),
+                (false, true, 0) => applying.add(insns),
+                (false, false, 0) => multisine.add(insns),
+                (false, true, 1) => applying_multisine.add(insns),
+                (false, true, _) => heaviest_applying.add(insns),
+                (false, false, _) => heaviest.add(insns),
             }
             if isr.record_status().buffered >= FRAME_SAMPLES {
                 isr.drain_recorded(&mut frame);
@@ -461,6 +469,7 @@ fn main() -> ! {
     });
     table.kernel("isr_body_applying_change", |_, s| *s = applying);
     table.kernel("isr_body_multisine_f32", |_, s| *s = multisine);
+    table.kernel("isr_body_applying_change_multisine", |_, s| *s = applying_multisine);
     table.kernel("isr_body_heaviest_applying", |_, s| *s = heaviest_applying);
     table.kernel("isr_body_heaviest_f32", |_, s| *s = heaviest);
     let Some((snapshot_insns, faults, before)) = at_multisine_end else { fail("the multisine's phase did not end") };
@@ -526,7 +535,7 @@ struct VectorBoard<'a> {
     vectors: &'a Vectors<'a>,
     k: usize,
     description: BoardDescription,
-    /// In the heaviest configuration's phase (the probe's codes replayed backwards).
+    /// In the last phase (the probe's codes replayed backwards once its changes are applied).
     heavy: bool,
 }
 

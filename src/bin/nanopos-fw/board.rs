@@ -20,7 +20,7 @@
 //! LPUART1 is wired to the ST-LINK's virtual COM port on the Nucleo (solder bridges SB12/SB13 closed as shipped):
 //! the run-time commands and the recording stream use it at 921 600 baud, which continuous recording needs (575
 //! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (about 35 us, up to about 50 us on the
-//! sample that applies a command's change; about 70 us with `tune ekf substeps 64`, the heaviest configuration:
+//! sample that applies a command's change; about 75 us with `tune ekf substeps 64`, the heaviest configuration:
 //! under the 87 us a FIFO lasts at this rate, the last near it, and a byte lost is a receive error, whose line is
 //! refused). A status snapshot (about 10 us with the interrupts off) is not added to it: the tasks take the lock
 //! only where it ends before the next sample ([`clear_of_sample`]), and after a sample the UART's interrupt runs

@@ -12,7 +12,7 @@
 //! samples: at most about a kilobyte) and the status snapshot (1 714 instructions, QEMU's `status_snapshot`, the
 //! longest), and takes it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
 //! lock delays no sample interrupt (taken at any moment, it could delay one by about 2 000 cycles, which the
-//! heaviest configuration's interrupt, about 12 000 of the 14 570 cycles from the conversion's end to the deadline,
+//! heaviest configuration's interrupt, about 12 600 of the 14 570 cycles from the conversion's end to the deadline,
 //! has not to spare). The sample instants never move (hardware-timed).
 //! The defmt logger takes no lock (defmt-rtt's `drop-on-contention`, `Cargo.toml`).
 
