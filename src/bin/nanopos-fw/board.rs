@@ -49,7 +49,7 @@
 //!   right by 2 to a 16-bit code. A centred boxcar adds no delay; its droop at 450 Hz is 0.03 %.
 //! - ADC1's end of conversion (at `t_k` + 14.3 us) raises ADC1_2, the highest-priority interrupt, which reads the
 //!   code, runs one sample of the pipeline and writes the next DAC code. Deadline: the next TIM2 update, 85.7 us
-//!   (14 570 cycles) after the conversion ends. Crossing it is detected (TIM2 update flag set again before the
+//!   ([`DEADLINE_CYCLES`], 14 568) after the conversion ends. Crossing it is detected (TIM2 update flag set again before the
 //!   interrupt returns) and counted; so is an ADC overrun.
 
 use core::sync::atomic::{AtomicBool, Ordering};
@@ -83,6 +83,11 @@ const _: () = assert!(PROBE_FORMAT.bits == 16 && PROBE_FORMAT.max_code == 65_520
 const WINDOW_TICKS: u32 = OVERSAMPLING_RATIO * 19 * 4;
 /// TIM2's count when the conversion ends and raises the sample interrupt: the window is centred on the update.
 const CONVERSION_END_TICK: u32 = WINDOW_TICKS / 2;
+/// The sample interrupt's deadline, in cycles from the conversion's end (when it is raised) to the next sample
+/// instant, where the DAC loads the code it writes: 85.7 us. The telemetry's interrupt cycles are measured against it,
+/// not against the sample period's 17 000.
+pub const DEADLINE_CYCLES: u32 = TICKS_PER_SAMPLE - CONVERSION_END_TICK;
+const _: () = assert!(DEADLINE_CYCLES == 14_568);
 /// Slack either side of [`CONVERSION_END_TICK`] for the ADC's trigger and end-of-conversion delays (a few ADC cycles
 /// of 4 ticks) and the interrupt's entry: 1.5 us.
 const CONVERSION_SLACK_TICKS: u32 = 256;

@@ -12,7 +12,7 @@
 //! samples: at most about a kilobyte) and the status snapshot (1 714 instructions, QEMU's `status_snapshot`, the
 //! longest), and takes it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
 //! lock delays no sample interrupt (taken at any moment, it could delay one by about 2 000 cycles, which the
-//! heaviest configuration's interrupt, about 12 600 of the 14 570 cycles from the conversion's end to the deadline,
+//! heaviest configuration's interrupt, about 12 600 of the 14 568 cycles from the conversion's end to the deadline,
 //! has not to spare). The sample instants never move (hardware-timed).
 //! The defmt logger takes no lock (defmt-rtt's `drop-on-contention`, `Cargo.toml`).
 
@@ -38,9 +38,6 @@ use nanopos_id::pipeline::{FaultCounters, Faults};
 use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES, FRAME_SAMPLES};
 use nanopos_id::text::TextBuf;
 use nanopos_id::StageParams;
-
-/// Cycles per sample period at 170 MHz.
-const CYCLES_PER_SAMPLE: u32 = 17_000;
 
 /// What the interrupt owns.
 struct SampleTask {
@@ -101,7 +98,9 @@ fn mask_clear_of_sample() -> bool {
     loop {
         let was_active = cortex_m::register::primask::read().is_active();
         cortex_m::interrupt::disable();
-        if DWT::cycle_count().wrapping_sub(start) >= 2 * CYCLES_PER_SAMPLE || board::clear_of_sample(LOCK_HOLD_CYCLES) {
+        if DWT::cycle_count().wrapping_sub(start) >= 2 * board::TICKS_PER_SAMPLE
+            || board::clear_of_sample(LOCK_HOLD_CYCLES)
+        {
             return was_active;
         }
         if was_active {
@@ -165,13 +164,13 @@ async fn main(spawner: Spawner) {
         );
     }
     defmt::info!(
-        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, cycle budget {=u32}, reset cause {}, console LPUART1 {=u32} baud",
+        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, interrupt deadline {=u32} cycles after each conversion, reset cause {}, console LPUART1 {=u32} baud",
         board::SAMPLE_RATE_HZ,
         if running { "PRBS 1 V running" } else { "excitation stopped" },
         board::DESCRIPTION.probe.bits,
         board::DESCRIPTION.probe.max_code,
         board::DESCRIPTION.amplifier.bits,
-        CYCLES_PER_SAMPLE,
+        board::DEADLINE_CYCLES,
         cause,
         board::CONSOLE_BAUD
     );
@@ -358,11 +357,11 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
         let c = &st.counters;
         defmt::info!(
-            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
+            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} to the deadline | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
             st.samples,
             mean,
             s.window_max_cycles,
-            CYCLES_PER_SAMPLE,
+            board::DEADLINE_CYCLES,
             s.y_um,
             s.u_v,
             st.excitation_level.power,
