@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
-const KERNELS: [&str; 31] = [
+const KERNELS: [&str; 33] = [
     "pipeline_all_f32",
     "pipeline_bare_f32",
     "crls_f32",
@@ -39,6 +39,8 @@ const KERNELS: [&str; 31] = [
     "isr_body_applying_change_multisine",
     "isr_body_heaviest_applying",
     "isr_body_heaviest_f32",
+    "lock_post_change",
+    "lock_drain_frame",
 ];
 
 /// Cycles from the ADC's end of conversion to the next sample instant, the interrupt's deadline

@@ -418,6 +418,8 @@ fn main() -> ! {
     let mut heavy = heavy.iter_mut().filter_map(Option::take);
     let [mut applying, mut multisine, mut applying_multisine, mut heaviest_applying, mut heaviest] =
         [Stats::default(); 5];
+    // What the firmware's tasks do under the lock besides the status snapshot: post a change, drain a frame.
+    let [mut lock_post, mut lock_drain] = [Stats::default(); 2];
     let mut ended = None;
     // At the multisine's phase's end: the status snapshot's count, its faults, the estimators' health.
     let mut at_multisine_end = None;
@@ -440,7 +442,10 @@ fn main() -> ! {
                     _ => None,
                 };
                 if let Some(change) = change {
-                    if isr.post(change).is_err() {
+                    let mut change = Some(change);
+                    let (posted, insns) = c.count(|| change.take().is_some_and(|change| isr.post(change).is_ok()));
+                    lock_post.add(insns);
+                    if !posted {
                         fail("the mailbox was full");
                     }
                     changing = true;
@@ -463,7 +468,7 @@ fn main() -> ! {
                 (false, false, _) => heaviest.add(insns),
             }
             if isr.record_status().buffered >= FRAME_SAMPLES {
-                isr.drain_recorded(&mut frame);
+                lock_drain.add(c.count(|| isr.drain_recorded(&mut frame)).1);
             }
         }
     });
@@ -494,6 +499,8 @@ fn main() -> ! {
     // The snapshot the telemetry (10 Hz) and `status` take under the lock, with the interrupt held off meanwhile:
     // after the multisine's samples.
     table.kernel("status_snapshot", |_, s| s.add(snapshot_insns));
+    table.kernel("lock_post_change", |_, s| *s = lock_post);
+    table.kernel("lock_drain_frame", |_, s| *s = lock_drain);
     let expected = [
         w.pipeline.estimators.0.params(),
         w.pipeline.estimators.1.params(),

@@ -63,8 +63,10 @@ static TASK: Mutex<RefCell<Option<&'static mut SampleTask>>> = Mutex::new(RefCel
 /// The DAC code the fault handler writes: the safe value of the configuration in use.
 static SAFE_CODE: AtomicU16 = AtomicU16::new(2048);
 
-/// The longest the tasks hold the lock: the status snapshot (1 714 instructions on QEMU, `status_snapshot`) or a
-/// change posted (a 1 KiB copy), with room for their loads' extra cycles.
+/// The longest the tasks hold the lock: a change posted (1 760 instructions on QEMU, `lock_post_change`: a 1 KiB
+/// copy, by `memcpy` from the flash, loads and stores of 2 cycles) or the status snapshot (1 714, `status_snapshot`),
+/// with room for their extra cycles. With the interrupt's slack either side, 4 512 cycles between the end of one
+/// sample's interrupt and the next conversion: the heaviest configuration leaves about 6 000 on a usual sample.
 const LOCK_HOLD_CYCLES: u32 = 4_000;
 
 /// Run `f` on the interrupt's state under the lock (`None` before it is installed), when holding the interrupts off
