@@ -8,9 +8,9 @@
 //! - **`telemetry`** task (thread mode): every 100 ms, logs over defmt/RTT and feeds the watchdog if the sample
 //!   clock ran.
 //!
-//! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, a frame of recorded
-//! samples: at most about a kilobyte) and the status snapshot (1 714 instructions, QEMU's `status_snapshot`, the
-//! longest), and takes it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
+//! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, 1 760 instructions on
+//! QEMU with its kilobyte, the longest; a frame of recorded samples, 276) and the status snapshot (1 714), and takes
+//! it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
 //! lock delays no sample interrupt (taken at any moment, it could delay one by about 2 000 cycles, which the
 //! heaviest configuration's interrupt, about 12 600 of the 14 568 cycles from the conversion's end to the deadline,
 //! has not to spare). The sample instants never move (hardware-timed).
