@@ -130,13 +130,17 @@ pub trait StageBoard {
     fn description(&self) -> BoardDescription;
     /// The probe conversion of this sample (converted at the sample instant).
     fn read_probe(&mut self) -> u32;
-    /// The amplifier command; it takes effect `actuation_delay_samples` sample instants later.
+    /// The amplifier command; it takes effect `actuation_delay_samples` sample instants later. Called as soon as
+    /// the command is known, before the filters and the estimators run ([`run_sample`]): a board with a deadline
+    /// for the command checks it here.
     fn write_amplifier(&mut self, code: u32);
-    /// The faults of this sample, read after the command was written (so a late write is seen).
+    /// The faults of this sample, read at its end (a late write of the command, as [`Self::write_amplifier`] saw it).
     fn sample_faults(&mut self) -> BoardFaults;
 }
 
-/// One sample, end to end: read the probe, run the pipeline, write the amplifier.
+/// One sample, end to end: read the probe, run the pipeline, write the amplifier. The command is written as soon as
+/// it is known (the excitation, an external command, the limits), before the filters and the estimators: on the
+/// board only that part must beat the next sample instant; the estimators have until the next conversion.
 #[inline]
 pub fn run_sample<B, T, E>(board: &mut B, pipeline: &mut Pipeline<T, E>, cfg: &PipelineConfig<T>) -> SampleOutput<T>
 where
@@ -178,8 +182,7 @@ where
     E: EstimatorBank<T>,
 {
     let code = board.read_probe();
-    let mut out = pipeline.step_with(cfg, code, command);
-    board.write_amplifier(out.dac_code);
+    let mut out = pipeline.step_with(cfg, code, command, |dac_code| board.write_amplifier(dac_code));
     out.board_faults = board.sample_faults();
     pipeline.count_board_faults(out.board_faults);
     out

@@ -633,7 +633,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     /// One sample: `probe_code` is this sample's conversion; returns the DAC code for the coming period.
     #[inline]
     pub fn step(&mut self, cfg: &PipelineConfig<T>, probe_code: u32) -> SampleOutput<T> {
-        self.step_with(cfg, probe_code, None::<fn(T) -> T>)
+        self.step_with(cfg, probe_code, None::<fn(T) -> T>, |_| {})
     }
 
     /// One sample with the excitation added to an external command, V at the amplifier's input: `command(y_um)`,
@@ -657,16 +657,19 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         probe_code: u32,
         command: impl FnOnce(T) -> T,
     ) -> SampleOutput<T> {
-        self.step_with(cfg, probe_code, Some(command))
+        self.step_with(cfg, probe_code, Some(command), |_| {})
     }
 
-    /// [`Pipeline::step`] (`None`) or [`Pipeline::step_adding`].
+    /// [`Pipeline::step`] (`None`) or [`Pipeline::step_adding`], handing the DAC code to `write` as soon as it is
+    /// known, before the filters and the estimators run: on the board the code must reach the DAC by the next
+    /// sample instant, and the estimators need not ([`crate::hal::run_sample`]).
     #[inline(always)]
     pub(crate) fn step_with(
         &mut self,
         cfg: &PipelineConfig<T>,
         probe_code: u32,
         command: Option<impl FnOnce(T) -> T>,
+        write: impl FnOnce(u32),
     ) -> SampleOutput<T> {
         self.samples = self.samples.wrapping_add(1);
         let y_um = cfg.probe.apply(num_traits::cast::<u32, T>(probe_code).unwrap_or_else(T::zero));
@@ -703,6 +706,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         self.counters.limited = self.counters.limited.saturating_add(u32::from(limited && self.faults.is_empty()));
         self.slewed_v = if slew_limited { self.slewed_v + step } else { clamped };
         let (dac_code, written_v) = encode(cfg, self.slewed_v);
+        write(dac_code);
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;
 

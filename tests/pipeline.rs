@@ -391,6 +391,73 @@ fn run_sample_reads_steps_and_writes_once_per_sample() {
     assert_eq!(sim.pipeline.samples(), 10);
 }
 
+/// What happened in a sample, in order, as the board and the estimator below saw it.
+type EventLog = std::rc::Rc<std::cell::RefCell<Vec<&'static str>>>;
+
+/// The simulated board, logging its calls.
+struct LoggingBoard {
+    inner: SimBoard,
+    log: EventLog,
+}
+
+impl StageBoard for LoggingBoard {
+    fn sample_rate_hz(&self) -> f64 {
+        self.inner.sample_rate_hz()
+    }
+    fn description(&self) -> BoardDescription {
+        self.inner.description()
+    }
+    fn read_probe(&mut self) -> u32 {
+        self.log.borrow_mut().push("read probe");
+        self.inner.read_probe()
+    }
+    fn write_amplifier(&mut self, code: u32) {
+        self.log.borrow_mut().push("write command");
+        self.inner.write_amplifier(code)
+    }
+    fn sample_faults(&mut self) -> BoardFaults {
+        self.log.borrow_mut().push("board faults");
+        self.inner.sample_faults()
+    }
+}
+
+/// An estimator logging its updates.
+struct LoggingEstimator(EventLog);
+
+impl Estimator<f64> for LoggingEstimator {
+    const NAME: &'static str = "logging";
+    fn update(&mut self, _: &FilteredSample<f64>) {
+        self.0.borrow_mut().push("estimate");
+    }
+    fn params(&self) -> StageParams<f64> {
+        StageParams::INITIAL
+    }
+    fn param_covariance(&self) -> [[f64; 3]; 3] {
+        [[0.0; 3]; 3]
+    }
+    fn reset(&mut self) {}
+    fn set_adapting(&mut self, _: bool) {}
+    fn health(&self) -> Health {
+        Health::new()
+    }
+}
+
+/// On the board the command must reach the DAC by the next sample instant and the estimators need not: `run_sample`
+/// writes it as soon as it is known, before the estimators run, and asks for the board's faults (its deadline) last.
+#[test]
+fn the_command_is_written_before_the_estimators_run() {
+    let log = EventLog::default();
+    let (board, settings) = Scenario::Prbs.settings(1.0, 1);
+    let Simulation { board, mut pipeline, config } =
+        Simulation::new(board, &settings, (LoggingEstimator(log.clone()),)).unwrap();
+    let mut board = LoggingBoard { inner: board, log: log.clone() };
+    for _ in 0..3 {
+        run_sample(&mut board, &mut pipeline, &config);
+    }
+    let sample = ["read probe", "write command", "estimate", "board faults"];
+    assert_eq!(*log.borrow(), [sample, sample, sample].concat());
+}
+
 #[test]
 fn board_faults_are_counted_without_stopping_the_stage() {
     let mut sim = paper_sim(());

@@ -48,9 +48,13 @@
 //!   window is centred on `t_k`: 64 conversions of 6.5 + 12.5 ADC cycles = 28.6 us at 42.5 MHz, accumulated and shifted
 //!   right by 2 to a 16-bit code. A centred boxcar adds no delay; its droop at 450 Hz is 0.03 %.
 //! - ADC1's end of conversion (at `t_k` + 14.3 us) raises ADC1_2, the highest-priority interrupt, which reads the
-//!   code, runs one sample of the pipeline and writes the next DAC code. Deadline: the next TIM2 update, 85.7 us
-//!   ([`DEADLINE_CYCLES`], 14 568) after the conversion ends. Crossing it is detected (TIM2 update flag set again before the
-//!   interrupt returns) and counted; so is an ADC overrun.
+//!   code, computes the next command and writes its code to the DAC's holding register first (a posted change
+//!   applied, the excitation, the limits: at most about 2 300 instructions, BENCHMARKS.md), then runs the filters
+//!   and the estimators. The command's deadline: the next TIM2 update, 85.7 us ([`DEADLINE_CYCLES`], 14 568 cycles)
+//!   after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is written) and
+//!   counted. The rest of the interrupt has until the next conversion ends, a sample period after this one: beyond
+//!   it the next interrupt starts late, and a conversion not read before the following one ends is an ADC overrun,
+//!   counted too.
 
 use core::sync::atomic::{AtomicBool, Ordering};
 use embassy_stm32::pac;
@@ -83,9 +87,9 @@ const _: () = assert!(PROBE_FORMAT.bits == 16 && PROBE_FORMAT.max_code == 65_520
 const WINDOW_TICKS: u32 = OVERSAMPLING_RATIO * 19 * 4;
 /// TIM2's count when the conversion ends and raises the sample interrupt: the window is centred on the update.
 const CONVERSION_END_TICK: u32 = WINDOW_TICKS / 2;
-/// The sample interrupt's deadline, in cycles from the conversion's end (when it is raised) to the next sample
-/// instant, where the DAC loads the code it writes: 85.7 us. The telemetry's interrupt cycles are measured against it,
-/// not against the sample period's 17 000.
+/// The command's deadline, in cycles from the conversion's end (when the sample interrupt is raised) to the next
+/// sample instant, where the DAC loads the code the interrupt writes: 85.7 us. The interrupt writes it before its
+/// filters and estimators, which have the whole sample period ([`TICKS_PER_SAMPLE`] cycles).
 pub const DEADLINE_CYCLES: u32 = TICKS_PER_SAMPLE - CONVERSION_END_TICK;
 const _: () = assert!(DEADLINE_CYCLES == 14_568);
 /// Slack either side of [`CONVERSION_END_TICK`] for the ADC's trigger and end-of-conversion delays (a few ADC cycles
@@ -385,11 +389,13 @@ pub fn hard_fault() -> ! {
 }
 
 /// The board seen from the sample interrupt. Reading the probe acknowledges the conversion, notes an ADC overrun
-/// and arms the deadline check (TIM2's update flag, set again only if the next sample instant passes before
-/// [`StageBoard::sample_faults`] looks).
+/// and arms the deadline check (TIM2's update flag, set again only if the next sample instant passes before the
+/// command is written); writing the command looks at the flag right after: the deadline is the command's, which
+/// the pipeline writes before its filters and estimators run.
 #[derive(Default)]
 pub struct G474Board {
     adc_overrun: bool,
+    deadline_missed: bool,
 }
 
 impl G474Board {
@@ -427,10 +433,11 @@ impl StageBoard for G474Board {
     #[inline(always)]
     fn write_amplifier(&mut self, code: u32) {
         pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code.min(4095) as u16));
+        self.deadline_missed = pac::TIM2.sr().read().uif();
     }
 
     #[inline(always)]
     fn sample_faults(&mut self) -> BoardFaults {
-        BoardFaults { adc_overrun: self.adc_overrun, deadline_missed: pac::TIM2.sr().read().uif() }
+        BoardFaults { adc_overrun: self.adc_overrun, deadline_missed: self.deadline_missed }
     }
 }
