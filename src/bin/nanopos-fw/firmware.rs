@@ -10,10 +10,10 @@
 //!
 //! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, 1 760 instructions on
 //! QEMU with its kilobyte, the longest; a frame of recorded samples, 276) and the status snapshot (1 714), and takes
-//! it only when the next sample's conversion ends later than such a hold ([`with_task`]): the
-//! lock delays no sample interrupt (taken at any moment, it could delay one by about 2 000 cycles, which the
-//! heaviest configuration's interrupt, about 12 600 of the 14 568 cycles from the conversion's end to the deadline,
-//! has not to spare). The sample instants never move (hardware-timed).
+//! it only when the next sample's conversion ends later than such a hold ([`with_task`]): the sample interrupt starts
+//! on time (taken at any moment, the lock could delay it by about 2 000 cycles: its command, written first, would
+//! still make its deadline, but the heaviest configuration's whole interrupt, about 12 600 cycles, would end near
+//! the next conversion, 17 000 cycles after its own). The sample instants never move (hardware-timed).
 //! The defmt logger takes no lock (defmt-rtt's `drop-on-contention`, `Cargo.toml`).
 
 use crate::board::{self, G474Board, ResetCause, CONSOLE_RX_BYTES};
@@ -166,7 +166,7 @@ async fn main(spawner: Spawner) {
         );
     }
     defmt::info!(
-        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, interrupt deadline {=u32} cycles after each conversion, reset cause {}, console LPUART1 {=u32} baud",
+        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, command deadline {=u32} cycles after each conversion, reset cause {}, console LPUART1 {=u32} baud",
         board::SAMPLE_RATE_HZ,
         if running { "PRBS 1 V running" } else { "excitation stopped" },
         board::DESCRIPTION.probe.bits,
@@ -359,11 +359,11 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
         let c = &st.counters;
         defmt::info!(
-            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} to the deadline | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
+            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
             st.samples,
             mean,
             s.window_max_cycles,
-            board::DEADLINE_CYCLES,
+            board::TICKS_PER_SAMPLE,
             s.y_um,
             s.u_v,
             st.excitation_level.power,
