@@ -48,11 +48,17 @@ const KERNELS: [&str; 33] = [
 /// takes at least a cycle, so a body of more instructions would fall behind the sample clock.
 const SAMPLE_CYCLES: u64 = 17_000;
 
+/// Cycles from the conversion's end, when the interrupt starts, to the next sample instant, by which the command
+/// must reach the DAC (`board::DEADLINE_CYCLES`).
+const COMMAND_DEADLINE_CYCLES: u64 = 14_568;
+
 #[test]
 fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let json_path = root.join("target/qemu-bench.json");
+    let latency_path = root.join("target/qemu-command-latency.json");
     let _ = std::fs::remove_file(&json_path);
+    let _ = std::fs::remove_file(&latency_path);
     let out = Command::new(root.join("qemu/run")).current_dir(&root).output().expect("run qemu/run");
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     println!("{stdout}");
@@ -65,14 +71,7 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     assert!(stdout.lines().any(|l| l.ends_with(faults)), "no line ending in `{faults}`:\n{stdout}");
 
     let json = std::fs::read_to_string(&json_path).expect("target/qemu-bench.json");
-    let count = |k: &str, field: &str| -> u64 {
-        let key = format!("\"{k}\": {{\"instructions_per_update\": ");
-        let at = json.find(&key).unwrap_or_else(|| panic!("{k} missing from target/qemu-bench.json"));
-        let entry = &json[at + key.len() - "\"instructions_per_update\": ".len()..];
-        let entry = &entry[..entry.find('}').unwrap()];
-        let value = entry.split(&format!("\"{field}\": ")).nth(1).unwrap_or_else(|| panic!("{k}: no {field}"));
-        value.split(',').next().unwrap().trim().parse().unwrap_or_else(|e| panic!("{k}: {field}: {e}"))
-    };
+    let count = |k: &str, field: &str| count_in(&json, k, field);
     for k in KERNELS {
         assert!(count(k, "instructions_per_update") > 0, "{k}: zero instructions");
     }
@@ -87,4 +86,23 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
         let worst = count(k, "max");
         assert!(worst < SAMPLE_CYCLES, "{k}: {worst} instructions, beyond the {SAMPLE_CYCLES} cycles of a sample");
     }
+    // The command, written before the filters and estimators, within its deadline on every sample of the run, its
+    // changes and the heaviest configuration (the `command-latency` build, whose board marks the write).
+    let latency = std::fs::read_to_string(&latency_path).expect("target/qemu-command-latency.json");
+    let to_write = count_in(&latency, "isr_to_command_write", "max");
+    assert!(
+        to_write > 0 && to_write < COMMAND_DEADLINE_CYCLES,
+        "the command is written {to_write} instructions into the interrupt, beyond the {COMMAND_DEADLINE_CYCLES} \
+         cycles of its deadline"
+    );
+}
+
+/// `field` of kernel `k` in the harness's JSON.
+fn count_in(json: &str, k: &str, field: &str) -> u64 {
+    let key = format!("\"{k}\": {{\"instructions_per_update\": ");
+    let at = json.find(&key).unwrap_or_else(|| panic!("{k} missing from the harness's JSON"));
+    let entry = &json[at + key.len() - "\"instructions_per_update\": ".len()..];
+    let entry = &entry[..entry.find('}').unwrap()];
+    let value = entry.split(&format!("\"{field}\": ")).nth(1).unwrap_or_else(|| panic!("{k}: no {field}"));
+    value.split(',').next().unwrap().trim().parse().unwrap_or_else(|e| panic!("{k}: {field}: {e}"))
 }

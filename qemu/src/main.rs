@@ -49,6 +49,10 @@ struct Clock {
     shift: u32,
     /// Instructions of the timing frame itself (two SysTick reads with nothing between).
     frame: u32,
+    /// Instructions from the frame's first reading to a mark taken first thing in the timed call (the
+    /// `command-latency` build's).
+    #[cfg_attr(not(feature = "command-latency"), allow(dead_code))]
+    to_mark: u32,
 }
 
 /// Calls the closure behind `ctx` (the timed call: its body and its prologue and epilogue are what is counted).
@@ -62,6 +66,13 @@ unsafe extern "C" fn trampoline<F: FnMut()>(ctx: *mut F) {
 /// `f`'s body and its return, and nothing else.
 #[inline(always)]
 fn ticks<F: FnMut()>(f: &mut F) -> u32 {
+    let (t0, t1) = ticks_at(f);
+    t0.wrapping_sub(t1) & 0x00FF_FFFF
+}
+
+/// SysTick's readings before and after one call of `f` (see [`ticks`]).
+#[inline(always)]
+fn ticks_at<F: FnMut()>(f: &mut F) -> (u32, u32) {
     let (t0, t1): (u32, u32);
     // SAFETY: SYST_CVR (0xE000_E018) is always mapped on a Cortex-M; the callee follows the C ABI, whose
     // caller-saved registers (r0-r3, r12, lr, d0-d7) are declared clobbered; the address and the first reading live in callee-saved r4/r5.
@@ -80,8 +91,20 @@ fn ticks<F: FnMut()>(f: &mut F) -> u32 {
             out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
         );
     }
-    t0.wrapping_sub(t1) & 0x00FF_FFFF
+    (t0, t1)
 }
+
+/// SysTick's current value: read inside a timed call, it marks how far into the call an event came.
+#[cfg(feature = "command-latency")]
+#[inline(always)]
+fn systick_now() -> u32 {
+    // SAFETY: SYST_CVR, always mapped; reading it has no side effect (COUNTFLAG is in SYST_CSR).
+    unsafe { core::ptr::read_volatile(0xE000_E018 as *const u32) }
+}
+
+/// SysTick when the board was last handed a command ([`VectorBoard::write_amplifier`]).
+#[cfg(feature = "command-latency")]
+static COMMAND_MARK: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new(0);
 
 /// Exactly `N` instructions.
 #[inline(always)]
@@ -116,8 +139,15 @@ impl Clock {
             defmt::error!("run under -icount shift=N with N >= 7 (a 25 MHz SysTick): counts would not be exact");
             return None;
         }
-        let mut clock = Clock { shift, frame: 0 };
+        let mut clock = Clock { shift, frame: 0, to_mark: 0 };
         clock.frame = clock.instructions(empty);
+        // The instructions from the first reading to a mark taken first thing in the call.
+        #[cfg(feature = "command-latency")]
+        {
+            let (t0, _) = ticks_at(&mut || COMMAND_MARK.store(systick_now(), core::sync::atomic::Ordering::Relaxed));
+            let mark = COMMAND_MARK.load(core::sync::atomic::Ordering::Relaxed);
+            clock.to_mark = clock.instructions(t0.wrapping_sub(mark) & 0x00FF_FFFF);
+        }
         let exact = clock.instructions(one) == 1 + clock.frame && clock.instructions(thousand) == 1000 + clock.frame;
         defmt::info!("clock: the timing frame (two reads and an empty call) is {} instructions; 1 and 1000 instructions counted exactly: {}", clock.frame, exact);
         exact.then_some(clock)
@@ -126,6 +156,19 @@ impl Clock {
     fn instructions(&self, ticks: u32) -> u32 {
         let half = 1u64 << (self.shift - 1);
         ((u64::from(ticks) * TICK_NS + half) >> self.shift) as u32
+    }
+
+    /// Instructions `f` executes from its call to the command's write ([`COMMAND_MARK`]; its prologue included),
+    /// and in all.
+    #[cfg(feature = "command-latency")]
+    #[inline(always)]
+    fn count_to_command<R>(&self, mut f: impl FnMut() -> R) -> (R, u32, u32) {
+        let mut out = None;
+        let (t0, t1) = ticks_at(&mut || out = Some(f()));
+        let mark = COMMAND_MARK.load(core::sync::atomic::Ordering::Relaxed);
+        let to = self.instructions(t0.wrapping_sub(mark) & 0x00FF_FFFF).saturating_sub(self.to_mark);
+        let all = self.instructions(t0.wrapping_sub(t1) & 0x00FF_FFFF).saturating_sub(self.frame);
+        (out.unwrap_or_else(|| fail("timed call did not run")), to, all)
     }
 
     /// Instructions `f` executes when called (its body, prologue and epilogue; not the return itself).
@@ -427,6 +470,9 @@ fn main() -> ! {
     let mut after_changes = 0;
     // The changes of the last phase applied so far.
     let mut heavy_applied = 0usize;
+    // How far into each sample the command is written (the `command-latency` build).
+    #[cfg(feature = "command-latency")]
+    let mut to_command = Stats::default();
     table.kernel("isr_body_all_f32", |c, s| {
         for k in 0.. {
             let mut changing = false;
@@ -458,7 +504,14 @@ fn main() -> ! {
                 }
             }
             board.k = if board.heavy && !changing { n - 1 - (after_changes - 900) } else { k.min(n - 1) };
+            #[cfg(not(feature = "command-latency"))]
             let insns = c.count(|| isr.sample(&mut board)).1;
+            #[cfg(feature = "command-latency")]
+            let insns = {
+                let (_, to, all) = c.count_to_command(|| isr.sample(&mut board));
+                to_command.add(to);
+                all
+            };
             match (k < n, changing, heavy_applied) {
                 (true, _, _) => s.add(insns),
                 (false, true, 0) => applying.add(insns),
@@ -477,6 +530,8 @@ fn main() -> ! {
     table.kernel("isr_body_applying_change_multisine", |_, s| *s = applying_multisine);
     table.kernel("isr_body_heaviest_applying", |_, s| *s = heaviest_applying);
     table.kernel("isr_body_heaviest_f32", |_, s| *s = heaviest);
+    #[cfg(feature = "command-latency")]
+    table.kernel("isr_to_command_write", |_, s| *s = to_command);
     let Some((snapshot_insns, faults, before)) = at_multisine_end else { fail("the multisine's phase did not end") };
     if !faults.is_empty() || !isr.status().faults.is_empty() {
         fail("the samples after the run latched a fault: their counts are not the configurations'");
@@ -510,10 +565,16 @@ fn main() -> ! {
     bench_ok &= ended == Some((expected, n as u64));
 
     let _ = write!(table.json, "\n}}\n");
-    if semihosting::fs::write(c"target/qemu-bench.json", json.as_str().as_bytes()).is_err() {
-        fail("could not write target/qemu-bench.json on the host");
+    // The `command-latency` build's counts carry its mark in the sample path: a file of their own, whose reader
+    // takes `isr_to_command_write` from it.
+    #[cfg(not(feature = "command-latency"))]
+    let path = c"target/qemu-bench.json";
+    #[cfg(feature = "command-latency")]
+    let path = c"target/qemu-command-latency.json";
+    if semihosting::fs::write(path, json.as_str().as_bytes()).is_err() {
+        fail("could not write the counts' JSON on the host");
     }
-    defmt::info!("wrote target/qemu-bench.json");
+    defmt::info!("wrote {=str}", path.to_str().unwrap_or("the counts' JSON"));
     // The telemetry's fault word, as the firmware's defmt encoding and `defmt-print` show it (tests/qemu.rs).
     defmt::info!(
         "faults as logged: none={} one={} all={}",
@@ -556,7 +617,10 @@ impl StageBoard for VectorBoard<'_> {
     fn read_probe(&mut self) -> u32 {
         self.vectors.sample(self.k).0
     }
-    fn write_amplifier(&mut self, _code: u32) {}
+    fn write_amplifier(&mut self, _code: u32) {
+        #[cfg(feature = "command-latency")]
+        COMMAND_MARK.store(systick_now(), core::sync::atomic::Ordering::Relaxed);
+    }
     fn sample_faults(&mut self) -> BoardFaults {
         BoardFaults::default()
     }
