@@ -194,13 +194,18 @@ where
 /// under a lock that holds the interrupt off; they take it only when this holds (and the interrupt is not pending),
 /// so that holding it delays no sample.
 pub const fn clear_of_sample(count: u32, raised_at: u32, period: u32, hold: u32, margin: u32) -> bool {
-    let since = (count % period + period - raised_at % period) % period;
+    let since = ticks_since(count, raised_at, period);
     since >= margin && period - since >= hold.saturating_add(margin)
+}
+
+/// Ticks from the last time a timer counting `0..period` read `at` to its reading `count` (0 to `period - 1`).
+pub const fn ticks_since(count: u32, at: u32, period: u32) -> u32 {
+    (count % period + period - at % period) % period
 }
 
 #[cfg(test)]
 mod tests {
-    use super::{clear_of_sample, ConverterFormat};
+    use super::{clear_of_sample, ticks_since, ConverterFormat};
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
     /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not
@@ -244,6 +249,16 @@ mod tests {
         assert_eq!(clear(17_000 + 9_000), clear(9_000));
         assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, 16_500, 256)));
         assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, u32::MAX, 256)));
+    }
+
+    #[test]
+    fn ticks_since_a_moment_wrap_at_the_period() {
+        assert_eq!(ticks_since(2_432, 2_432, 17_000), 0);
+        assert_eq!(ticks_since(2_460, 2_432, 17_000), 28);
+        assert_eq!(ticks_since(16_999, 2_432, 17_000), 14_567);
+        // After the update, before the moment: almost a period since the last one.
+        assert_eq!(ticks_since(0, 2_432, 17_000), 14_568);
+        assert_eq!(ticks_since(2_431, 2_432, 17_000), 16_999);
     }
 
     #[test]

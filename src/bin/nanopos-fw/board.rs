@@ -367,6 +367,13 @@ pub fn clear_of_sample(cycles: u32) -> bool {
         )
 }
 
+/// Cycles since the last conversion ended (TIM2 counts CPU cycles): read first thing in the sample interrupt, how
+/// late it started.
+#[inline(always)]
+pub fn cycles_since_conversion() -> u32 {
+    nanopos_id::hal::ticks_since(pac::TIM2.cnt().read(), CONVERSION_END_TICK, TICKS_PER_SAMPLE)
+}
+
 /// Start the sample clock.
 pub fn start_sample_clock() {
     pac::TIM2.cr1().modify(|w| w.set_cen(true));

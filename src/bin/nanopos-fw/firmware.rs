@@ -185,6 +185,7 @@ async fn main(spawner: Spawner) {
 #[link_section = ".ramtext.adc1_2"]
 fn ADC1_2() {
     let start = DWT::cycle_count();
+    let late = board::cycles_since_conversion();
     cortex_m::interrupt::free(|cs| {
         let mut task = TASK.borrow(cs).borrow_mut();
         let Some(t) = task.as_deref_mut() else {
@@ -195,7 +196,9 @@ fn ADC1_2() {
         // A controller on the estimates goes here: `t.instrument.sample_adding(&mut t.board, |y_um| command_v)`
         // adds its command to the excitation (README, "A controller on the estimates").
         let out = t.instrument.sample(&mut t.board);
-        let cycles = DWT::cycle_count().wrapping_sub(start);
+        // From the conversion's end, which is what the next conversion bounds: the interrupt's own cycles and how
+        // late it started.
+        let cycles = DWT::cycle_count().wrapping_sub(start).wrapping_add(late);
         let s = &mut t.stats;
         s.window_samples += 1;
         s.window_cycles += cycles as u64;
@@ -359,7 +362,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         let mean = if s.window_samples > 0 { (s.window_cycles / s.window_samples as u64) as u32 } else { 0 };
         let c = &st.counters;
         defmt::info!(
-            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
+            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample, from the conversion | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
             st.samples,
             mean,
             s.window_max_cycles,

@@ -9,8 +9,9 @@
 //! Deadline: the interrupt starts when the ADC's oversampled conversion ends (`t_k` + 14.3 us) and must write the
 //! next DAC code before the next sample instant loads it (`t_(k+1)`): 85.7 us, 14 568 cycles at 170 MHz. It writes
 //! the code first, then runs the filters and the estimators, which have until the next conversion ends (17 000
-//! cycles after its own). Every sample's cycle count (DWT) feeds the mean and maximum in the log; a missed deadline
-//! or an ADC overrun is counted and logged as a warning, never silent.
+//! cycles after its own). Every sample's cycles from its conversion's end to the interrupt's end (DWT, and TIM2's
+//! count for the start) feed the mean and maximum in the log; a missed deadline or an ADC overrun is counted and
+//! logged as a warning, never silent.
 #![cfg_attr(target_os = "none", no_std, no_main)]
 
 #[cfg(target_os = "none")]
