@@ -22,10 +22,10 @@ use crate::Real;
 use core::fmt::{self, Write};
 
 /// The most bytes one part of a reply takes: the console's reply buffer. The longest part is `status`'s `ok` line,
-/// 445 bytes with every counter at its widest, the longest numbers, every fault and the widest excitation (a
-/// multisine about an offset) (the whole reply 1 385 bytes, with a note at most about 1 700: the note of the EKFs'
-/// disagreement 1 669; `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`);
-/// the longest error is about 300.
+/// 490 bytes with every counter at its widest, the longest numbers, every fault and the widest excitation (a
+/// multisine about an offset) (the whole reply with the longest note, the EKFs' disagreement, 1 695 bytes;
+/// `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`); the longest error is
+/// about 300.
 pub const REPLY_BYTES: usize = 512;
 
 /// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
@@ -676,7 +676,8 @@ impl Controller {
         writeln!(
             w,
             "ok status samples={} excitation={} {} faults={} over_range={} stuck={} not_finite={} deadline_misses={} \
-             adc_overruns={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} record={}",
+             adc_overruns={} isr_cycles_max={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} \
+             record={}",
             s.samples,
             Exc(&self.chosen),
             if self.running { "running" } else { "stopped" },
@@ -686,6 +687,7 @@ impl Controller {
             c.command_not_finite,
             c.deadline_misses,
             c.adc_overruns,
+            Cycles(s.isr_cycles_max),
             c.limited,
             Num(s.command_v.to_f64().unwrap_or(f64::NAN), 6),
             Num(s.excitation_level.power.to_f64().unwrap_or(f64::NAN), 3),
@@ -919,6 +921,18 @@ struct FaultNames(Faults);
 impl fmt::Display for FaultNames {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         list(f, self.0.names())
+    }
+}
+
+/// A count of cycles, or `-` for 0, none counted.
+struct Cycles(u32);
+
+impl fmt::Display for Cycles {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
+            0 => f.write_str("-"),
+            n => write!(f, "{n}"),
+        }
     }
 }
 

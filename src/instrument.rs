@@ -79,6 +79,10 @@ pub struct Status<T> {
     pub estimates: [(StageParams<T>, Health); 4],
     /// The recorder.
     pub record: RecordStatus,
+    /// The most cycles a sample's interrupt took since start-up, from its conversion's end to its own end: the board
+    /// fills it in ([`Instrument::status`] cannot: 0, which no interrupt takes, for none counted; a `u32`, not an
+    /// `Option`, to keep the console task's copy of the snapshot within the static RAM's 16 000 bytes).
+    pub isr_cycles_max: u32,
 }
 
 /// The mailbox was full: the change comes back, to be posted again after the next sample.
@@ -283,6 +287,7 @@ impl<T: Real> Instrument<T> {
             selected: EstimatorSet(self.config.estimators & EstimatorSet::ALL.0),
             estimates: self.estimates(),
             record: self.record_status(),
+            isr_cycles_max: 0,
         }
     }
 }
@@ -695,6 +700,7 @@ mod tests {
             selected: EstimatorSet::ALL,
             estimates,
             record: RecordStatus::default(),
+            isr_cycles_max: 0,
         }
     }
 
