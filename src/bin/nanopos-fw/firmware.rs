@@ -9,7 +9,7 @@
 //!   clock ran.
 //!
 //! Thread mode touches the interrupt's state only under the lock, for copies (a posted change, 1 760 instructions on
-//! QEMU with its kilobyte, the longest; a frame of recorded samples, 276) and the status snapshot (1 714), and takes
+//! QEMU with its kilobyte, the longest; a frame of recorded samples, 276) and the status snapshot (1 713), and takes
 //! it only when the next sample's conversion ends later than such a hold ([`with_task`]): the sample interrupt starts
 //! on time (taken at any moment, the lock could delay it by about 2 000 cycles: its command, written first, would
 //! still make its deadline, but the heaviest configuration's whole interrupt, about 12 600 cycles, would end near
@@ -67,7 +67,7 @@ static TASK: Mutex<RefCell<Option<&'static mut SampleTask>>> = Mutex::new(RefCel
 static SAFE_CODE: AtomicU16 = AtomicU16::new(2048);
 
 /// The longest the tasks hold the lock: a change posted (1 760 instructions on QEMU, `lock_post_change`: a 1 KiB
-/// copy, by `memcpy` from the flash, loads and stores of 2 cycles) or the status snapshot (1 714, `status_snapshot`),
+/// copy, by `memcpy` from the flash, loads and stores of 2 cycles) or the status snapshot (1 713, `status_snapshot`),
 /// with room for their extra cycles. With the interrupt's slack either side, 4 512 cycles between the end of one
 /// sample's interrupt and the next conversion: the heaviest configuration leaves about 6 000 on a usual sample.
 const LOCK_HOLD_CYCLES: u32 = 4_000;
