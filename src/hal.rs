@@ -188,13 +188,12 @@ where
     out
 }
 
-/// Whether a critical section of `hold` ticks, started when the sample timer (counting `0..period` once a sample)
-/// reads `count`, ends before the sample interrupt is next raised, at the count `raised_at`, with `margin` ticks of
-/// slack on either side of that moment for its jitter. The firmware's thread-mode tasks take the interrupt's state
-/// under a lock that holds the interrupt off; they take it only when this holds (and the interrupt is not pending),
-/// so that holding it delays no sample.
-pub const fn clear_of_sample(count: u32, raised_at: u32, period: u32, hold: u32, margin: u32) -> bool {
-    let since = ticks_since(count, raised_at, period);
+/// Whether a critical section of `hold` ticks, started `since` ticks after the sample interrupt was last raised
+/// (a timer counting `0..period` once a sample: [`ticks_since`] the moment it is raised), ends before it is raised
+/// again, with `margin` ticks of slack on either side of that moment for its jitter. The firmware's thread-mode
+/// tasks take the interrupt's state under a lock that holds the interrupt off; they take it only when this holds
+/// (and the interrupt is not pending), so that holding it delays no sample.
+pub const fn clear_of_sample(since: u32, period: u32, hold: u32, margin: u32) -> bool {
     since >= margin && period - since >= hold.saturating_add(margin)
 }
 
@@ -237,7 +236,7 @@ mod tests {
     #[test]
     fn a_lock_is_clear_of_the_sample_only_well_after_it_and_long_enough_before_the_next() {
         // The G474's timing: 17 000 ticks a sample, the interrupt raised at 2 432, a hold of 4 000 ticks, 256 of slack.
-        let clear = |count| clear_of_sample(count, 2_432, 17_000, 4_000, 256);
+        let clear = |count| clear_of_sample(ticks_since(count, 2_432, 17_000), 17_000, 4_000, 256);
         // At the moment and within the slack after it (the interrupt may be late, or pending): no.
         assert!(!clear(2_432) && !clear(2_432 + 255));
         assert!(clear(2_432 + 256));
@@ -247,8 +246,8 @@ mod tests {
         assert!(!clear(16_999) && !clear(0) && !clear(2_431));
         // Counts beyond the period are taken modulo it; a hold that cannot fit between two samples never is.
         assert_eq!(clear(17_000 + 9_000), clear(9_000));
-        assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, 16_500, 256)));
-        assert!((0..17_000).all(|c| !clear_of_sample(c, 2_432, 17_000, u32::MAX, 256)));
+        assert!((0..17_000).all(|since| !clear_of_sample(since, 17_000, 16_500, 256)));
+        assert!((0..17_000).all(|since| !clear_of_sample(since, 17_000, u32::MAX, 256)));
     }
 
     #[test]

@@ -358,13 +358,7 @@ pub fn init(p: Peripherals, safe_code: u16) -> Parts {
 #[inline(never)]
 pub fn clear_of_sample(cycles: u32) -> bool {
     !embassy_stm32::interrupt::InterruptExt::is_pending(embassy_stm32::interrupt::ADC1_2)
-        && nanopos_id::hal::clear_of_sample(
-            pac::TIM2.cnt().read(),
-            CONVERSION_END_TICK,
-            TICKS_PER_SAMPLE,
-            cycles,
-            CONVERSION_SLACK_TICKS,
-        )
+        && nanopos_id::hal::clear_of_sample(cycles_since_conversion(), TICKS_PER_SAMPLE, cycles, CONVERSION_SLACK_TICKS)
 }
 
 /// Cycles since the last conversion ended (TIM2 counts CPU cycles): read first thing in the sample interrupt, how

@@ -76,19 +76,14 @@ const LOCK_HOLD_CYCLES: u32 = 4_000;
 /// for [`LOCK_HOLD_CYCLES`] delays no sample ([`mask_clear_of_sample`]).
 fn with_task<R>(f: impl FnOnce(&mut SampleTask) -> R) -> Option<R> {
     let was_active = mask_clear_of_sample();
-    // SAFETY: the interrupts are masked from `mask_clear_of_sample` to the end of this block.
-    let out = unsafe { f_masked(f, &cortex_m::interrupt::CriticalSection::new()) };
+    // SAFETY: the interrupts are masked from `mask_clear_of_sample` until they are unmasked below.
+    let cs = unsafe { cortex_m::interrupt::CriticalSection::new() };
+    let out = TASK.borrow(&cs).borrow_mut().as_deref_mut().map(f);
     if was_active {
         // SAFETY: they were on before `mask_clear_of_sample`; `f` is done with the lock.
         unsafe { cortex_m::interrupt::enable() };
     }
     out
-}
-
-/// `f` on the interrupt's state, in the critical section `cs`.
-#[inline(always)]
-fn f_masked<R>(f: impl FnOnce(&mut SampleTask) -> R, cs: &cortex_m::interrupt::CriticalSection) -> Option<R> {
-    TASK.borrow(cs).borrow_mut().as_deref_mut().map(f)
 }
 
 /// Mask the interrupts at a moment when holding them off for [`LOCK_HOLD_CYCLES`] delays no sample
@@ -369,7 +364,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         if gate.may_feed(st.samples) {
             watchdog.pet();
         }
-        let mean = if s.window_samples > 0 { s.window_cycles / s.window_samples } else { 0 };
+        let mean = s.window_cycles.checked_div(s.window_samples).unwrap_or(0);
         let c = &st.counters;
         defmt::info!(
             "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample, from the conversion | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
