@@ -356,18 +356,16 @@ fn check_tasks_lock_clear_of_samples(elf: &Elf) {
     let functions = elf.functions();
     let instances: Vec<_> =
         functions.iter().filter(|f| f.2.contains("firmware20mask_clear_of_sample") && f.1 > 0).collect();
-    assert!(instances.len() == 1, "mask_clear_of_sample: {instances:?} (inlined?)");
-    for &&(start, len, name) in &instances {
-        let code = elf.instructions(start, len);
-        let masked = code.iter().position(|&(_, h1, h2)| masks_interrupts(h1, h2));
-        let asks = code.iter().position(|&(pc, h1, h2)| {
-            let callee = h2.and_then(|h2| branch_target(pc, h1, h2));
-            callee.and_then(|a| functions.iter().find(|f| f.0 == a)).is_some_and(|f| f.2.contains("clear_of_sample"))
-        });
-        assert!(
-            matches!((masked, asks), (Some(m), Some(a)) if m < a),
-            "{name} does not ask board::clear_of_sample with interrupts masked (mask at {masked:?}, ask at {asks:?})"
-        );
-    }
+    let &[&(start, len, name)] = instances.as_slice() else { panic!("mask_clear_of_sample: {instances:?} (inlined?)") };
+    let code = elf.instructions(start, len);
+    let masked = code.iter().position(|&(_, h1, h2)| masks_interrupts(h1, h2));
+    let asks = code.iter().position(|&(pc, h1, h2)| {
+        let callee = h2.and_then(|h2| branch_target(pc, h1, h2));
+        callee.and_then(|a| functions.iter().find(|f| f.0 == a)).is_some_and(|f| f.2.contains("clear_of_sample"))
+    });
+    assert!(
+        matches!((masked, asks), (Some(m), Some(a)) if m < a),
+        "{name} does not ask board::clear_of_sample with interrupts masked (mask at {masked:?}, ask at {asks:?})"
+    );
     println!("firmware: the tasks take the lock only clear of a sample");
 }
