@@ -345,7 +345,11 @@ impl Reader {
     }
 
     /// Check that time advances by a constant step (to a relative 1e-6 of the step, which printed decimal times
-    /// meet) over the block `t`, which follows the rows read so far; or the row of the block that breaks it.
+    /// meet, and 1e-12 of the time, for its rounding) over the block `t`, which follows the rows read so far; or the
+    /// row of the block that breaks it. The step is measured again, from the first row, at each row whose index is a
+    /// power of two: the first difference alone carries the rounding of the first time (an ulp of 10 s is 1.8e-15 s,
+    /// 1.8e-11 of a 0.1 ms step), which `t0 + k step` multiplies by `k`, and a record that started at 10 s (a
+    /// simulated one cropped) broke the tolerance 83 s on.
     fn check_time(&mut self, t: &[f64]) -> Result<(), (usize, String)> {
         for (i, &now) in t.iter().enumerate() {
             let k = self.rows + i;
@@ -369,6 +373,9 @@ impl Reader {
                                 show_within(step, 1e-6 * step)
                             ),
                         ));
+                    }
+                    if k.is_power_of_two() {
+                        self.step = Some((now - t0) / k as f64);
                     }
                 }
             }
@@ -570,6 +577,38 @@ mod tests {
         assert_eq!(show_within(4.9998000000000005, 1e-10), "4.9998");
         assert_eq!(show_within(1e-4, 1e-10), "0.0001");
         assert_eq!(show_within(1e300, 1.0), "1e300");
+    }
+
+    /// Time that starts far from 0 (a record cropped, a logger's clock): the first difference carries the start's
+    /// rounding, which `t0 + k step` multiplied by `k` until the check refused a uniform record ("time 1004.3997
+    /// breaks the uniform sampling" at 1000 s, 44 000 rows on). A missing sample is still found at its line.
+    #[test]
+    fn time_far_from_zero_is_uniform_and_a_hole_is_still_found() {
+        // Times printed as a logger would, from whole ticks of 0.1 ms: `-4.9999`, `1000.0001`.
+        let rows = |t0_ticks: i64, n: i64, hole_at: Option<i64>| {
+            let mut s = String::from("t,y\n");
+            for k in 0..n {
+                let tick = t0_ticks + k + hole_at.map_or(0, |h| (k >= h) as i64);
+                let sign = if tick < 0 { "-" } else { "" };
+                s += &format!("{sign}{}.{:04},{k}\n", tick.abs() / 10_000, tick.abs() % 10_000);
+            }
+            s
+        };
+        for t0_s in [1000, 100, -5] {
+            let path = file("far.csv", &rows(t0_s * 10_000, 100_000, None));
+            let read = read_columns(&path, &["y"], Time::Required);
+            let c = read.unwrap_or_else(|e| panic!("t0 {t0_s} s: {}", e.0));
+            assert_eq!(c.data[0].len(), 100_000);
+            let period = c.sample_period_s.unwrap();
+            assert!((period / 1e-4 - 1.0).abs() < 1e-12, "t0 {t0_s} s: {period:e}");
+        }
+        let path = file("hole.csv", &rows(1000 * 10_000, 100_000, Some(60_000)));
+        let e = read_columns(&path, &["y"], Time::Required).unwrap_err();
+        assert!(
+            e.0.ends_with("hole.csv:60002: time 1006.0001 breaks the uniform sampling (expected 1006, step 0.0001)"),
+            "{}",
+            e.0
+        );
     }
 
     #[test]
