@@ -500,6 +500,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     )
     .unwrap();
     std::fs::write(d.join("no_t.csv"), "u,y\n0,0\n").unwrap();
+    // `t` in ms.
+    std::fs::write(
+        d.join("ms.csv"),
+        (0..100).map(|k| format!("{:.1},0,0\n", k as f64 * 0.1)).fold("t,u,y\n".to_string(), |a, b| a + &b),
+    )
+    .unwrap();
     std::fs::write(d.join("late.csv"), "t,u,y\n1e300,0,0\n1.0000000000000001e300,0,0\n").unwrap();
     // A pre-filter the RLS's RK4 follows at the board's 10 kHz (|lambda T| = 0.75) but not at this record's 2.5 kHz.
     std::fs::write(
@@ -514,6 +520,11 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
+        (
+            &["identify", "--input", "ms.csv"],
+            "ms.csv: a sample every 0.1 s (10 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's f_p), \
+             which needs more than 900 samples a second: is t in seconds?",
+        ),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),
         (&["identify", "--input", "ok.csv", "--tuning", "fast"], "'fast' is neither a preset"),

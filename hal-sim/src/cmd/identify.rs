@@ -279,6 +279,19 @@ fn identify_blocks<T: Real>(
     // The tuning at the record's sample period: its values' ranges and whether the estimators can run it depend on
     // it (a tuning is not checked at the board's 10 kHz when it is read).
     let (name, tuning) = (&tuning.name, tuning.at(dt)?);
+    // A time column in ms or in samples reads as a record sampled 1 000 or 10 000 times too slowly: say that, rather
+    // than what it does to the pre-filter's RK4 step.
+    let f_p = tuning.rls.prefilter.f_p_hz;
+    if 1.0 / dt <= 2.0 * f_p {
+        return fail(format!(
+            "{source}: a sample every {} s ({} Hz) cannot show the pre-filter's band at {} Hz ({name}'s f_p), which \
+             needs more than {} samples a second: is t in seconds?",
+            show(dt),
+            show(1.0 / dt),
+            show(f_p),
+            show(2.0 * f_p)
+        ));
+    }
     tuning.runnable::<T>().map_err(|u| {
         CliError(format!("{name}: at the sample period of {source} ({} s), in {}: {u}", show(dt), T::NAME))
     })?;
