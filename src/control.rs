@@ -356,7 +356,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             })
         }
         "tune" => {
-            const SECTIONS: &str = "initial, prefilter, stage, rls, ekf or arx";
+            const SECTIONS: &str = "initial, prefilter, stage, rls, ekf (both EKFs) or arx";
             let (word, section) = words.next(SECTIONS)?;
             if section == "stage" {
                 let (word, name) = words.next(ESTIMATOR)?;
@@ -600,7 +600,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 45] = [
+        let cases: [(&[u8], ParseError); 46] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -636,8 +636,13 @@ mod tests {
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
             (b"status\xff", NotAscii { at: 6 }),
-            (b"tune", Missing { word: 2, expected: "initial, prefilter, stage, rls, ekf or arx" }),
-            (b"tune kalman q 1", Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf or arx" }),
+            (b"tune", Missing { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" }),
+            (
+                b"tune kalman q 1",
+                Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" },
+            ),
+            // The hybrid EKF's keys are the continuous one's section's.
+            (b"tune hekf q 1", Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" }),
             (b"tune stage", Missing { word: 3, expected: ESTIMATOR }),
             (b"tune stage 5e5", Invalid { word: 3, expected: ESTIMATOR }),
             (b"tune stage arx 1", Extra { word: 4 }),
