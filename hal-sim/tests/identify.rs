@@ -394,6 +394,37 @@ fn wild_samples_are_noted() {
     assert!(notes(&run).is_empty(), "the record as simulated");
 }
 
+/// A reading that never changes (a stuck probe, or the wrong column: here `y` all zeros under the PRBS) is said to
+/// be one, per window; the models' misfits against each other, which every model fitting zeros to within rounding
+/// made ratios of 1e45 and more, are not.
+#[test]
+fn a_reading_that_never_changes_is_noted_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "8");
+    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
+    let zeros: String = run
+        .lines()
+        .enumerate()
+        .map(|(i, line)| {
+            let mut f: Vec<&str> = line.split(',').collect();
+            if i > 0 {
+                f[2] = "0";
+            }
+            f.join(",") + "\n"
+        })
+        .collect();
+    std::fs::write(d.join("still.csv"), zeros).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "still.csv", "--summary", "s.json"], d);
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(out.status.success(), "{stderr}");
+    for w in ["3:4", "7:8"] {
+        let note = format!("note: window {w}: y does not change over it: there is nothing to identify from");
+        assert!(stderr.contains(&note), "{stderr}");
+    }
+    assert!(!stderr.contains("times worse"), "{stderr}");
+}
+
 /// A record no stage could produce (an unstable plant, `a0 = -1e4`, under a PRBS: the reading grows to 1e21 um in
 /// 0.5 s) drives estimates where the derived quantities have no value (the hybrid EKF's `a0 < 0`: no `f0`): the
 /// summary says `null`, and stays JSON (it wrote `NaN`). (The record this test used, the probe pinned at 1e30 um,

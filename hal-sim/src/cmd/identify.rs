@@ -706,7 +706,8 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// where the pre-filter's centre is far from the resonance ([`PrefilterDesign::off_resonance`]: the estimates can
 /// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
 /// board's console takes it; where another's model fits the window far better, that one's); and where that
-/// resonance is beyond `w T` 0.5 with the continuous EKF run, that its `a1` comes out low there.
+/// resonance is beyond `w T` 0.5 with the continuous EKF run, that its `a1` comes out low there; and per window
+/// where the reading does not change at all.
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -731,6 +732,16 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 show(last),
                 show(w.t0.max(first)),
                 show(w.t1.min(last))
+            ));
+        }
+        // A reading that does not move (a stuck probe, a column of zeros): nothing to identify from, and every model
+        // fits it to within rounding, which makes the ratios of [`misfit`] meaningless (1e45 and more).
+        let still = figs.first().is_some_and(|f| f.reading_rms_nm == 0.0);
+        if still {
+            notes.push(format!(
+                "window {}:{}: y does not change over it: there is nothing to identify from (a stuck probe, or a \
+                 column that is not the reading?)",
+                w.t0, w.t1
             ));
         }
         // A reading the best model explains little of: noise alone (a disconnected probe) or an input too small.
@@ -807,7 +818,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                     sig(m.a1),
                     sig(m.b0)
                 ));
-            } else if let Some(best) = misfit(figs, f) {
+            } else if let Some(best) = misfit(figs, f).filter(|_| !still) {
                 notes.push(format!(
                     "{name}'s model fits window {}:{} {} times worse than {}'s (validation RMSE {} nm against {}): \
                      its estimates there are not to be trusted (not yet converged, or diverged)",
