@@ -550,6 +550,15 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
         out.status.success() && stderr.contains("100 samples (0.01 s at 10000 Hz) from board sample 5000"),
         "{stderr}"
     );
+    // A capture of two recordings: decoding the first says that there is a second (it went unmentioned).
+    std::fs::write(dir.path().join("pair.txt"), capture(100, 0) + &capture(100, 5000)).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "pair.txt", "--out", "pair.csv"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let note = "note: pair.txt: the capture holds 2 recordings; this is recording 1 (--recording 2 decodes the next)";
+    assert!(out.status.success() && stderr.contains(note), "{stderr}");
+    let out = nanopos_sim(&["decode", "--input", "pair.txt", "--out", "pair2.csv", "--recording", "2"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !stderr.contains("recordings"), "{stderr}");
 
     let cut = lines[..lines.len() - 3].iter().chain(&lines[lines.len() - 2..]).copied().collect::<Vec<_>>();
     std::fs::write(dir.path().join("cut.txt"), cut.join("\n")).unwrap();

@@ -200,6 +200,8 @@ pub fn run(
     // Between a recording's header and its end line; and the first intact frame seen outside any (before the
     // chosen recording): its header was lost, or the capture began after it.
     let (mut inside, mut orphan) = (false, None);
+    // Past the chosen recording: the rest of the capture is only searched for the recordings after it.
+    let mut done = false;
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
@@ -215,10 +217,11 @@ pub fn run(
         let version = [(HEADER_TAG, Some(true)), (HEADER_TAG_V1, Some(false)), (HEADER_PREFIX, None)]
             .into_iter()
             .find(|(tag, _)| line.starts_with(tag) && !line.starts_with(END_TAG));
+        if done || (version.is_some() && chosen.is_some()) {
+            (found, done) = (found + version.is_some() as usize, true);
+            continue;
+        }
         if let Some((_, version)) = version {
-            if chosen.is_some() {
-                break;
-            }
             (found, inside) = (found + 1, true);
             if found == which {
                 let Some(checked) = version else {
@@ -275,7 +278,8 @@ pub fn run(
                     ),
                 )?,
             }
-            break;
+            done = true;
+            continue;
         }
         if line.starts_with(TUNING_TAG) {
             tuning.read(line, line_no, r, &name);
@@ -351,6 +355,13 @@ pub fn run(
             }))
         }
     };
+    if found > which {
+        rec.notes.push(format!(
+            "{name}: the capture holds {found} recordings; this is recording {which} (--recording {} decodes the \
+             next)",
+            which + 1
+        ));
+    }
     if let Some(l) = orphan {
         rec.notes.push(format!(
             "{name}:{l}: frames outside any recording before this one: {ORPHANS}, so this one may be numbered one \
