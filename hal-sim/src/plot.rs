@@ -40,14 +40,14 @@ pub fn svg(r: &Identified) -> Result<String, String> {
                     }
                 }
             }
-            if relative {
-                // Show +-20 % at most: the start from the initial guess would otherwise flatten the rest.
-                lo = lo.max(-20.0);
-                hi = hi.min(20.0);
+            if relative && lo.max(-20.0) < hi.min(20.0) {
+                // Show +-20 % at most: the start from the initial guess would otherwise flatten the rest. Unless no
+                // estimate is within it (held away from the truth: a record without excitation): then their range.
+                (lo, hi) = (lo.max(-20.0), hi.min(20.0));
             }
-            if lo >= hi || lo.is_nan() || hi.is_nan() {
-                lo -= 1.0;
-                hi += 1.0;
+            if lo >= hi {
+                // One value, or none finite (a truth of 0).
+                (lo, hi) = if lo.is_finite() { (lo - 1.0, hi + 1.0) } else { (-1.0, 1.0) };
             }
             let caption = if relative { format!("{label}: error against the truth, %") } else { label.to_string() };
             let mut chart = ChartBuilder::on(panel)

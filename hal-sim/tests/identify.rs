@@ -425,6 +425,33 @@ fn a_reading_that_never_changes_is_noted_as_such() {
     assert!(!stderr.contains("times worse"), "{stderr}");
 }
 
+/// The plot of a record without excitation: every estimator held at the initial parameters, -38 % in `b0` against
+/// the truth, beyond the +-20 % the relative panels show. Their range was then empty, and drawing panicked (exit
+/// code 101, no file).
+#[test]
+fn the_plot_of_estimates_held_far_from_the_truth_is_drawn() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "4");
+    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
+    let still: String = run
+        .lines()
+        .enumerate()
+        .map(|(i, line)| {
+            let mut f: Vec<&str> = line.split(',').collect();
+            if i > 0 {
+                f[1] = "0";
+            }
+            f.join(",") + "\n"
+        })
+        .collect();
+    std::fs::write(d.join("no_input.csv"), still).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "no_input.csv", "--summary", "s.json", "--plot", "p.svg"], d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let svg = std::fs::read_to_string(d.join("p.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("b0 (um/s^2 V): error against the truth, %"));
+}
+
 /// A record no stage could produce (an unstable plant, `a0 = -1e4`, under a PRBS: the reading grows to 1e21 um in
 /// 0.5 s) drives estimates where the derived quantities have no value (the hybrid EKF's `a0 < 0`: no `f0`): the
 /// summary says `null`, and stays JSON (it wrote `NaN`). (The record this test used, the probe pinned at 1e30 um,
