@@ -425,6 +425,37 @@ fn a_reading_that_never_changes_is_noted_as_such() {
     assert!(!stderr.contains("times worse"), "{stderr}");
 }
 
+/// A reading a million times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre
+/// and the hybrid one's means make a model that runs away in the validation. Its note said "NaN times worse ...
+/// (validation RMSE NaN nm ...)"; now that the validation is not finite.
+#[test]
+fn a_validation_that_runs_away_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "8");
+    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
+    let scaled: String = run
+        .lines()
+        .enumerate()
+        .map(|(i, line)| {
+            let mut f: Vec<String> = line.split(',').map(str::to_string).collect();
+            if i > 0 {
+                f[2] = format!("{:?}", f[2].parse::<f64>().unwrap() * 1e6);
+            }
+            f.join(",") + "\n"
+        })
+        .collect();
+    std::fs::write(d.join("pm.csv"), scaled).unwrap();
+    let out = nanopos_sim(&["identify", "--input", "pm.csv", "--summary", "s.json"], d);
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("note: hekf's model does not fit window 3:4 at all: its validation is not finite"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("NaN"), "{stderr}");
+}
+
 /// The plot of a record without excitation: every estimator held at the initial parameters, -38 % in `b0` against
 /// the truth, beyond the +-20 % the relative panels show. Their range was then empty, and drawing panicked (exit
 /// code 101, no file).

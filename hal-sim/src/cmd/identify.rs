@@ -818,6 +818,16 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                     sig(m.a1),
                     sig(m.b0)
                 ));
+            } else if let Some(best) = misfit(figs, f).filter(|_| !still && !f.rmse_nm.is_finite()) {
+                notes.push(format!(
+                    "{name}'s model does not fit window {}:{} at all: its validation is not finite (the model with \
+                     its means runs away), against {}'s RMSE of {} nm: its estimates there are not to be trusted \
+                     (not yet converged, or diverged)",
+                    w.t0,
+                    w.t1,
+                    r.names[best],
+                    sig(figs[best].rmse_nm)
+                ));
             } else if let Some(best) = misfit(figs, f).filter(|_| !still) {
                 notes.push(format!(
                     "{name}'s model fits window {}:{} {} times worse than {}'s (validation RMSE {} nm against {}): \
