@@ -13,6 +13,27 @@ fn simulate_prbs(dir: &Path, seconds: &str) {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// `run.csv` in `dir` with field `column` of every row (not the header's) replaced by `f` of it, written to `name`.
+fn rewrite_column(dir: &Path, name: &str, column: usize, f: impl Fn(&str) -> String) {
+    let run = std::fs::read_to_string(dir.join("run.csv")).unwrap();
+    let mut lines = run.lines();
+    let mut text = lines.next().unwrap().to_string() + "\n";
+    for line in lines {
+        let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
+        fields[column] = f(&fields[column]);
+        text += &(fields.join(",") + "\n");
+    }
+    std::fs::write(dir.join(name), text).unwrap();
+}
+
+/// What `identify` with all four estimators says on standard error about `input` in `dir` (it must succeed).
+fn identify_notes(dir: &Path, input: &str) -> String {
+    let out = nanopos_sim(&["identify", "--input", input, "--summary", "s.json"], dir);
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(out.status.success(), "{stderr}");
+    stderr
+}
+
 #[test]
 fn identify_writes_estimates_and_a_summary_of_a_simulated_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -402,22 +423,8 @@ fn a_reading_that_never_changes_is_noted_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulate_prbs(d, "8");
-    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
-    let zeros: String = run
-        .lines()
-        .enumerate()
-        .map(|(i, line)| {
-            let mut f: Vec<&str> = line.split(',').collect();
-            if i > 0 {
-                f[2] = "0";
-            }
-            f.join(",") + "\n"
-        })
-        .collect();
-    std::fs::write(d.join("still.csv"), zeros).unwrap();
-    let out = nanopos_sim(&["identify", "--input", "still.csv", "--summary", "s.json"], d);
-    let stderr = String::from_utf8(out.stderr).unwrap();
-    assert!(out.status.success(), "{stderr}");
+    rewrite_column(d, "still.csv", 2, |_| "0".to_string());
+    let stderr = identify_notes(d, "still.csv");
     for w in ["3:4", "7:8"] {
         let note = format!("note: window {w}: y does not change over it: there is nothing to identify from");
         assert!(stderr.contains(&note), "{stderr}");
@@ -433,22 +440,8 @@ fn a_validation_that_runs_away_is_named_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulate_prbs(d, "8");
-    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
-    let scaled: String = run
-        .lines()
-        .enumerate()
-        .map(|(i, line)| {
-            let mut f: Vec<String> = line.split(',').map(str::to_string).collect();
-            if i > 0 {
-                f[2] = format!("{:?}", f[2].parse::<f64>().unwrap() * 1e6);
-            }
-            f.join(",") + "\n"
-        })
-        .collect();
-    std::fs::write(d.join("pm.csv"), scaled).unwrap();
-    let out = nanopos_sim(&["identify", "--input", "pm.csv", "--summary", "s.json"], d);
-    let stderr = String::from_utf8(out.stderr).unwrap();
-    assert!(out.status.success(), "{stderr}");
+    rewrite_column(d, "pm.csv", 2, |y| format!("{:?}", y.parse::<f64>().unwrap() * 1e6));
+    let stderr = identify_notes(d, "pm.csv");
     assert!(
         stderr.contains("note: hekf's model does not fit window 3:4 at all: its validation is not finite"),
         "{stderr}"
@@ -464,19 +457,7 @@ fn the_plot_of_estimates_held_far_from_the_truth_is_drawn() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulate_prbs(d, "4");
-    let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
-    let still: String = run
-        .lines()
-        .enumerate()
-        .map(|(i, line)| {
-            let mut f: Vec<&str> = line.split(',').collect();
-            if i > 0 {
-                f[1] = "0";
-            }
-            f.join(",") + "\n"
-        })
-        .collect();
-    std::fs::write(d.join("no_input.csv"), still).unwrap();
+    rewrite_column(d, "no_input.csv", 1, |_| "0".to_string());
     let out = nanopos_sim(&["identify", "--input", "no_input.csv", "--summary", "s.json", "--plot", "p.svg"], d);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let svg = std::fs::read_to_string(d.join("p.svg")).unwrap();
