@@ -107,6 +107,10 @@ enum Command {
         /// Weight row k of N by A GAMMA^(N-k).
         #[arg(long, value_name = "A,GAMMA", allow_hyphen_values = true)]
         weight: Option<hal_sim::cmd::fit::Weight>,
+        /// Fit a constant term c as well (y sitting off the model: the probe's zero, the stage's position), printed
+        /// as "c".
+        #[arg(long)]
+        offset: bool,
     },
     /// The firmware's console on the simulated board: commands on standard input, the board's replies and recording
     /// stream on standard output (what `decode` reads), at the board's pace.
@@ -333,8 +337,8 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
             hal_sim::cmd::console::run(args, std::io::stdin(), &mut link, &mut log).map(|_| ())
         }
-        Command::Fit { input, arx, zero_initial, weight } => {
-            let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight)?;
+        Command::Fit { input, arx, zero_initial, weight, offset } => {
+            let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight, offset)?;
             for note in &fit.notes {
                 eprintln!("nanopos-sim: note: {note}");
             }

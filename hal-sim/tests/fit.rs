@@ -104,6 +104,46 @@ fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
     }
 }
 
+/// The noise-free ARX above, read 2 um off (the probe's zero): the model has no constant, and every coefficient came
+/// out biased without a word. A note now says that a constant would lower the residual and how far `y` sits off;
+/// `--offset` fits the constant `c` too, the coefficients exact again and `c = 2 (1 - a1 - a2)`. The record without
+/// the offset gets no note (its residuals are rounding).
+#[test]
+fn an_offset_of_y_is_noted_and_fitted_with_offset() {
+    let (u, y) = noise_free_arx();
+    let dir = tempfile::tempdir().unwrap();
+    let csv = |offset: f64| {
+        let rows = (0..u.len()).map(|k| format!("{},{:?},{:?}\n", k as f64 * 1e-4, u[k], y[k] + offset));
+        rows.fold(String::from("t,u,y\n"), |a, r| a + &r)
+    };
+    write(dir.path(), "off.csv", &csv(2.0));
+    write(dir.path(), "on.csv", &csv(0.0));
+    let fit = |file: &str, offset: bool| {
+        let mut args = vec!["fit", "--input", file, "--arx", "2,2,2"];
+        if offset {
+            args.push("--offset");
+        }
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        (String::from_utf8(out.stdout).unwrap(), String::from_utf8(out.stderr).unwrap())
+    };
+    let (json, stderr) = fit("off.csv", false);
+    assert!(stderr.contains("note: a constant term would lower the fit's residual by "), "{stderr}");
+    assert!(stderr.contains(", y 2.00 um off): y sits off the model"), "{stderr}");
+    let (a, _, _, _) = parse(&json);
+    assert!((a[0] - 1.5).abs() > 1e-3, "biased: {json}");
+    let (json, stderr) = fit("off.csv", true);
+    assert!(stderr.is_empty(), "{stderr}");
+    let (a, b, _, _) = parse(&json);
+    for (got, want) in a.iter().chain(&b).zip([1.5, -0.7, 0.3, 0.1]) {
+        assert!((got - want).abs() < 1e-9, "{got} vs {want}: {json}");
+    }
+    let c: f64 = json.split("\"c\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap();
+    assert!((c - 2.0 * (1.0 - 1.5 + 0.7)).abs() < 1e-9, "{json}");
+    let (_, stderr) = fit("on.csv", false);
+    assert!(stderr.is_empty(), "{stderr}");
+}
+
 /// One wild sample (a glitch, or a logger's overflow value) decides a least-squares fit, which weighs each sample by
 /// its square: the noise-free ARX above, recovered to 1e-9, is lost with one `y` 10^4 times the record's level. The
 /// fit cannot tell; a note on standard error names the sample. The record without it gets none.
