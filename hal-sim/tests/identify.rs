@@ -628,6 +628,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--dac-step", "nan"], "'nan': expected the input's step"),
         (&["identify", "--input", "ok.csv", "--precision", "f16"], "invalid value 'f16' for '--precision"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
+        // 10 ms: its default windows fall between the 100 Hz rows.
+        (
+            &["identify", "--input", "ok.csv"],
+            "ok.csv: window 0.00375:0.005 holds no estimate (the record covers 0 to 0.0099 s; estimates are taken \
+             every 0.01 s from 0.0099 s)",
+        ),
         // In exponent form, not the 301 digits of `Display`.
         (&["identify", "--input", "late.csv", "--out", "e.csv"], "late.csv:3: time 1e300 does not advance from 1e300"),
         (&["identify", "--input", "ok.csv", "--window", "1e-300:1e-299"], "window 1e-300:1e-299 holds no estimate"),

@@ -425,8 +425,13 @@ fn identify_blocks<T: Real>(
         let keep = &kept[i.min(kept.len() - 1)];
         let rows: Vec<usize> = (0..times.len()).filter(|&i| times[i] >= w.t0 && times[i] < w.t1).collect();
         if rows.is_empty() {
+            // A record of a few tens of ms: its default windows can fall between the rows.
+            let rows_at = match times.first() {
+                Some(&t) => format!("estimates are taken every {} s from {} s", show(every as f64 * dt), show(t)),
+                None => format!("it is shorter than the {} s between estimates", show(every as f64 * dt)),
+            };
             return fail(format!(
-                "{source}: window {}:{} holds no estimate (the record covers {} to {} s)",
+                "{source}: window {}:{} holds no estimate (the record covers {} to {} s; {rows_at})",
                 show(w.t0),
                 show(w.t1),
                 show(t_first),
