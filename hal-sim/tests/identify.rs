@@ -26,6 +26,13 @@ fn rewrite_column(dir: &Path, name: &str, column: usize, f: impl Fn(&str) -> Str
     std::fs::write(dir.join(name), text).unwrap();
 }
 
+/// What `identify` says of an 8 s PRBS record (`run.csv` in `dir`) whose `y` went through `f`, written to `name`.
+fn notes_with_y(dir: &Path, name: &str, f: impl Fn(&str) -> String) -> String {
+    simulate_prbs(dir, "8");
+    rewrite_column(dir, name, 2, f);
+    identify_notes(dir, name)
+}
+
 /// What `identify` with all four estimators says on standard error about `input` in `dir` (it must succeed).
 fn identify_notes(dir: &Path, input: &str) -> String {
     let out = nanopos_sim(&["identify", "--input", input, "--summary", "s.json"], dir);
@@ -422,9 +429,7 @@ fn wild_samples_are_noted() {
 fn a_reading_that_never_changes_is_noted_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    simulate_prbs(d, "8");
-    rewrite_column(d, "still.csv", 2, |_| "0".to_string());
-    let stderr = identify_notes(d, "still.csv");
+    let stderr = notes_with_y(d, "still.csv", |_| "0".to_string());
     for w in ["3:4", "7:8"] {
         let note = format!("note: window {w}: y does not change over it: there is nothing to identify from");
         assert!(stderr.contains(&note), "{stderr}");
@@ -439,9 +444,7 @@ fn a_reading_that_never_changes_is_noted_as_such() {
 fn a_validation_that_runs_away_is_named_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    simulate_prbs(d, "8");
-    rewrite_column(d, "pm.csv", 2, |y| format!("{:?}", y.parse::<f64>().unwrap() * 1e6));
-    let stderr = identify_notes(d, "pm.csv");
+    let stderr = notes_with_y(d, "pm.csv", |y| format!("{:?}", y.parse::<f64>().unwrap() * 1e6));
     assert!(
         stderr.contains("note: hekf's model does not fit window 3:4 at all: its validation is not finite"),
         "{stderr}"
@@ -457,9 +460,7 @@ fn a_validation_that_runs_away_is_named_as_such() {
 fn an_offset_of_the_reading_is_noted_and_the_estimators_compared_about_it() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    simulate_prbs(d, "8");
-    rewrite_column(d, "offset.csv", 2, |y| format!("{:?}", y.parse::<f64>().unwrap() + 50.0));
-    let stderr = identify_notes(d, "offset.csv");
+    let stderr = notes_with_y(d, "offset.csv", |y| format!("{:?}", y.parse::<f64>().unwrap() + 50.0));
     for w in ["3:4", "7:8"] {
         let offset = format!("note: window {w}: the reading sits ");
         assert!(stderr.contains(&offset), "{stderr}");

@@ -3,9 +3,9 @@
 //!
 //! The capture may hold anything else the link carried (command replies, several recordings): only the chosen
 //! recording's header, frames and end line are decoded, and the rest of the capture is read for the headers of the
-//! recordings after it, which a note counts (decoding the first of two said nothing of the second). `t` counts from the recording's first sample; `u` is the
-//! command in effect over the sample period (V) and `y` the probe reading at its start (um), the convention of
-//! `simulate` and of the pipeline.
+//! recordings after it, which a note counts (decoding the first of two said nothing of the second). `t` counts from
+//! the recording's first sample; `u` is the command in effect over the sample period (V) and `y` the probe reading at
+//! its start (um), the convention of `simulate` and of the pipeline.
 //!
 //! **Damage.** A frame whose checksum fails, and a gap between frames (lines lost in the capture), are errors that
 //! name the capture's line: `identify` needs uniformly sampled data, and a hole must not be bridged silently. With

@@ -212,12 +212,12 @@ pub fn run(
                     let gain = 1.0 - sc.theta[..orders.na].iter().sum::<f64>();
                     notes.push(format!(
                         "a constant term would lower the fit's residual by {:.1} % (c = {}{}): y sits off the model \
-                         (the probe's zero, the stage's position, or a low-frequency response the model misses), which biases \
-                         every coefficient; --offset fits c too",
+                         (the probe's zero, the stage's position, or a low-frequency response the model misses), \
+                         which biases every coefficient; --offset fits c too",
                         100.0 * lower,
-                        super::sig(sc.theta[n]),
+                        super::sig(sc.theta[orders.na + orders.nb]),
                         if gain.abs() > 1e-9 {
-                            format!(", y {} um off", super::sig(sc.theta[n] / gain))
+                            format!(", y {} um off", super::sig(sc.theta[orders.na + orders.nb] / gain))
                         } else {
                             String::new()
                         }

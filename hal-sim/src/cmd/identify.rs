@@ -743,7 +743,7 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
 /// board's console takes it; where another's model fits the window far better, that one's); and where that
 /// resonance is beyond `w T` 0.5 with the continuous EKF run, that its `a1` comes out low there; and per window
-/// where the reading does not change at all.
+/// where the reading does not change at all, or sits off the best model by more than [`OFFSET_MIN`] of its RMSE.
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -870,27 +870,26 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                     sig(m.a1),
                     sig(m.b0)
                 ));
-            } else if let Some(best) = misfit(figs, f).filter(|_| !still && !f.rmse_nm.is_finite()) {
-                notes.push(format!(
-                    "{name}'s model does not fit window {}:{} at all: its validation is not finite (the model with \
-                     its means runs away), against {}'s RMSE of {} nm: its estimates there are not to be trusted \
-                     (not yet converged, or diverged)",
-                    w.t0,
-                    w.t1,
-                    r.names[best],
-                    sig(figs[best].fit_nm)
-                ));
             } else if let Some(best) = misfit(figs, f).filter(|_| !still) {
-                notes.push(format!(
-                    "{name}'s model fits window {}:{} {} times worse than {}'s (validation RMSE {} nm against {}): \
-                     its estimates there are not to be trusted (not yet converged, or diverged)",
-                    w.t0,
-                    w.t1,
-                    sig(f.fit_nm / figs[best].fit_nm),
-                    r.names[best],
-                    sig(f.fit_nm),
-                    sig(figs[best].fit_nm)
-                ));
+                let (best_name, best_nm) = (r.names[best], sig(figs[best].fit_nm));
+                notes.push(if f.fit_nm.is_finite() {
+                    format!(
+                        "{name}'s model fits window {}:{} {} times worse than {best_name}'s (validation RMSE {} nm \
+                         against {best_nm}): its estimates there are not to be trusted (not yet converged, or \
+                         diverged)",
+                        w.t0,
+                        w.t1,
+                        sig(f.fit_nm / figs[best].fit_nm),
+                        sig(f.fit_nm),
+                    )
+                } else {
+                    format!(
+                        "{name}'s model does not fit window {}:{} at all: its validation is not finite (the model \
+                         with its means runs away), against {best_name}'s RMSE of {best_nm} nm: its estimates there \
+                         are not to be trusted (not yet converged, or diverged)",
+                        w.t0, w.t1,
+                    )
+                });
             }
             if f.resets > 0 {
                 notes.push(format!(
@@ -905,15 +904,15 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
     notes
 }
 
-/// The estimator whose validation RMSE in the window is the lowest, when `f`'s is more than [`MISFIT`] times it (or
-/// not finite).
+/// The estimator whose validation RMSE about the reading's offset ([`WindowFigures::fit_nm`]) in the window is the
+/// lowest, when `f`'s is more than [`MISFIT`] times it (or not finite).
 fn misfit(figs: &[WindowFigures], f: &WindowFigures) -> Option<usize> {
     let best = best_fit(figs)?;
     let worse = !f.fit_nm.is_finite() || f.fit_nm > MISFIT * figs[best].fit_nm;
     (worse && figs[best].fit_nm > 0.0).then_some(best)
 }
 
-/// The estimator whose validation RMSE in the window is the lowest (of those that are finite).
+/// The estimator whose validation RMSE about the reading's offset in the window is the lowest (of those finite).
 fn best_fit(figs: &[WindowFigures]) -> Option<usize> {
     (0..figs.len()).filter(|&i| figs[i].fit_nm.is_finite()).min_by(|&a, &b| figs[a].fit_nm.total_cmp(&figs[b].fit_nm))
 }
@@ -921,7 +920,7 @@ fn best_fit(figs: &[WindowFigures]) -> Option<usize> {
 /// The share of the best model's validation RMSE in a window its residual's mean may reach before a note says that
 /// the RMSE is mostly an offset of the reading: at 0.7 the offset is half its mean square. On the paper's records
 /// the residual's mean is under a tenth of the RMSE.
-const OFFSET_MIN: f64 = 0.7;
+pub const OFFSET_MIN: f64 = 0.7;
 
 /// How many times the best estimator's validation RMSE in a window another's may reach before a note says so. On the
 /// paper's records the four stay within 1.3 times each other once converged (PRBS: 4.8 to 6.0 nm; triangle: 3.3 to
