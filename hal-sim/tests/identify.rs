@@ -437,6 +437,32 @@ fn a_reading_that_never_changes_is_noted_as_such() {
     assert!(!stderr.contains("times worse"), "{stderr}");
 }
 
+/// A reading in metres where um is read (a logger's SI units) moves 5e-4 nm RMS: the notes said that the reading
+/// barely follows the input and asked whether the probe is connected. Now a note asks whether `y` is in um, as it
+/// does for a reading in pm, and the probe's question goes; the record in um gets neither.
+#[test]
+fn a_reading_in_another_unit_is_asked_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scaled = |f: f64| move |y: &str| format!("{:?}", y.parse::<f64>().unwrap() * f);
+    let asked = |w: &str| format!("note: window {w}: y moves ");
+    let metres = notes_with_y(d, "m.csv", scaled(1e-6));
+    for w in ["3:4", "7:8"] {
+        let at = metres.find(&asked(w)).unwrap_or_else(|| panic!("{metres}"));
+        let line = metres[at..].lines().next().unwrap();
+        assert!(line.contains("nm RMS over it, less than a picometre, which no probe resolves: is y in um?"), "{line}");
+        assert!(line.ends_with("in metres the stage's motion reads a million times too small)"), "{line}");
+    }
+    assert!(!metres.contains("barely follows"), "{metres}");
+    let pm = notes_with_y(d, "pm.csv", scaled(1e6));
+    for w in ["3:4", "7:8"] {
+        assert!(pm.contains(&asked(w)), "{pm}");
+    }
+    assert!(pm.contains("more than a centimetre, which no nanopositioning stage moves: is y in um?"), "{pm}");
+    let um = notes_with_y(d, "um.csv", str::to_string);
+    assert!(!um.contains("y moves") && !um.contains("barely follows"), "{um}");
+}
+
 /// A reading a million times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre
 /// and the hybrid one's means make a model that runs away in the validation. Its note said "NaN times worse ...
 /// (validation RMSE NaN nm ...)"; now that the validation is not finite.

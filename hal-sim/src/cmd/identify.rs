@@ -743,7 +743,9 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
 /// come out biased by several %), the resonance as the hybrid EKF's mean has it (else the first estimator's, as the
 /// board's console takes it; where another's model fits the window far better, that one's); and where that
 /// resonance is beyond `w T` 0.5 with the continuous EKF run, that its `a1` comes out low there; and per window
-/// where the reading does not change at all, or sits off the best model by more than [`OFFSET_MIN`] of its RMSE.
+/// where the reading does not change at all, moves less or more than a stage's reading in um can
+/// ([`READING_RMS_NM`]: then no note that it barely follows the input), or sits off the best model by more than
+/// [`OFFSET_MIN`] of its RMSE.
 pub fn health_notes(r: &Identified) -> Vec<String> {
     let mut notes = Vec::new();
     let ((first, last), dt) = (r.span, r.period);
@@ -780,6 +782,26 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 w.t0, w.t1
             ));
         }
+        // A reading that moves less than any probe resolves, or farther than any nanopositioning stage: most likely
+        // not in um (a logger's metres, or picometres), which none of the notes below would say.
+        let moved = figs.first().map_or(f64::NAN, |f| f.reading_rms_nm);
+        let [least, most] = READING_RMS_NM;
+        let unit = moved > 0.0 && !(least..=most).contains(&moved);
+        if unit {
+            let (bound, what, scale) = if moved < least {
+                ("less than a picometre, which no probe resolves", "in metres", "a million times too small")
+            } else {
+                ("more than a centimetre, which no nanopositioning stage moves", "in nm or pm", "1 000 or a million \
+                  times too large")
+            };
+            notes.push(format!(
+                "window {}:{}: y moves {} nm RMS over it, {bound}: is y in um? (identify reads it so; {what} the \
+                 stage's motion reads {scale})",
+                w.t0,
+                w.t1,
+                sig(moved)
+            ));
+        }
         // A reading that sits off the best model's response (the probe's zero, the stage's position, drift): model (1)
         // has no constant, so the RMSE of every estimator and of the truth is mostly that offset.
         if let Some(b) = best_fit(figs).filter(|&b| figs[b].offset_nm.abs() > OFFSET_MIN * figs[b].rmse_nm) {
@@ -797,7 +819,8 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             ));
         }
         // A reading the best model explains little of: noise alone (a disconnected probe) or an input too small.
-        if let Some(b) = best_fit(figs).filter(|&b| figs[b].model_rms_nm * RESPONSE_MIN < figs[b].reading_rms_nm) {
+        let weak = |b: &usize| figs[*b].model_rms_nm * RESPONSE_MIN < figs[*b].reading_rms_nm;
+        if let Some(b) = best_fit(figs).filter(weak).filter(|_| !unit) {
             notes.push(format!(
                 "window {}:{}: the best model ({}'s) responds to the input with {} nm RMS, under a third of the \
                  reading's {} nm: the reading barely follows the input. Is the probe connected and seeing the stage, \
@@ -916,6 +939,13 @@ fn misfit(figs: &[WindowFigures], f: &WindowFigures) -> Option<usize> {
 fn best_fit(figs: &[WindowFigures]) -> Option<usize> {
     (0..figs.len()).filter(|&i| figs[i].fit_nm.is_finite()).min_by(|&a, &b| figs[a].fit_nm.total_cmp(&figs[b].fit_nm))
 }
+
+/// The RMS (nm) of a reading about its mean over a window outside which a note asks whether `y` is in um: a
+/// picometre, less than any probe resolves at these rates, and a centimetre, farther than any nanopositioning stage
+/// moves. On the simulated board's records 493-519 nm (PRBS) and 69 nm (triangle); in metres 4.5e-4 to 5.2e-4 nm, in pm
+/// 4.7e8 to 5.3e8 nm.
+/// A reading that does not change at all (0) has a note of its own.
+pub const READING_RMS_NM: [f64; 2] = [1e-3, 1e7];
 
 /// The share of the best model's validation RMSE in a window its residual's mean may reach before a note says that
 /// the RMSE is mostly an offset of the reading: at 0.7 the offset is half its mean square. On the paper's records
