@@ -791,8 +791,11 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             let (bound, what, scale) = if moved < least {
                 ("less than a picometre, which no probe resolves", "in metres", "a million times too small")
             } else {
-                ("more than a centimetre, which no nanopositioning stage moves", "in nm or pm", "1 000 or a million \
-                  times too large")
+                (
+                    "more than a centimetre, which no nanopositioning stage moves",
+                    "in nm or pm",
+                    "a thousand or a million times too large",
+                )
             };
             notes.push(format!(
                 "window {}:{}: y moves {} nm RMS over it, {bound}: is y in um? (identify reads it so; {what} the \
