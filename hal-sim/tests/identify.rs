@@ -463,6 +463,30 @@ fn a_reading_in_another_unit_is_asked_about() {
     assert!(!um.contains("y moves") && !um.contains("barely follows"), "{um}");
 }
 
+/// A triangle record identified with the default tuning (the paper's Q2, for the PRBS): the EKFs fit 5 times worse
+/// than the ARX, which the notes said without why. Now a note names the slow input and the tuning for it; with that
+/// tuning no note at all, and on the PRBS record none of the kind.
+#[test]
+fn a_slow_input_with_the_prbs_tuning_is_given_the_triangle_tuning() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = nanopos_sim(&["simulate", "--scenario", "triangle", "--duration", "8", "--out", "tri.csv"], d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let notes = identify_notes(d, "tri.csv");
+    for w in ["3:4", "7:8"] {
+        let note = format!("note: window {w}: the input moves slowly against the resonance (11 Hz RMS against ");
+        let at = notes.find(&note).unwrap_or_else(|| panic!("{notes}"));
+        let line = notes[at..].lines().next().unwrap();
+        assert!(line.contains("the EKFs' Q is the paper's Q2, for the PRBS"), "{line}");
+        assert!(line
+            .ends_with("ekf and hekf fit worse here; --tuning triangle gives them Q1, the paper's for the triangle"));
+    }
+    let out = nanopos_sim(&["identify", "--input", "tri.csv", "--tuning", "triangle", "--summary", "s.json"], d);
+    assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+    simulate_prbs(d, "8");
+    assert!(!identify_notes(d, "run.csv").contains("moves slowly"));
+}
+
 /// A reading a million times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre
 /// and the hybrid one's means make a model that runs away in the validation. Its note said "NaN times worse ...
 /// (validation RMSE NaN nm ...)"; now that the validation is not finite.
