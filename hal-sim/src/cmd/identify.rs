@@ -978,7 +978,8 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
     let worse: Vec<&str> =
         (0..figs.len()).filter(|&i| ekf(i) && misfit(figs, &figs[i]).is_some()).map(|i| r.names[i]).collect();
     let (pace, f0) = (figs[best].input_rms_hz, figs[best].mean.f0_hz());
-    if worse.is_empty() || ekf(best) || r.ekf_q != EkfDesign::Q2 || !(pace < SLOW_INPUT * f0) {
+    let slow = pace < SLOW_INPUT * f0; // false where either is NaN
+    if worse.is_empty() || ekf(best) || r.ekf_q != EkfDesign::Q2 || !slow {
         return None;
     }
     Some(format!(
