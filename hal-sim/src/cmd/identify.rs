@@ -323,7 +323,8 @@ fn identify_blocks<T: Real>(
     let default_windows = |t_last: f64| {
         let (start, end) = (t_first, t_last + dt);
         let half = (end - start) / 2.0;
-        vec![Window { t0: start + 0.75 * half, t1: start + half }, Window { t0: start + 1.75 * half, t1: end }]
+        let window = |t0: f64, t1: f64| Window { t0: tidy(t0, dt), t1: tidy(t1, dt) };
+        vec![window(start + 0.75 * half, start + half), window(start + 1.75 * half, end)]
     };
     let planned = match (windows.is_empty(), record.last_t) {
         (false, _) => Some(windows.to_vec()),
@@ -606,6 +607,16 @@ pub fn reading_rms_nm(t: &[f64], y: &[f64], w: &Window) -> f64 {
 /// the board's PRBS or triangle, 0.008 and 0.05 nm against 3.3 nm (10 s records, 5-10 s). A model that has not
 /// converged (a window at a record's start) can respond beyond the reading, and is no such case.
 pub const RESPONSE_MIN: f64 = 3.0;
+
+/// `x` (s) rounded to the decimal digit at or below a millionth of the sample period `dt`: a default window's
+/// bound, computed from the record's span, without the rounding its arithmetic leaves in the last digits (4.6275,
+/// not 4.6274999999999995, for a record of 12.34 s at 10 kHz), which every note and the summary print. It moves the
+/// bound by at most half a millionth of a sample, and not at all where that is below `x`'s own resolution (a time
+/// in Unix seconds).
+fn tidy(x: f64, dt: f64) -> f64 {
+    let decimals = (-(dt * 1e-6).log10()).ceil().clamp(0.0, 20.0) as usize;
+    format!("{x:.decimals$}").parse().expect("a float as Rust writes it parses")
+}
 
 /// How fast `u` moves over the window, Hz: the frequency `f` of a sine whose RMS change from one sample to the next,
 /// `2 sin(pi f dt)` times its RMS, is in the same ratio to its RMS as the input's (`NaN` for an input that does not
@@ -1152,6 +1163,19 @@ impl Identified {
 mod tests {
     use super::*;
     use crate::sim::{Scenario, Simulation};
+
+    #[test]
+    fn a_window_bound_loses_its_rounding_and_nothing_else() {
+        assert_eq!(tidy(0.75 * 6.17, 1e-4), 4.6275);
+        assert_eq!(0.75 * 6.17, 4.6274999999999995);
+        assert_eq!(tidy(2e-4 * 0.999_999_999_999_999_9, 1e-4), 2e-4);
+        // In Unix seconds a millionth of a sample is below the time's resolution: unchanged.
+        let unix = 1.7e9 + 0.123_456_7;
+        assert_eq!(tidy(unix, 1e-4), unix);
+        // A bound half a millionth of a sample off a decimal stays where it is.
+        assert_eq!(tidy(1.000_000_000_1, 1e-4), 1.000_000_000_1);
+        assert_eq!(tidy(1.000_000_000_01, 1e-4), 1.0);
+    }
 
     #[test]
     fn the_input_rms_frequency_of_a_sine_is_its_frequency() {
