@@ -1003,9 +1003,9 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
     ))
 }
 
-/// The share of the resonance below which [`slow_input_note`] calls an input's [`input_rms_hz`] slow: on the
-/// simulated board's records the smoothed triangle's is 0.026 of the resonance, the multisine's of 200-800 Hz 1.25,
-/// the PRBS's 2.4.
+/// The share of the resonance below which [`health_notes`]' note on the tuning calls an input's [`input_rms_hz`]
+/// slow: on the simulated board's records the smoothed triangle's is 0.026 of the resonance, the multisine's of
+/// 200-800 Hz 1.25, the PRBS's 2.4.
 pub const SLOW_INPUT: f64 = 0.25;
 
 /// The estimator whose validation RMSE about the reading's offset in the window is the lowest (of those finite).
