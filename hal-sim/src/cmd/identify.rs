@@ -591,13 +591,22 @@ fn run_group<T: Real>(
     rows
 }
 
+/// The samples of `x` (a column of the record, its times `t`) inside the window: the record is uniformly sampled, so
+/// its times are sorted and the window is one slice.
+fn inside<'a>(t: &[f64], x: &'a [f64], w: &Window) -> &'a [f64] {
+    &x[t.partition_point(|&t| t < w.t0)..t.partition_point(|&t| t < w.t1)]
+}
+
+/// The mean square of `x` about its mean (`NaN` if empty).
+fn spread(x: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    x.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / n
+}
+
 /// RMS (nm) of `y` about its mean over the window (`NaN` if it holds no sample).
 pub fn reading_rms_nm(t: &[f64], y: &[f64], w: &Window) -> f64 {
-    // The record is uniformly sampled, so its times are sorted: the window is one slice.
-    let inside = &y[t.partition_point(|&t| t < w.t0)..t.partition_point(|&t| t < w.t1)];
-    let n = inside.len() as f64;
-    let mean = inside.iter().sum::<f64>() / n;
-    1e3 * (inside.iter().map(|y| (y - mean) * (y - mean)).sum::<f64>() / n).sqrt()
+    1e3 * spread(inside(t, y, w)).sqrt()
 }
 
 /// How many times the best model's response to the input ([`WindowFigures::model_rms_nm`]) the reading's RMS
@@ -623,15 +632,13 @@ fn tidy(x: f64, dt: f64) -> f64 {
 /// change). A mean frequency of the input's spectrum, weighted by its power: on the simulated board's records the
 /// PRBS about 1 030 Hz, the multisine of 200-800 Hz 530 Hz, the smoothed triangle of 10 Hz 11-12 Hz.
 pub fn input_rms_hz(t: &[f64], u: &[f64], dt: f64, w: &Window) -> f64 {
-    let inside = &u[t.partition_point(|&t| t < w.t0)..t.partition_point(|&t| t < w.t1)];
-    let n = inside.len() as f64;
-    let mean = inside.iter().sum::<f64>() / n;
-    let spread = inside.iter().map(|u| (u - mean) * (u - mean)).sum::<f64>() / n;
-    if spread == 0.0 {
+    let u = inside(t, u, w);
+    let mean_square = spread(u);
+    if mean_square == 0.0 {
         return f64::NAN;
     }
-    let change = inside.windows(2).map(|p| (p[1] - p[0]) * (p[1] - p[0])).sum::<f64>() / (n - 1.0);
-    let half_ratio = (change / spread).sqrt() / 2.0;
+    let change = u.windows(2).map(|p| (p[1] - p[0]) * (p[1] - p[0])).sum::<f64>() / (u.len() as f64 - 1.0);
+    let half_ratio = (change / mean_square).sqrt() / 2.0;
     half_ratio.min(1.0).asin() / (std::f64::consts::PI * dt)
 }
 
@@ -812,7 +819,8 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         }
         // A reading that does not move (a stuck probe, a column of zeros): nothing to identify from, and every model
         // fits it to within rounding, which makes the ratios of [`misfit`] meaningless (1e45 and more).
-        let still = figs.first().is_some_and(|f| f.reading_rms_nm == 0.0);
+        let moved = figs.first().map_or(f64::NAN, |f| f.reading_rms_nm);
+        let still = moved == 0.0;
         if still {
             notes.push(format!(
                 "window {}:{}: y does not change over it: there is nothing to identify from (a stuck probe, or a \
@@ -822,7 +830,6 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         }
         // A reading that moves less than any probe resolves, or farther than any nanopositioning stage: most likely
         // not in um (a logger's metres, or picometres), which none of the notes below would say.
-        let moved = figs.first().map_or(f64::NAN, |f| f.reading_rms_nm);
         let [least, most] = READING_RMS_NM;
         let unit = moved > 0.0 && !(least..=most).contains(&moved);
         if unit {
