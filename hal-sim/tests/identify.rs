@@ -33,6 +33,12 @@ fn notes_with_y(dir: &Path, name: &str, f: impl Fn(&str) -> String) -> String {
     identify_notes(dir, name)
 }
 
+/// The rest of the line of `text` from where `start` is in it (which it must be).
+fn line_from<'a>(text: &'a str, start: &str) -> &'a str {
+    let at = text.find(start).unwrap_or_else(|| panic!("no {start:?} in {text}"));
+    text[at..].lines().next().unwrap()
+}
+
 /// What `identify` with all four estimators says on standard error about `input` in `dir` (it must succeed).
 fn identify_notes(dir: &Path, input: &str) -> String {
     let out = nanopos_sim(&["identify", "--input", input, "--summary", "s.json"], dir);
@@ -448,8 +454,7 @@ fn a_reading_in_another_unit_is_asked_about() {
     let asked = |w: &str| format!("note: window {w}: y moves ");
     let metres = notes_with_y(d, "m.csv", scaled(1e-6));
     for w in ["3:4", "7:8"] {
-        let at = metres.find(&asked(w)).unwrap_or_else(|| panic!("{metres}"));
-        let line = metres[at..].lines().next().unwrap();
+        let line = line_from(&metres, &asked(w));
         assert!(line.contains("nm RMS over it, less than a picometre, which no probe resolves: is y in um?"), "{line}");
         assert!(line.ends_with("in metres the stage's motion reads a million times too small)"), "{line}");
     }
@@ -475,8 +480,7 @@ fn a_slow_input_with_the_prbs_tuning_is_given_the_triangle_tuning() {
     let notes = identify_notes(d, "tri.csv");
     for w in ["3:4", "7:8"] {
         let note = format!("note: window {w}: the input moves slowly against the resonance (11 Hz RMS against ");
-        let at = notes.find(&note).unwrap_or_else(|| panic!("{notes}"));
-        let line = notes[at..].lines().next().unwrap();
+        let line = line_from(&notes, &note);
         assert!(line.contains("the EKFs' Q is the paper's Q2, for the PRBS"), "{line}");
         assert!(line
             .ends_with("ekf and hekf fit worse here; --tuning triangle gives them Q1, the paper's for the triangle"));
