@@ -7,7 +7,7 @@
 //! the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
 //! present, must be uniformly sampled. A sample of `u` or `y` more than 1 000 times the level 90 % of the record
 //! stays within (a glitch, or a logger's overflow value, which can decide the fit alone) gets a note on standard
-//! error, as in `identify`.
+//! error, as in `identify`. An `sse` beyond f64's range (values of 1e154 and more) is `null`, with a note.
 //!
 //! **An offset.** The model has no constant term, and a reading that sits off it (the probe's zero, the stage's
 //! position) biases every coefficient: 0.1 um on the paper's PRBS record, a fifth of its spread, moves `1 + a2`, the
@@ -223,6 +223,13 @@ pub fn run(
                         }
                     ));
                 }
+            }
+            if !s.sse.is_finite() {
+                notes.push(
+                    "the residual's sum of squares is beyond f64's range (values of 1e154 and more square past \
+                     1e308): sse is null; the coefficients, solved from the rows as they are, stand"
+                        .to_string(),
+                );
             }
             let (na, nb) = (orders.na, orders.nb);
             let (a, b) = (s.theta[..na].to_vec(), s.theta[na..na + nb].to_vec());
