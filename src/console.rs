@@ -481,6 +481,7 @@ impl Controller {
         match cmd {
             // Answered by `execute` from the snapshot, a line at a time; carried out by `seed_from`.
             Command::Status | Command::FromEstimate { .. } => return Ok(None),
+            Command::Help => writeln!(reply, "{}ok help", crate::control::HELP)?,
             Command::Excite(choice) => {
                 let design = excitation(choice);
                 let mut s = self.settings;

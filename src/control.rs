@@ -1,15 +1,16 @@
 //! The run-time control protocol: one command per text line, parsed without allocation.
 //!
 //! Lines are ASCII, at most [`MAX_LINE`] bytes, ended by `\n`, `\r` or `\r\n` (what a terminal's Enter sends);
-//! words are separated by spaces or tabs; numbers are decimal (`1`, `0.5`, `-2.5e-1`). Every line gets one answer:
-//! `ok ...` or `error: ...` naming what was wrong and where.
+//! words are separated by spaces or tabs, in any case (`STATUS` is `status`, as in SCPI); numbers are decimal (`1`,
+//! `0.5`, `-2.5e-1`). Every line gets one answer: `ok ...` or `error: ...` naming what was wrong and where.
 //!
 //! | command | meaning |
 //! |---|---|
+//! | `help` | the commands and their words ([`HELP`]) |
 //! | `status` | counters, faults, the excitation and the estimates |
 //! | `excite off` / `excite constant V` / `excite prbs AMP_V [OFFSET_V]` / `excite triangle AMP_V HZ [OFFSET_V]` / `excite sine AMP_V HZ [OFFSET_V]` / `excite multisine AMP_V F_LO F_HI [OFFSET_V]` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000], F_HI above F_LO, V and OFFSET_V in -10..=10) |
 //! | `start` / `stop` | run or stop the excitation (the output ramps to its safe value) |
-//! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`) |
+//! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`, separated by commas or spaces) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
 //! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
@@ -20,6 +21,21 @@ use crate::estimators::TuningKey;
 
 /// Longest accepted line, bytes (without the terminator).
 pub const MAX_LINE: usize = 96;
+
+/// `help`'s reply before its `ok`: every command and its words (values in capitals; the README has what each does).
+pub const HELP: &str = "\
+help | status
+excite off | constant V | prbs AMP [OFFSET] | triangle AMP HZ [OFFSET] | sine AMP HZ [OFFSET]
+excite multisine AMP F_LO F_HI [OFFSET]
+start | stop
+select all | none | EST... (EST: rls ekf hekf arx)
+reset | freeze | adapt all | EST...
+tuning prbs | triangle
+tune initial B0 A1 A0 | initial EST | stage EST | prefilter F_LC F_P ZETA
+tune rls | ekf | arx KEY [VALUE...] (no KEY: the keys; no VALUE: the value in use)
+limits MIN_V MAX_V SLEW_V_PER_S
+record off | on | burst N
+";
 
 /// The estimators, as bits of an [`EstimatorSet`].
 pub const ESTIMATOR_NAMES: [&str; 4] = ["rls", "ekf", "hekf", "arx"];
@@ -108,6 +124,8 @@ pub enum TuningPreset {
 /// A parsed command.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Command {
+    /// List the commands.
+    Help,
     /// Report status.
     Status,
     /// Choose the excitation.
@@ -202,7 +220,8 @@ impl core::fmt::Display for ParseError {
             ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
             ParseError::UnknownCommand => write!(
                 f,
-                "unknown command (status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, limits, record)"
+                "unknown command (help, status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, limits, \
+                 record)"
             ),
             ParseError::Missing { word, expected } => write!(f, "word {word}: missing, expected {expected}"),
             ParseError::Invalid { word, expected } => write!(f, "word {word}: expected {expected}"),
@@ -254,7 +273,7 @@ impl<'a> Words<'a> {
 const INITIAL: &str = "3 numbers: b0 a1 a0, or an estimator whose estimate to take: rls, ekf, hekf or arx";
 /// The word after `tune stage`.
 const ESTIMATOR: &str = "an estimator whose estimate to take: rls, ekf, hekf or arx";
-const EST_LIST: &str = "estimators: all, none, or a comma list of rls, ekf, hekf, arx";
+const EST_LIST: &str = "estimators: all, none, or rls, ekf, hekf, arx separated by commas or spaces";
 const EXCITATIONS: &str = "off, constant, prbs, triangle, sine or multisine";
 const AMP: &str = "an amplitude in V, 0 to 10";
 const OFFSET: &str = "an offset in V, -10 to 10 (or nothing)";
@@ -297,14 +316,20 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
     if let Some(at) = line.iter().position(|&b| !(b == b' ' || b == b'\t' || b.is_ascii_graphic())) {
         return Err(ParseError::NotAscii { at });
     }
+    // Words in any case: one lowercase copy of the line.
+    let mut lower = [0u8; MAX_LINE];
+    let lower = &mut lower[..line.len()];
+    lower.copy_from_slice(line);
+    lower.make_ascii_lowercase();
     // Printable ASCII is UTF-8.
-    let text = core::str::from_utf8(line).map_err(|e| ParseError::NotAscii { at: e.valid_up_to() })?;
+    let text = core::str::from_utf8(lower).map_err(|e| ParseError::NotAscii { at: e.valid_up_to() })?;
     let mut words = Words { it: text.split_ascii_whitespace(), n: 0 };
     let (_, command) = words.next("a command").map_err(|_| ParseError::Empty)?;
     let amplitude = |x: f32| (0.0..=10.0).contains(&x);
     let frequency = |x: f32| x > 0.0 && x <= 1000.0;
     let volts = |x: f32| (-10.0..=10.0).contains(&x);
     let parsed = match command {
+        "help" => Command::Help,
         "status" => Command::Status,
         "start" => Command::Start,
         "stop" => Command::Stop,
@@ -339,7 +364,12 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
         }
         "select" | "reset" | "freeze" | "adapt" => {
             let (word, w) = words.next(EST_LIST)?;
-            let set = estimator_set(word, w, command == "select")?;
+            let mut set = estimator_set(word, w, command == "select")?;
+            // Names separated by spaces as well as commas (`all` and `none` alone).
+            while !(words.is_done() || w == "all" || w == "none") {
+                let (word, w) = words.next(EST_LIST)?;
+                set.0 |= estimator_set(word, w, false)?.0;
+            }
             match command {
                 "select" => Command::Select(set),
                 "reset" => Command::Reset(set),
@@ -570,6 +600,16 @@ mod tests {
         );
         assert_eq!(p("select hekf,arx"), Ok(Command::Select(EstimatorSet(0b1100))));
         assert_eq!(p("select none"), Ok(Command::Select(EstimatorSet(0))));
+        // Names separated by spaces too, and words in any case.
+        assert_eq!(p("select hekf arx"), Ok(Command::Select(EstimatorSet(0b1100))));
+        assert_eq!(p("freeze rls ekf,hekf"), Ok(Command::Freeze(EstimatorSet(0b0111))));
+        assert_eq!(p("STATUS"), Ok(Command::Status));
+        assert_eq!(p("Select HEKF,arx"), Ok(Command::Select(EstimatorSet(0b1100))));
+        assert_eq!(
+            p("EXCITE PRBS 1E-1"),
+            Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v: 0.1, offset_v: 0.0 }))
+        );
+        assert_eq!(p("help"), Ok(Command::Help));
         assert_eq!(p("reset all"), Ok(Command::Reset(EstimatorSet::ALL)));
         assert_eq!(p("freeze rls"), Ok(Command::Freeze(EstimatorSet(1))));
         assert_eq!(p("adapt ekf"), Ok(Command::Adapt(EstimatorSet(2))));
@@ -597,13 +637,33 @@ mod tests {
     }
 
     #[test]
+    fn help_names_every_command_and_only_commands() {
+        let text = std::format!("{}", ParseError::UnknownCommand);
+        let listed = text.split_once('(').and_then(|(_, l)| l.strip_suffix(')')).expect("a list");
+        let words: std::vec::Vec<&str> = HELP.split_whitespace().collect();
+        for name in listed.split(", ") {
+            assert!(words.contains(&name), "help lacks {name}");
+        }
+        for line in HELP.lines() {
+            let first = line.split(' ').next().expect("a word");
+            assert_ne!(p(first), Err(ParseError::UnknownCommand), "{line}");
+        }
+    }
+
+    #[test]
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 46] = [
+        let cases: [(&[u8], ParseError); 52] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
+            (b"help me", Extra { word: 2 }),
+            (b"select all ekf", Extra { word: 3 }),
+            (b"reset none ekf", Invalid { word: 2, expected: EST_LIST }),
+            (b"select ekf none", Invalid { word: 3, expected: EST_LIST }),
+            (b"adapt ekf kalman", Invalid { word: 3, expected: EST_LIST }),
+            (b"STATUS NOW", Extra { word: 2 }),
             (b"status now", Extra { word: 2 }),
             (b"excite", Missing { word: 2, expected: EXCITATIONS }),
             (b"excite square 1", Invalid { word: 2, expected: EXCITATIONS }),

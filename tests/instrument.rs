@@ -140,7 +140,12 @@ fn a_change_applies_whole_between_two_samples_and_never_overwrites_a_waiting_one
 fn every_command_is_answered_and_does_what_it_says() {
     let mut lab = Lab::new();
     lab.run(2000);
-    let r = lab.send("status\n");
+    // `help`: the commands, in one part of the reply.
+    let r = lab.send("help\n");
+    assert_eq!(verdict(&r), "ok help");
+    assert!(r.len() <= REPLY_BYTES && r.starts_with("help | status\n"), "{r}");
+    // Words in any case.
+    let r = lab.send("STATUS\n");
     assert!(verdict(&r).starts_with("ok status samples="), "{r}");
     assert_eq!(r.lines().filter(|l| l.starts_with("est ")).count(), 4, "{r}");
     // Every estimator line carries the health counters, the covariance repairs among them.
@@ -169,7 +174,7 @@ fn every_command_is_answered_and_does_what_it_says() {
     }
 
     // Freeze and adapt.
-    assert_eq!(verdict(&lab.send("freeze ekf,hekf\n")), "ok freeze ekf,hekf");
+    assert_eq!(verdict(&lab.send("freeze ekf hekf\n")), "ok freeze ekf,hekf");
     let frozen = lab.params(2);
     lab.run(500);
     assert_eq!(lab.params(2), frozen);
@@ -1704,7 +1709,9 @@ fn a_random_session_of_commands_keeps_every_promise() {
         "q",
     ];
     let sets = ["all", "none", "rls", "ekf,hekf", "arx", "hekf,rls,rls", "kalman", ""];
-    let templates: [&str; 28] = [
+    let templates: [&str; 30] = [
+        "help",
+        "select $ $",
         "excite prbs #",
         "excite prbs # #",
         "excite triangle # #",
