@@ -468,6 +468,33 @@ fn a_reading_in_another_unit_is_asked_about() {
     assert!(!um.contains("y moves") && !um.contains("barely follows"), "{um}");
 }
 
+/// A command in mV or in DAC codes: every gain the estimators give reads that scale too small, and nothing else
+/// said so. A note asks whether `u` is in V; none for the record in V, nor for the command about an offset of 8 V.
+#[test]
+fn a_command_in_another_unit_is_asked_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let asked = "note: u stays within ";
+    simulate_prbs(d, "8");
+    let scaled = |f: f64, o: f64| move |u: &str| format!("{:?}", u.parse::<f64>().unwrap() * f + o);
+    rewrite_column(d, "mv.csv", 1, scaled(1e3, 0.0));
+    let mv = identify_notes(d, "mv.csv");
+    let line = line_from(&mv, asked);
+    assert!(line.contains(" V for 90 % of the record, beyond the +-10 V of a command"), "{line}");
+    assert!(
+        line.contains("is u in V? (identify reads it so; in mV every gain, b0 and the DC gain, reads a thousand"),
+        "{line}"
+    );
+    // 12-bit codes about mid-scale, 204.8 a volt.
+    rewrite_column(d, "codes.csv", 1, scaled(204.8, 2048.0));
+    assert!(identify_notes(d, "codes.csv").contains(asked));
+    rewrite_column(d, "offset.csv", 1, scaled(1.0, 8.0));
+    for name in ["run.csv", "offset.csv"] {
+        let notes = identify_notes(d, name);
+        assert!(!notes.contains(asked), "{name}: {notes}");
+    }
+}
+
 /// A triangle record identified with the default tuning (the paper's Q2, for the PRBS): the EKFs fit 5 times worse
 /// than the ARX, which the notes said without why. Now a note names the slow input and the tuning for it; with that
 /// tuning no note at all, and on the PRBS record none of the kind.

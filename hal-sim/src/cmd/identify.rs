@@ -804,6 +804,17 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             );
         }
     }
+    // A command beyond what an amplifier's input takes for most of the record: most likely not in V (a logger's mV,
+    // DAC codes, the piezo's own voltage), which scales every gain the estimators give and nothing else.
+    let level = r.spread[0].level(0.9);
+    if level > COMMAND_LEVEL_V {
+        notes.push(format!(
+            "u stays within {} V for 90 % of the record, beyond the +-10 V of a command to the stage's amplifier: is \
+             u in V? (identify reads it so; in mV every gain, b0 and the DC gain, reads a thousand times too small, \
+             in DAC codes or the piezo's own volts by their scale; a0 and a1 do not depend on u's unit)",
+            sig(level)
+        ));
+    }
     for (w, figs, _) in &r.windows {
         // A window is half open, `[t0, t1)`: one that ends a sample after the last covers it all.
         if w.t0 < first - 0.5 * dt || w.t1 > last + 1.5 * dt {
@@ -1026,6 +1037,11 @@ fn best_fit(figs: &[WindowFigures]) -> Option<usize> {
 /// 4.7e8 to 5.3e8 nm.
 /// A reading that does not change at all (0) has a note of its own.
 pub const READING_RMS_NM: [f64; 2] = [1e-3, 1e7];
+
+/// The level (V) 90 % of a record's command `u` may stay within before a note asks whether `u` is in V: twice the
+/// +-10 V an amplifier's input and the board's command span ([`Spread::level`] reads up to 19 % high). On the simulated
+/// board's records 1 V (PRBS) and 1.2 V (triangle); in mV 1 000 and more, in 12-bit DAC codes 2 048 and more.
+pub const COMMAND_LEVEL_V: f64 = 20.0;
 
 /// The share of the best model's validation RMSE in a window its residual's mean may reach before a note says that
 /// the RMSE is mostly an offset of the reading: at 0.7 the offset is half its mean square. On the paper's records
