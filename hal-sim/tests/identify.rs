@@ -512,10 +512,19 @@ fn a_slow_input_with_the_prbs_tuning_is_given_the_triangle_tuning() {
         assert!(line
             .ends_with("ekf and hekf fit worse here; --tuning triangle gives them Q1, the paper's for the triangle"));
     }
+    // The EKFs alone: nothing to compare them with, and the same note says so.
+    let out = nanopos_sim(&["identify", "--input", "tri.csv", "--estimators", "ekf,hekf", "--summary", "s.json"], d);
+    let alone = String::from_utf8(out.stderr).unwrap();
+    for w in ["3:4", "7:8"] {
+        let line = line_from(&alone, &format!("note: window {w}: the input moves slowly against the resonance"));
+        assert!(line.contains("and with no ARX or RLS run (the default runs all four) nothing here tells"), "{line}");
+    }
     let out = nanopos_sim(&["identify", "--input", "tri.csv", "--tuning", "triangle", "--summary", "s.json"], d);
     assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
     simulate_prbs(d, "8");
     assert!(!identify_notes(d, "run.csv").contains("moves slowly"));
+    let out = nanopos_sim(&["identify", "--input", "run.csv", "--estimators", "ekf,hekf", "--summary", "s.json"], d);
+    assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
 /// A reading a million times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre

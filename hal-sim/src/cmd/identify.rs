@@ -1001,6 +1001,8 @@ fn misfit(figs: &[WindowFigures], f: &WindowFigures) -> Option<usize> {
 /// or the RLS), on an input that moves slowly against the resonance (its [`input_rms_hz`] under [`SLOW_INPUT`] of
 /// the best model's), with the paper's `Q2` (the `prbs` preset's): what the float64 reference found (`shared/golden`:
 /// the EKFs with `Q2` fail on the smoothed triangle, for which the paper tuned `Q1`), and the tuning that fits.
+/// With only EKFs run, nothing to compare them with: the same note where the input is slow and `Q` is `Q2`, saying
+/// that they may have failed and what would tell.
 fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
     let best = best_fit(figs)?;
     let ekf = |i: usize| r.names[i].ends_with("ekf");
@@ -1008,16 +1010,21 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
         (0..figs.len()).filter(|&i| ekf(i) && misfit(figs, &figs[i]).is_some()).map(|i| r.names[i]).collect();
     let (pace, f0) = (figs[best].input_rms_hz, figs[best].mean.f0_hz());
     let slow = pace < SLOW_INPUT * f0; // false where either is NaN
-    if worse.is_empty() || ekf(best) || r.ekf_q != EkfDesign::Q2 || !slow {
+    let only_ekfs = (0..figs.len()).all(ekf);
+    if !(only_ekfs || (!worse.is_empty() && !ekf(best))) || r.ekf_q != EkfDesign::Q2 || !slow {
         return None;
     }
+    let here = if only_ekfs {
+        "with no ARX or RLS run (the default runs all four) nothing here tells whether they did".to_string()
+    } else {
+        format!("{} fit worse here", worse.join(" and "))
+    };
     Some(format!(
         "the input moves slowly against the resonance ({pace:.0} Hz RMS against {f0:.0} Hz, {}'s mean), as the \
          smoothed triangle does, and the EKFs' Q is the paper's Q2, for the PRBS: with it the EKFs fail on the \
-         triangle in the float64 reference (b0 -15 %), and {} fit worse here; --tuning triangle gives them Q1, the \
-         paper's for the triangle",
+         triangle in the float64 reference (b0 -15 %), and {here}; --tuning triangle gives them Q1, the paper's for \
+         the triangle",
         r.names[best],
-        worse.join(" and ")
     ))
 }
 
