@@ -2114,3 +2114,61 @@ fn response_ratio_where_the_trusted_rule_gave_the_estimate() {
         );
     }
 }
+
+/// The board's tuning, key by key, as its recording carries it (exact: the values' bits).
+fn board_tuning(lab: &Lab) -> Vec<nanopos_id::record::TuningLine> {
+    (0..)
+        .map_while(|k| {
+            let mut line = String::new();
+            lab.ctl
+                .write_tuning_line(k, 0, &mut line)
+                .then(|| nanopos_id::record::read_tuning_line(line.trim_end()).expect("a tuning line reads back"))
+        })
+        .collect()
+}
+
+/// `nanopos-sim commands` turns a tuning file into console lines that give the board that tuning, whatever it held
+/// before: every line accepted, and every value the file's to within a few ulps (the board's decimal parser; the
+/// shortest forms that read back exactly, as Rust writes them, come out exact here), a value of 17 digits included.
+#[test]
+fn a_tuning_files_commands_give_the_board_its_tuning() {
+    let dir = std::env::temp_dir().join(format!("nanopos-commands-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("t.toml");
+    std::fs::write(
+        &file,
+        "preset = \"triangle\"\ninitial = [6.5e5, 72.5, 6.3e6]\nprefilter = [120, 430, 0.15]\n[rls]\ngamma = 0.7\n\
+         p0 = [2e6, 20, 3e7]\n[ekf]\nq = [1e-12, 1e-6, 3e9, 0.3, 1e9]\n\
+         p0 = [1.0000000000000002e-11, 1e-5, 3.3333333333333336e10, 3, 1e10]\nr = 2.2e-6\nsubsteps = 3\n\
+         gate_sigma = 6\n[arx]\nlambda = 0.9995\n",
+    )
+    .unwrap();
+    let arg = hal_sim::tuning::resolve(file.to_str().unwrap()).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    let commands = hal_sim::cmd::commands::run(&arg).unwrap();
+    assert!(commands.notes.is_empty(), "{:?}", commands.notes);
+    assert_eq!(
+        commands.lines[..3],
+        ["tuning triangle", "tune initial 6.5e5 72.5 6.3e6", "tune prefilter 120 430 0.15"]
+    );
+    // The keys at the triangle preset's values are not sent; the file's eight others are, once.
+    assert_eq!(commands.lines.len(), 3 + 8, "{:?}", commands.lines);
+    let mut lab = Lab::new();
+    for line in ["tune initial 2e6 100 5e7\n", "tune ekf gate_sigma 7\n", "tune arx max_trace 500\n", "tuning prbs\n"] {
+        assert!(verdict(&lab.send(line)).starts_with("ok "), "{line}");
+    }
+    for line in &commands.lines {
+        let reply = lab.send(&format!("{line}\n"));
+        assert!(verdict(&reply).starts_with("ok "), "{line}: {reply}");
+    }
+    let target = arg.at(1e-4).unwrap();
+    let held = board_tuning(&lab);
+    assert_eq!(held.len(), nanopos_id::estimators::TuningKey::ALL.len());
+    for line in held {
+        let want = &target.get(line.key)[..line.key.len()];
+        for (got, want) in line.values.iter().zip(want) {
+            assert!((got / want - 1.0).abs() <= 4.0 * f64::EPSILON, "{}: {got} for {want}", line.key);
+        }
+    }
+    assert!(lab.send("status\n").contains(" tuning=triangle+tune "));
+}

@@ -134,6 +134,13 @@ enum Command {
         #[arg(long, value_name = "HZ:NM")]
         hum: Vec<hal_sim::cmd::HumArg>,
     },
+    /// The board's console commands that give it a tuning (a file decode wrote, or one for identify --tuning), one
+    /// a line on standard output: send them one at a time, each after the last one's verdict.
+    Commands {
+        /// A preset (prbs, triangle) or a TOML file, as identify's --tuning reads it.
+        #[arg(long)]
+        tuning: String,
+    },
     /// Turn a captured serial stream of the firmware's recording (`record on`, `record burst N`) into t,u,y CSV.
     Decode {
         /// The capture (everything the board sent; replies and other lines are skipped).
@@ -336,6 +343,13 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
             hal_sim::cmd::console::run(args, std::io::stdin(), &mut link, &mut log).map(|_| ())
+        }
+        Command::Commands { tuning } => {
+            let commands = hal_sim::cmd::commands::run(&hal_sim::tuning::resolve(&tuning)?)?;
+            for note in &commands.notes {
+                eprintln!("nanopos-sim: note: {note}");
+            }
+            hal_sim::cmd::write_stdout(&commands.lines.iter().map(|l| format!("{l}\n")).collect::<String>())
         }
         Command::Fit { input, arx, zero_initial, weight, offset } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight, offset)?;

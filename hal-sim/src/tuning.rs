@@ -100,6 +100,11 @@ impl From<Tuning> for TuningArg {
 }
 
 impl TuningArg {
+    /// The preset the tuning starts from, when it is one's (a file's `preset`, `prbs` by default).
+    pub fn preset(&self) -> Option<&'static str> {
+        ["prbs", "triangle"].into_iter().find(|&name| Tuning::preset(name) == Some(self.base))
+    }
+
     /// The tuning for samples `dt` seconds apart: the preset's, with every value of the file through the core's one
     /// check (the console's `tune` uses it too), in the file's section order; `q` before `p0`, since `q` also sets
     /// `p0` to 10 Q. Whether the estimators can run the whole is the caller's check (in its scalar).

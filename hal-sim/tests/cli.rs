@@ -644,3 +644,42 @@ fn ctrl_c_leaves_no_partial_output() {
     assert_eq!(out.status.code(), Some(130), "{}", String::from_utf8_lossy(&out.stderr));
     no_stray_files(dir.path());
 }
+
+/// `commands`: a preset or a tuning file to the board's console lines on standard output; values too long for a
+/// console line in full are shortened, with a note; a file the board could not run, or not a tuning, is refused.
+#[test]
+fn commands_writes_the_console_lines_of_a_tuning_or_says_why_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = nanopos_sim(&["commands", "--tuning", "prbs"], d);
+    assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(
+        String::from_utf8(out.stdout).unwrap(),
+        "tuning prbs\ntune initial 5e5 70 6e6\ntune prefilter 100 450 0.1\n"
+    );
+    // Five values of 17 significant digits: 11 + 5 * 23 bytes, beyond the console's 96.
+    let long = "[ekf]\nq = [1.0000000000000002e-12, 1.0000000000000002e-6, 1500000000.0000002, 0.25000000000000006, \
+                500000000.00000006]\n";
+    std::fs::write(d.join("long.toml"), long).unwrap();
+    let out = nanopos_sim(&["commands", "--tuning", "long.toml"], d);
+    let (stdout, stderr) = (String::from_utf8(out.stdout).unwrap(), String::from_utf8(out.stderr).unwrap());
+    assert!(out.status.success(), "{stderr}");
+    let q = stdout.lines().find(|l| l.starts_with("tune ekf q ")).unwrap();
+    assert!(q.len() <= 96, "{q}");
+    let note = "nanopos-sim: note: [ekf] q's values written to 16 significant digits (each within 5e-16 of the file's";
+    assert!(stderr.starts_with(note), "{stderr}");
+    let file =
+        [1.0000000000000002e-12, 1.0000000000000002e-6, 1500000000.0000002, 0.25000000000000006, 5.000000000000001e8];
+    for (word, want) in q.split(' ').skip(3).zip(file) {
+        let got: f64 = word.parse().unwrap();
+        assert!((got / want - 1.0).abs() <= 5e-16, "{q}");
+    }
+    for (file, text, says) in [
+        ("r.toml", "[ekf]\nr = 1e-45\n", "r.toml: at the board's 10000 Hz, in f32: "),
+        ("key.toml", "[ekf]\nkappa = 1\n", "key.toml:2: unknown field `kappa`"),
+        ("pre.toml", "preset = \"sine\"\n", "pre.toml: preset 'sine' unknown"),
+    ] {
+        std::fs::write(d.join(file), text).unwrap();
+        assert_clean_failure(&nanopos_sim(&["commands", "--tuning", file], d), says);
+    }
+}

@@ -1,6 +1,7 @@
 //! The `nanopos-sim` commands, one file each, and what they share: the error type (one line, exit code 2), output
 //! files that appear only when complete, and progress on a terminal.
 
+pub mod commands;
 pub mod console;
 pub mod decode;
 pub mod fit;
