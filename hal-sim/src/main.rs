@@ -309,7 +309,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 let path = path.display();
                 eprintln!(
                     "nanopos-sim: the board's tuning at the recording's start written to {path}: replay with identify \
-                     --tuning {path}"
+                     --tuning {path}; give it back to a board that reset with commands --tuning {path}"
                 );
             }
             for msg in &rec.notes {

@@ -517,8 +517,11 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
     // The board's tuning beside it, which identify reads.
     let tuning =
         "the board's tuning at the recording's start written to new.tuning.toml: replay with identify --tuning \
-                  new.tuning.toml";
+                  new.tuning.toml; give it back to a board that reset with commands --tuning new.tuning.toml";
     assert!(stderr.contains(tuning), "{stderr}");
+    let out = nanopos_sim(&["commands", "--tuning", "new.tuning.toml"], dir.path());
+    assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8(out.stdout).unwrap().starts_with("tuning prbs\ntune initial "));
     let out = nanopos_sim(
         &["identify", "--input", "new.csv", "--tuning", "new.tuning.toml", "--estimators", "arx"],
         dir.path(),
