@@ -336,8 +336,8 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
-                    "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (status, excite, \
-                     tune, record, ... as in the README); Ctrl-D or Ctrl-C ends the session (a recording is stopped \
+                    "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (help lists \
+                     them; the README says what each does); Ctrl-D or Ctrl-C ends the session (a recording is stopped \
                      and its end line sent; a second Ctrl-C quits at once)"
                 );
             }
