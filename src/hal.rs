@@ -197,6 +197,14 @@ pub const fn clear_of_sample(since: u32, period: u32, hold: u32, margin: u32) ->
     since >= margin && period - since >= hold.saturating_add(margin)
 }
 
+/// Whether an interrupt raised once a period, entered `since` ticks after it was raised ([`ticks_since`]), entered
+/// past its `deadline` (ticks after it is raised): the firmware's sample interrupt, whose command is then late
+/// whatever it does. Within `margin` ticks before a period has passed it is taken as an interrupt raised a little
+/// early instead (the moment it is raised is computed, not read), not as one a whole period late.
+pub const fn entered_past(since: u32, period: u32, deadline: u32, margin: u32) -> bool {
+    since >= deadline && since < period.saturating_sub(margin)
+}
+
 /// Ticks from the last time a timer counting `0..period` read `at` to its reading `count` (0 to `period - 1`).
 pub const fn ticks_since(count: u32, at: u32, period: u32) -> u32 {
     (count % period + period - at % period) % period
@@ -204,7 +212,7 @@ pub const fn ticks_since(count: u32, at: u32, period: u32) -> u32 {
 
 #[cfg(test)]
 mod tests {
-    use super::{clear_of_sample, ticks_since, ConverterFormat};
+    use super::{clear_of_sample, entered_past, ticks_since, ConverterFormat};
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
     /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not
@@ -248,6 +256,18 @@ mod tests {
         assert_eq!(clear(17_000 + 9_000), clear(9_000));
         assert!((0..17_000).all(|since| !clear_of_sample(since, 17_000, 16_500, 256)));
         assert!((0..17_000).all(|since| !clear_of_sample(since, 17_000, u32::MAX, 256)));
+    }
+
+    #[test]
+    fn an_interrupt_entered_after_the_next_sample_instant_is_past_its_deadline() {
+        // The board's numbers: raised at count 2 432, the next sample instant at 17 000 (14 568 later).
+        let past = |count| entered_past(ticks_since(count, 2_432, 17_000), 17_000, 14_568, 256);
+        // On time, however late within the period: no.
+        assert!(!past(2_432) && !past(2_460) && !past(16_999));
+        // After the next instant, until the next conversion ends (less the margin): yes.
+        assert!(past(0) && past(1_000) && past(2_432 - 257));
+        // Within the margin before the moment it is raised: raised early, not a period late.
+        assert!(!past(2_432 - 256) && !past(2_431));
     }
 
     #[test]

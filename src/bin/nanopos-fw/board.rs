@@ -51,8 +51,8 @@
 //!   code, computes the next command and writes its code to the DAC's holding register first (a posted change
 //!   applied, the excitation, the limits: at most 2 247 instructions, QEMU's `isr_to_command_write`), then runs the
 //!   filters and the estimators. The command's deadline: the next TIM2 update, 85.7 us ([`DEADLINE_CYCLES`], 14 568 cycles)
-//!   after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is written) and
-//!   counted. The rest of the interrupt has until the next conversion ends, a sample period after this one: beyond
+//!   after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is written, or
+//!   TIM2's count at the interrupt's entry past it: [`G474Board::entered`]) and counted. The rest of the interrupt has until the next conversion ends, a sample period after this one: beyond
 //!   it the next interrupt starts late, and a conversion not read before the following one ends is an ADC overrun,
 //!   counted too.
 
@@ -392,14 +392,27 @@ pub fn hard_fault() -> ! {
 /// The board seen from the sample interrupt. Reading the probe acknowledges the conversion, notes an ADC overrun
 /// and arms the deadline check (TIM2's update flag, set again only if the next sample instant passes before the
 /// command is written); writing the command looks at the flag right after: the deadline is the command's, which
-/// the pipeline writes before its filters and estimators run.
+/// the pipeline writes before its filters and estimators run. An interrupt that starts after the next sample
+/// instant has missed the deadline before the flag is armed (the flag that instant set is the one reading the probe
+/// clears): [`G474Board::entered`] tells it from the cycles since the conversion at the interrupt's entry.
 #[derive(Default)]
 pub struct G474Board {
     adc_overrun: bool,
     deadline_missed: bool,
+    started_late: bool,
 }
 
 impl G474Board {
+    /// At the sample interrupt's entry, `cycles` after its conversion ended ([`cycles_since_conversion`]): from
+    /// [`DEADLINE_CYCLES`] on, the next sample instant has passed and this sample's command is late whatever follows
+    /// (up to [`CONVERSION_SLACK_TICKS`] before a whole period: an interrupt raised a little before the computed end
+    /// of its conversion; a whole period late, the next conversion has ended too: an ADC overrun).
+    #[inline(always)]
+    pub fn entered(&mut self, cycles: u32) {
+        self.started_late =
+            nanopos_id::hal::entered_past(cycles, TICKS_PER_SAMPLE, DEADLINE_CYCLES, CONVERSION_SLACK_TICKS);
+    }
+
     /// Acknowledge a conversion without using it (the interrupt before the pipeline is installed).
     pub fn discard_conversion() {
         pac::ADC1.isr().write(|w| {
@@ -434,7 +447,7 @@ impl StageBoard for G474Board {
     #[inline(always)]
     fn write_amplifier(&mut self, code: u32) {
         pac::DAC1.dhr12r(0).write(|w| w.set_dhr(code.min(4095) as u16));
-        self.deadline_missed = pac::TIM2.sr().read().uif();
+        self.deadline_missed = self.started_late | pac::TIM2.sr().read().uif();
     }
 
     #[inline(always)]

@@ -194,6 +194,7 @@ fn ADC1_2() {
         };
         // A controller on the estimates goes here: `t.instrument.sample_adding(&mut t.board, |y_um| command_v)`
         // adds its command to the excitation (README, "A controller on the estimates").
+        t.board.entered(late);
         let out = t.instrument.sample(&mut t.board);
         // From the conversion's end, which is what the next conversion bounds: the interrupt's own cycles and how
         // late it started.
