@@ -181,9 +181,10 @@ impl<T: Real> Instrument<T> {
             self.apply_pending();
         }
         let out = run_sample_with(board, &mut self.pipeline, &self.config, command);
-        // The code in effect over this period: the one written now, or, with the board's delay, the last one.
+        // The code in effect over this period: the one written now, or, with the board's delay, the last one; a code
+        // written too late for the next instant is never loaded (the next sample's overwrites it), and this one holds.
         let in_effect = if self.config.actuation_delay_samples == 0 { out.dac_code } else { self.code_in_effect };
-        self.code_in_effect = out.dac_code;
+        self.code_in_effect = if out.board_faults.deadline_missed { self.code_in_effect } else { out.dac_code };
         if self.record.active {
             self.record_sample(RawSample { u_code: in_effect as u16, y_code: out.probe_code as u16 });
         }

@@ -768,9 +768,15 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     }
 
     /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
-    pub fn count_board_faults(&mut self, f: BoardFaults) {
+    ///
+    /// A deadline missed (the command written after the sample instant that was to load it) leaves the DAC on
+    /// `held_v`, this sample's command in effect, for another period: the late code is overwritten by the next
+    /// sample's before any instant loads it. The next sample's command in effect, which the filters and estimators
+    /// take, is that one.
+    pub fn count_board_faults(&mut self, f: BoardFaults, held_v: T) {
         self.counters.deadline_misses = self.counters.deadline_misses.saturating_add(f.deadline_missed as u32);
         self.counters.adc_overruns = self.counters.adc_overruns.saturating_add(f.adc_overrun as u32);
+        self.command_v = if f.deadline_missed { held_v } else { self.command_v };
     }
 
     /// Latched faults.

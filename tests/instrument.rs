@@ -2172,3 +2172,48 @@ fn a_tuning_files_commands_give_the_board_its_tuning() {
     }
     assert!(lab.send("status\n").contains(" tuning=triangle+tune "));
 }
+
+/// A command written after its deadline (the next sample instant passed) never reaches the stage: the DAC loads it
+/// at no instant, as the next sample's code overwrites it first, and holds the one before for another period. The
+/// pipeline's command in effect, which its filters and estimators take, and the recording say so, sample by sample,
+/// around a deadline miss injected on the simulated board (whose DAC then holds its code, as the board's does). They
+/// took the late code for the one in effect.
+#[test]
+fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
+    let mut lab = Lab::new();
+    // A sine: the command changes every sample.
+    assert!(verdict(&lab.send("excite sine 2 450\n")).starts_with("ok excite"));
+    lab.run(100);
+    let start = lab.link.len();
+    lab.send("record burst 40\n");
+    let mut link = lab.link[start..].to_string();
+    let (mut in_effect, mut applied, mut codes) = (Vec::new(), Vec::new(), Vec::new());
+    for k in 0..39 {
+        if k == 20 {
+            lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: false });
+        }
+        let out = lab.sample();
+        in_effect.push(out.u_v);
+        applied.push(lab.board.last_u_v() as f32);
+        codes.push(out.dac_code);
+    }
+    lab.run(10);
+    link.push_str(&lab.drain_recording());
+    let mut recorded = Vec::new();
+    for line in link.lines().filter(|l| l.starts_with('R')) {
+        let mut out = [RawSample::default(); FRAME_SAMPLES];
+        let (_, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
+        recorded.extend_from_slice(&out[..n]);
+    }
+    assert_eq!(recorded.len(), 40);
+    let cfg = lab.isr.config();
+    // The recording's first sample is the `send`'s; the loop's samples follow it.
+    for (k, s) in recorded[1..].iter().enumerate() {
+        let u = cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset;
+        assert_eq!((u, in_effect[k]), (applied[k], applied[k]), "sample {k}");
+    }
+    // The code written at sample 20 never went out: sample 21 ran on sample 19's, sample 22 on sample 21's.
+    assert_ne!(codes[20], codes[19]);
+    assert_eq!((recorded[22].u_code as u32, recorded[23].u_code as u32), (codes[19], codes[21]));
+    assert!(lab.send("status\n").contains(" deadline_misses=1 "));
+}

@@ -228,9 +228,13 @@ impl StageBoard for SimBoard {
 
     fn write_amplifier(&mut self, code: u32) {
         let dac = self.settings.dac.format();
+        // An injected deadline miss: this code comes too late for the next instant and is overwritten before one
+        // loads it (as on the board), so the code going out now holds for another period.
+        let late = self.inject_faults.is_some_and(|f| f.deadline_missed);
         let code = match self.settings.actuation_delay_samples {
             0 => code,
             // The DAC's holding register: the previous code goes out now (mid-scale before the first write).
+            _ if late => self.pending_code.unwrap_or(1 << (dac.bits - 1)),
             _ => self.pending_code.replace(code).unwrap_or(1 << (dac.bits - 1)),
         };
         let code = code.min(dac.max_code);
