@@ -184,7 +184,7 @@ where
     let code = board.read_probe();
     let mut out = pipeline.step_with(cfg, code, command, |dac_code| board.write_amplifier(dac_code));
     out.board_faults = board.sample_faults();
-    pipeline.count_board_faults(out.board_faults, out.u_v);
+    pipeline.count_board_faults(out.board_faults);
     out
 }
 

@@ -97,6 +97,8 @@ pub struct Instrument<T: Real> {
     pending: Option<Change<T>>,
     /// DAC code in effect over the current sample period (what the recording stores as `u`).
     code_in_effect: u32,
+    /// The last DAC code written, whether or not it made its deadline.
+    code_written: u32,
     ring: [RawSample; RECORD_BUFFER],
     ring_head: usize,
     ring_len: usize,
@@ -117,6 +119,7 @@ impl<T: Real> Instrument<T> {
             config,
             pending: None,
             code_in_effect,
+            code_written: code_in_effect,
             ring: [RawSample::default(); RECORD_BUFFER],
             ring_head: 0,
             ring_len: 0,
@@ -181,14 +184,28 @@ impl<T: Real> Instrument<T> {
             self.apply_pending();
         }
         let out = run_sample_with(board, &mut self.pipeline, &self.config, command);
-        // The code in effect over this period: the one written now, or, with the board's delay, the last one; a code
-        // written too late for the next instant is never loaded (the next sample's overwrites it), and this one holds.
+        // The code in effect over this period: the one written now, or, with the board's delay, the last one. Over the
+        // next, the one written now, unless it missed its deadline: then the next instant loaded the one written
+        // before it (the late one is loaded at the instant after only if the next sample's write misses too, and is
+        // overwritten first if it does not), which the pipeline's filters and estimators take as well.
         let in_effect = if self.config.actuation_delay_samples == 0 { out.dac_code } else { self.code_in_effect };
-        self.code_in_effect = if out.board_faults.deadline_missed { self.code_in_effect } else { out.dac_code };
+        self.code_in_effect = out.dac_code;
+        if out.board_faults.deadline_missed {
+            self.hold_written();
+        }
+        self.code_written = out.dac_code;
         if self.record.active {
             self.record_sample(RawSample { u_code: in_effect as u16, y_code: out.probe_code as u16 });
         }
         out
+    }
+
+    /// A missed deadline: the code written before this sample's is in effect over the next period.
+    #[inline(never)]
+    #[cold]
+    fn hold_written(&mut self) {
+        self.code_in_effect = self.code_written;
+        self.pipeline.hold_command(self.config.command_of_code(self.code_written));
     }
 
     #[inline(never)]

@@ -479,6 +479,11 @@ impl<T: Real> PipelineConfig<T> {
     pub fn safe_code(&self) -> u32 {
         encode(self, self.safe_v).0
     }
+
+    /// The command, V, that DAC code `code` outputs (what [`encode`] gives back with it).
+    pub(crate) fn command_of_code(&self, code: u32) -> T {
+        self.amplifier_inverse.apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero))
+    }
 }
 
 /// Fault bits. A latched fault stops the excitation until cleared. In the defmt log by name, as `status` prints them:
@@ -768,15 +773,16 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     }
 
     /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
-    ///
-    /// A deadline missed (the command written after the sample instant that was to load it) leaves the DAC on
-    /// `held_v`, this sample's command in effect, for another period: the late code is overwritten by the next
-    /// sample's before any instant loads it. The next sample's command in effect, which the filters and estimators
-    /// take, is that one.
-    pub fn count_board_faults(&mut self, f: BoardFaults, held_v: T) {
+    pub fn count_board_faults(&mut self, f: BoardFaults) {
         self.counters.deadline_misses = self.counters.deadline_misses.saturating_add(f.deadline_missed as u32);
         self.counters.adc_overruns = self.counters.adc_overruns.saturating_add(f.adc_overrun as u32);
-        self.command_v = if f.deadline_missed { held_v } else { self.command_v };
+    }
+
+    /// The command in effect over the next sample period is `v`, V, not the one just written: that one missed its
+    /// deadline, and the DAC holds the one written before it (see [`crate::instrument::Instrument::sample`]).
+    #[cold]
+    pub fn hold_command(&mut self, v: T) {
+        self.command_v = v;
     }
 
     /// Latched faults.
@@ -822,6 +828,5 @@ fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
     } else {
         num_traits::cast::<T, u32>(raw).unwrap_or(cfg.dac_max_code).min(cfg.dac_max_code)
     };
-    let back = cfg.amplifier_inverse.apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero));
-    (code, back)
+    (code, cfg.command_of_code(code))
 }

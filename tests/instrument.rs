@@ -2173,11 +2173,12 @@ fn a_tuning_files_commands_give_the_board_its_tuning() {
     assert!(lab.send("status\n").contains(" tuning=triangle+tune "));
 }
 
-/// A command written after its deadline (the next sample instant passed) never reaches the stage: the DAC loads it
-/// at no instant, as the next sample's code overwrites it first, and holds the one before for another period. The
-/// pipeline's command in effect, which its filters and estimators take, and the recording say so, sample by sample,
-/// around a deadline miss injected on the simulated board (whose DAC then holds its code, as the board's does). They
-/// took the late code for the one in effect.
+/// A command written after its deadline (the next sample instant passed) is not what that instant loads: the DAC
+/// holds the one written before it for another period, and loads the late one at the instant after only if the next
+/// sample's write is late too (else that one overwrites it first). The pipeline's command in effect, which its
+/// filters and estimators take, and the recording say so, sample by sample, around deadline misses injected on the
+/// simulated board (whose DAC then does as the board's): one alone, and two in a row. They took the late code for
+/// the one in effect.
 #[test]
 fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
     let mut lab = Lab::new();
@@ -2189,7 +2190,7 @@ fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
     let mut link = lab.link[start..].to_string();
     let (mut in_effect, mut applied, mut codes) = (Vec::new(), Vec::new(), Vec::new());
     for k in 0..39 {
-        if k == 20 {
+        if [20, 30, 31].contains(&k) {
             lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: false });
         }
         let out = lab.sample();
@@ -2212,8 +2213,11 @@ fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
         let u = cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset;
         assert_eq!((u, in_effect[k]), (applied[k], applied[k]), "sample {k}");
     }
-    // The code written at sample 20 never went out: sample 21 ran on sample 19's, sample 22 on sample 21's.
-    assert_ne!(codes[20], codes[19]);
-    assert_eq!((recorded[22].u_code as u32, recorded[23].u_code as u32), (codes[19], codes[21]));
-    assert!(lab.send("status\n").contains(" deadline_misses=1 "));
+    // The code written at sample 20 never went out: sample 21 ran on sample 19's, sample 22 on sample 21's. Sample
+    // 31, late too, ran on sample 29's, and let sample 30's out over sample 32 (recorded sample k + 1 is sample k).
+    let u = |k: usize| recorded[k + 1].u_code as u32;
+    assert!(codes[19] != codes[20] && codes[29] != codes[30] && codes[30] != codes[31]);
+    assert_eq!([u(21), u(22)], [codes[19], codes[21]]);
+    assert_eq!([u(31), u(32), u(33)], [codes[29], codes[30], codes[32]]);
+    assert!(lab.send("status\n").contains(" deadline_misses=3 "));
 }

@@ -142,6 +142,8 @@ pub struct SimBoard {
     adc_noise: NormalStream,
     last_u_v: f64,
     pending_code: Option<u32>,
+    /// The last code written (what the holding register has).
+    written_code: Option<u32>,
     /// A probe code to return instead of the measurement (fault injection).
     pub forced_probe_code: Option<u32>,
     /// Board faults to report for the next sample (fault injection; taken once).
@@ -158,6 +160,7 @@ impl SimBoard {
             adc_noise: NormalStream::new(settings.seed ^ 0xADC0_ADC0_ADC0_ADC0),
             last_u_v: 0.0,
             pending_code: None,
+            written_code: None,
             forced_probe_code: None,
             inject_faults: None,
             settings,
@@ -228,14 +231,16 @@ impl StageBoard for SimBoard {
 
     fn write_amplifier(&mut self, code: u32) {
         let dac = self.settings.dac.format();
-        // An injected deadline miss: this code comes too late for the next instant and is overwritten before one
-        // loads it (as on the board), so the code going out now holds for another period.
+        // An injected deadline miss: this code comes after the next instant, which loads the code written before it
+        // (as on the board); it is loaded at the instant after only if the next sample's write misses too.
         let late = self.inject_faults.is_some_and(|f| f.deadline_missed);
+        let mid = 1 << (dac.bits - 1);
+        let next = if late { self.written_code.unwrap_or(mid) } else { code };
+        self.written_code = Some(code);
         let code = match self.settings.actuation_delay_samples {
             0 => code,
             // The DAC's holding register: the previous code goes out now (mid-scale before the first write).
-            _ if late => self.pending_code.unwrap_or(1 << (dac.bits - 1)),
-            _ => self.pending_code.replace(code).unwrap_or(1 << (dac.bits - 1)),
+            _ => self.pending_code.replace(next).unwrap_or(mid),
         };
         let code = code.min(dac.max_code);
         let [low, high] = self.settings.dac.swing_v;
