@@ -10,7 +10,7 @@
 //! | `status` | counters, faults, the excitation and the estimates |
 //! | `excite off` / `excite constant V` / `excite prbs AMP_V [OFFSET_V]` / `excite triangle AMP_V HZ [OFFSET_V]` / `excite sine AMP_V HZ [OFFSET_V]` / `excite multisine AMP_V F_LO F_HI [OFFSET_V]` | choose the excitation (AMP_V in 0..=10, HZ in (0, 1000], F_HI above F_LO, V and OFFSET_V in -10..=10) |
 //! | `start` / `stop` | run or stop the excitation (the output ramps to its safe value) |
-//! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`, separated by commas or spaces) |
+//! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`; commas or spaces) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
 //! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
@@ -220,8 +220,8 @@ impl core::fmt::Display for ParseError {
             ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
             ParseError::UnknownCommand => write!(
                 f,
-                "unknown command (help, status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, limits, \
-                 record)"
+                "unknown command (help, status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, \
+                 limits, record)"
             ),
             ParseError::Missing { word, expected } => write!(f, "word {word}: missing, expected {expected}"),
             ParseError::Invalid { word, expected } => write!(f, "word {word}: expected {expected}"),

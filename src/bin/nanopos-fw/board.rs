@@ -50,11 +50,11 @@
 //! - ADC1's end of conversion (at `t_k` + 14.3 us) raises ADC1_2, the highest-priority interrupt, which reads the
 //!   code, computes the next command and writes its code to the DAC's holding register first (a posted change
 //!   applied, the excitation, the limits: at most 2 248 instructions, QEMU's `isr_to_command_write`), then runs the
-//!   filters and the estimators. The command's deadline: the next TIM2 update, 85.7 us ([`DEADLINE_CYCLES`], 14 568 cycles)
-//!   after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is written, or
-//!   TIM2's count at the interrupt's entry past it: [`G474Board::entered`]) and counted. The rest of the interrupt has until the next conversion ends, a sample period after this one: beyond
-//!   it the next interrupt starts late, and a conversion not read before the following one ends is an ADC overrun,
-//!   counted too.
+//!   filters and the estimators. The command's deadline: the next TIM2 update, 85.7 us ([`DEADLINE_CYCLES`], 14 568
+//!   cycles) after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is
+//!   written, or TIM2's count at the interrupt's entry past it: [`G474Board::entered`]) and counted. The rest of the
+//!   interrupt has until the next conversion ends, a sample period after this one: beyond it the next interrupt
+//!   starts late, and a conversion not read before the following one ends is an ADC overrun, counted too.
 
 use core::sync::atomic::{AtomicBool, Ordering};
 use embassy_stm32::pac;

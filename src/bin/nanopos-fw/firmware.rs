@@ -165,7 +165,9 @@ async fn main(spawner: Spawner) {
         );
     }
     defmt::info!(
-        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, command deadline {=u32} cycles after each conversion, reset cause {}, console LPUART1 {=u32} baud (`help` lists its commands)",
+        "nanopos-fw: sampling at {=u32} Hz, {=str}, probe {=u8}-bit (codes 0 to {=u32}), DAC {=u8}-bit, command \
+         deadline {=u32} cycles after each conversion, reset cause {}, console LPUART1 {=u32} baud (`help` lists its \
+         commands)",
         board::SAMPLE_RATE_HZ,
         if running { "PRBS 1 V running" } else { "excitation stopped" },
         board::DESCRIPTION.probe.bits,
