@@ -480,8 +480,8 @@ impl<T: Real> PipelineConfig<T> {
         encode(self, self.safe_v).0
     }
 
-    /// The command, V, that DAC code `code` outputs (what [`encode`] gives back with it).
-    pub(crate) fn command_of_code(&self, code: u32) -> T {
+    /// The command, V, that DAC code `code` outputs (what the pipeline takes a code it wrote for; a recording's `u`).
+    pub fn command_of_code(&self, code: u32) -> T {
         self.amplifier_inverse.apply(num_traits::cast::<u32, T>(code).unwrap_or_else(T::zero))
     }
 }

@@ -1112,9 +1112,7 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     for (k, s) in decoded.iter().enumerate().skip(1) {
         let out = &outputs[k - 1];
         assert_eq!(s.y_code as u32, out.probe_code, "{k}");
-        let cfg = lab.isr.config();
-        let u = cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset;
-        assert_eq!(u, out.u_v, "{k}");
+        assert_eq!(lab.isr.config().command_of_code(s.u_code as u32), out.u_v, "{k}");
     }
 }
 
@@ -1139,16 +1137,7 @@ fn the_interrupt_adds_the_excitation_to_a_command_of_its_own_and_records_the_sum
     }
     assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples=2000 overflow=0 crc="), "{link}");
     let cfg = lab.isr.config();
-    let u: Vec<f32> = link
-        .lines()
-        .filter(|l| l.starts_with('R'))
-        .flat_map(|line| {
-            let mut out = [RawSample::default(); FRAME_SAMPLES];
-            let (_, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
-            out[..n].to_vec()
-        })
-        .map(|s| cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset)
-        .collect();
+    let u: Vec<f32> = recorded_samples(&link).iter().map(|s| cfg.command_of_code(s.u_code as u32)).collect();
     assert_eq!(u.len(), 2000);
     // Recorded sample k + 1 is the period of output k (the first was the `send`'s sample).
     for (k, v) in u.iter().enumerate().skip(1) {
@@ -1161,6 +1150,17 @@ fn the_interrupt_adds_the_excitation_to_a_command_of_its_own_and_records_the_sum
     assert!(out.iter().all(|o| o.u_v <= 2.5 + 0.0025) && out.iter().any(|o| o.u_v > 2.49));
 }
 
+/// The samples of every frame on `link`, in order (each frame intact).
+fn recorded_samples(link: &str) -> Vec<RawSample> {
+    let mut samples = Vec::new();
+    let mut out = [RawSample::default(); FRAME_SAMPLES];
+    for line in link.lines().filter(|l| l.starts_with('R')) {
+        let (_, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
+        samples.extend_from_slice(&out[..n]);
+    }
+    samples
+}
+
 #[test]
 fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     let mut lab = Lab::new();
@@ -1171,12 +1171,7 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     assert_eq!(st.recorded, RECORD_BUFFER as u64);
     assert!(lab.send("status\n").contains(&format!("record=overflowed recorded={RECORD_BUFFER}")));
     let link = lab.drain_recording();
-    let mut total = 0;
-    let mut out = [RawSample::default(); FRAME_SAMPLES];
-    for line in link.lines().filter(|l| l.starts_with('R')) {
-        total += decode_frame(line.as_bytes(), &mut out).unwrap().1;
-    }
-    assert_eq!(total, RECORD_BUFFER);
+    assert_eq!(recorded_samples(&link).len(), RECORD_BUFFER);
     let end = link.lines().last().unwrap();
     assert!(end.starts_with(&format!("# nanopos-record end samples={RECORD_BUFFER} overflow=1 ")), "{end}");
 }
@@ -2200,17 +2195,12 @@ fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
     }
     lab.run(10);
     link.push_str(&lab.drain_recording());
-    let mut recorded = Vec::new();
-    for line in link.lines().filter(|l| l.starts_with('R')) {
-        let mut out = [RawSample::default(); FRAME_SAMPLES];
-        let (_, n) = decode_frame(line.as_bytes(), &mut out).unwrap();
-        recorded.extend_from_slice(&out[..n]);
-    }
+    let recorded = recorded_samples(&link);
     assert_eq!(recorded.len(), 40);
     let cfg = lab.isr.config();
     // The recording's first sample is the `send`'s; the loop's samples follow it.
     for (k, s) in recorded[1..].iter().enumerate() {
-        let u = cfg.amplifier_inverse.scale * s.u_code as f32 + cfg.amplifier_inverse.offset;
+        let u = cfg.command_of_code(s.u_code as u32);
         assert_eq!((u, in_effect[k]), (applied[k], applied[k]), "sample {k}");
     }
     // The code written at sample 20 never went out: sample 21 ran on sample 19's, sample 22 on sample 21's. Sample

@@ -1010,8 +1010,9 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
         (0..figs.len()).filter(|&i| ekf(i) && misfit(figs, &figs[i]).is_some()).map(|i| r.names[i]).collect();
     let (pace, f0) = (figs[best].input_rms_hz, figs[best].mean.f0_hz());
     let slow = pace < SLOW_INPUT * f0; // false where either is NaN
-    let only_ekfs = (0..figs.len()).all(ekf);
-    if !(only_ekfs || (!worse.is_empty() && !ekf(best))) || r.ekf_q != EkfDesign::Q2 || !slow {
+                                       // Shown to fit worse than a model linear in its parameters, or with none run to compare them with.
+    let (only_ekfs, shown) = ((0..figs.len()).all(ekf), !worse.is_empty() && !ekf(best));
+    if !(only_ekfs || shown) || r.ekf_q != EkfDesign::Q2 || !slow {
         return None;
     }
     let here = if only_ekfs {
