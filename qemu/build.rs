@@ -1,7 +1,13 @@
-//! Put this crate's `memory.x` (mps2-an386) first on the linker's search path, and check that the vectors exist.
+//! Put this crate's `memory.x` (mps2-an386 and mps2-an385 have the same map) first on the linker's search path,
+//! check that the vectors exist, and tell the harness which core it is built for: `cortex_m3` for
+//! `thumbv7m-none-eabi` (no FPU: QEMU's mps2-an385), none for `thumbv7em-none-eabihf` (the board's Cortex-M4F).
 use std::path::PathBuf;
 
 fn main() {
+    println!("cargo::rustc-check-cfg=cfg(cortex_m3)");
+    if std::env::var("TARGET").is_ok_and(|t| t == "thumbv7m-none-eabi") {
+        println!("cargo:rustc-cfg=cortex_m3");
+    }
     let out = PathBuf::from(std::env::var_os("OUT_DIR").unwrap());
     std::fs::copy("memory.x", out.join("memory.x")).expect("copy memory.x");
     println!("cargo:rustc-link-search={}", out.display());

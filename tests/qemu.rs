@@ -1,7 +1,9 @@
 //! The core on the Cortex-M4F instruction set: `qemu/run` (the harness under QEMU, see `qemu/src/main.rs`) passes,
-//! builds without warnings, and writes every kernel's instruction count to `target/qemu-bench.json`.
+//! builds without warnings, and writes every kernel's instruction count to `target/qemu-bench.json`; and on the
+//! Cortex-M3, without an FPU, to `target/qemu-bench-cortex-m3.json`.
 //!
-//! Needs `qemu-system-arm` and `defmt-print` on the PATH (`.ci/run` installs both).
+//! Needs `qemu-system-arm` and `defmt-print` on the PATH and the targets `thumbv7em-none-eabihf` and
+//! `thumbv7m-none-eabi` (`.ci/run` installs them).
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -57,13 +59,17 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let json_path = root.join("target/qemu-bench.json");
     let latency_path = root.join("target/qemu-command-latency.json");
-    let _ = std::fs::remove_file(&json_path);
-    let _ = std::fs::remove_file(&latency_path);
+    let m3_path = root.join("target/qemu-bench-cortex-m3.json");
+    for path in [&json_path, &latency_path, &m3_path] {
+        let _ = std::fs::remove_file(path);
+    }
     let out = Command::new(root.join("qemu/run")).current_dir(&root).output().expect("run qemu/run");
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     println!("{stdout}");
     assert!(out.status.success(), "qemu/run failed ({}):\n{stdout}\n{stderr}", out.status);
-    assert!(stdout.lines().any(|l| l.ends_with("PASS")), "no verdict in the log:\n{stdout}");
+    // A verdict from each of the three runs: the M4F's two builds and the Cortex-M3's.
+    let verdicts = stdout.lines().filter(|l| l.ends_with("PASS")).count();
+    assert_eq!(verdicts, 3, "{verdicts} passing verdicts of 3 in the log:\n{stdout}");
     let warnings: Vec<&str> = stderr.lines().filter(|l| l.starts_with("warning")).collect();
     assert!(warnings.is_empty(), "the harness build warns:\n{stderr}");
     // The latched faults in the log by name, as in `status`, not as a bit mask to look up in the source.
@@ -74,6 +80,11 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     let count = |k: &str, field: &str| count_in(&json, k, field);
     for k in KERNELS {
         assert!(count(k, "instructions_per_update") > 0, "{k}: zero instructions");
+    }
+    // Without an FPU: every kernel counted, the fixed-point ones among them, which are for such cores.
+    let m3 = std::fs::read_to_string(&m3_path).expect("target/qemu-bench-cortex-m3.json");
+    for k in KERNELS {
+        assert!(count_in(&m3, k, "instructions_per_update") > 0, "{k}: zero instructions on the Cortex-M3");
     }
     // The heaviest configuration the console accepts, on the sample that applies it and after: within a sample
     // counted as instructions (a necessary condition only: the board's cycles are more).

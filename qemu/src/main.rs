@@ -8,9 +8,16 @@
 //!    clock by exactly `2^shift` ns), converts to instructions exactly, and writes `target/qemu-bench.json`.
 //!
 //! The verdict is the semihosting exit status: 0 when every check passed.
+//!
+//! Built for `thumbv7m-none-eabi` (`qemu/run`'s third run) the same harness runs on QEMU's Cortex-M3
+//! (`mps2-an385`, the same memory map), a core without an FPU: `f32` in software, which the fixed-point kernels are
+//! for. The same checks against the host, its counts in `target/qemu-bench-cortex-m3.json`.
 
 #![no_std]
 #![no_main]
+
+#[cfg(all(feature = "command-latency", cortex_m3))]
+compile_error!("the command-latency build counts the board's interrupt: build it for thumbv7em-none-eabihf");
 
 /// The firmware's loader of the code that runs from RAM, the same file.
 #[path = "../../src/bin/nanopos-fw/ram_code.rs"]
@@ -40,7 +47,7 @@ static VECTORS: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../
 
 /// Updates timed per kernel: the last `BENCH` samples of the run (estimators converged, the payload change behind).
 const BENCH: usize = 1000;
-/// SysTick's clock on mps2-an386 (the 25 MHz system clock): 40 ns per tick.
+/// SysTick's clock on mps2-an386 and mps2-an385 (the 25 MHz system clock): 40 ns per tick.
 const TICK_NS: u64 = 40;
 
 /// Exact instruction counts from SysTick ticks.
@@ -567,10 +574,13 @@ fn main() -> ! {
     let _ = write!(table.json, "\n}}\n");
     // The `command-latency` build's counts carry its mark in the sample path: a file of their own, whose reader
     // takes `isr_to_command_write` from it.
-    #[cfg(not(feature = "command-latency"))]
+    #[cfg(not(any(feature = "command-latency", cortex_m3)))]
     let path = c"target/qemu-bench.json";
-    #[cfg(feature = "command-latency")]
+    #[cfg(all(feature = "command-latency", not(cortex_m3)))]
     let path = c"target/qemu-command-latency.json";
+    // The same core without an FPU (`f32` in software): what the fixed-point kernels are for.
+    #[cfg(cortex_m3)]
+    let path = c"target/qemu-bench-cortex-m3.json";
     if semihosting::fs::write(path, json.as_str().as_bytes()).is_err() {
         fail("could not write the counts' JSON on the host");
     }
