@@ -18,7 +18,9 @@
 //! measurement update with noise `r = lambda1 / lambda2`, then `D /= lambda1`. `F` is never formed, so it cannot
 //! lose symmetry, and stays positive definite as long as `D > 0`, which the update preserves by construction: the
 //! classic remedy for the covariance form's loss of definiteness in single precision over long runs. Cost per
-//! update: `1.5 n^2 + 4.5 n` multiplies, `n` divisions (n = 4: 42 and 4).
+//! update: `1.5 n^2 + 4.5 n` multiplies, `2 n + 1` divisions (n = 4: 42 and 9; two per factor, by `alpha` before
+//! and after it, and the gain's). In floating point a division is one instruction (14 cycles on the M4F); in fixed
+//! point it is most of the update (`Fx`'s, about 210 instructions on the Cortex-M4, BENCHMARKS.md).
 //!
 //! ## Windup
 //! With forgetting and no excitation `F` grows as `lambda1^-k` (ten minutes at 10 kHz with `lambda1 = 0.9995`:
@@ -222,7 +224,8 @@ impl<T: Scalar, const N: usize> DiscreteRls<T, N> {
             for (t, bi) in self.theta.iter_mut().zip(b.iter()) {
                 *t += *bi * k;
             }
-            a_posteriori = a_priori * r / alpha;
+            // `eps0 r / alpha`, from the gain's quotient: one division fewer (ten to nine in fixed point).
+            a_posteriori = k * r;
         }
         if gain.lambda1 < T::one() && self.trace() <= gain.max_trace * gain.lambda1 {
             for d in self.d.iter_mut() {
