@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
-const KERNELS: [&str; 33] = [
+const KERNELS: [&str; 34] = [
     "pipeline_all_f32",
     "pipeline_bare_f32",
     "crls_f32",
@@ -23,6 +23,7 @@ const KERNELS: [&str; 33] = [
     "reconstruction_replica_f32",
     "antialias_replica_f32",
     "lag_replica_f32",
+    "biquad_fixed",
     "excitation_prbs_f32",
     "excitation_triangle_f32",
     "excitation_sine_f32",

@@ -364,6 +364,12 @@ fn main() -> ! {
         let mut bq = BiquadState::default();
         table.kernel(name, |c, s| window.iter().for_each(|x| s.add(c.count(|| biquad.update(&mut bq, x.u)).1)));
     }
+    // One of them in Q31.32, as a core without an FPU would run the pipeline's filters.
+    let (fixed_biquad, mut fixed_state) = (cfg.reconstruction.cast::<Q32>(), BiquadState::default());
+    let fixed_u: [Q32; BENCH] = core::array::from_fn(|i| Q32::of(f64::from(window[i].u)));
+    table.kernel("biquad_fixed", |c, s| {
+        fixed_u.iter().for_each(|&u| s.add(c.count(|| fixed_biquad.update(&mut fixed_state, u)).1))
+    });
     let mut ex = ExcitationState::default();
     table.kernel("excitation_prbs_f32", |c, s| {
         (0..BENCH).for_each(|_| s.add(c.count(|| cfg.excitation.next(&mut ex)).1))
