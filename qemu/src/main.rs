@@ -151,7 +151,7 @@ impl Clock {
         // below half an instruction, and rounding the difference of two is not exact.
         if (1000 << shift) < 3 * TICK_PS || ns_per_insn.abs_diff(1 << shift) * 100 > 1 << shift {
             defmt::error!(
-                "run under -icount shift=N with 2^N ns at least 3 SysTick ticks ({=u64} ps each): counts would not be exact",
+                "run under -icount shift=N, 2^N ns >= 3 SysTick ticks ({=u64} ps each): counts would not be exact",
                 TICK_PS
             );
             return None;
