@@ -88,7 +88,8 @@ fn ticks<F: FnMut()>(f: &mut F) -> u32 {
 fn ticks_at<F: FnMut()>(f: &mut F) -> (u32, u32) {
     let (t0, t1): (u32, u32);
     // SAFETY: SYST_CVR (0xE000_E018) is always mapped on a Cortex-M; the callee follows the C ABI, whose
-    // caller-saved registers (r0-r3, r12, lr, d0-d7) are declared clobbered; the address and the first reading live in callee-saved r4/r5.
+    // caller-saved registers (r0-r3, r12, lr, d0-d7) are declared clobbered; the address and the first reading live
+    // in callee-saved r4/r5.
     unsafe {
         core::arch::asm!(
             "ldr r5, [r4]",
