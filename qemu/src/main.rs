@@ -243,8 +243,6 @@ impl<const N: usize> core::fmt::Write for Text<N> {
 
 /// The counts' JSON's buffer: 34 kernels and the mark's take about 3 100 bytes.
 const JSON_BYTES: usize = 4096;
-/// Why a run stops when the JSON outgrows [`JSON_BYTES`] (it was cut short silently once).
-const JSON_FULL: &str = "the counts' JSON outgrew its buffer (JSON_BYTES)";
 
 fn fail(what: &str) -> ! {
     defmt::error!("FAIL: {=str}", what);
@@ -599,9 +597,7 @@ fn main() -> ! {
     ];
     bench_ok &= ended == Some((expected, n as u64));
 
-    if write!(table.json, "\n}}\n").is_err() {
-        fail(JSON_FULL);
-    }
+    table.json_put(format_args!("\n}}\n"));
     // The `command-latency` build's counts carry its mark in the sample path: a file of their own, whose reader
     // takes `isr_to_command_write` from it.
     #[cfg(not(any(feature = "command-latency", cortex_m3, cortex_m0)))]
@@ -686,20 +682,23 @@ impl Bench<'_> {
     fn kernel(&mut self, name: &str, run: impl FnOnce(&Clock, &mut Stats)) {
         let mut s = Stats::default();
         run(self.clock, &mut s);
-        let entry = write!(
-            self.json,
+        self.json_put(format_args!(
             "{}\n  \"{}\": {{\"instructions_per_update\": {}, \"max\": {}, \"updates\": {}}}",
             if self.first { "{" } else { "," },
             name,
             s.mean(),
             s.max,
             s.updates
-        );
-        if entry.is_err() {
-            fail(JSON_FULL);
-        }
+        ));
         self.first = false;
         self.summary(name, &s);
+    }
+
+    /// Append to the JSON; a run whose JSON outgrows [`JSON_BYTES`] stops (it was once cut short silently).
+    fn json_put(&mut self, text: core::fmt::Arguments) {
+        if self.json.write_fmt(text).is_err() {
+            fail("the counts' JSON outgrew its buffer (JSON_BYTES)");
+        }
     }
 
     fn summary(&self, name: &str, s: &Stats) {
