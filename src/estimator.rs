@@ -254,7 +254,8 @@ pub struct Health {
     /// as it can have while it converges: for its first 2.1 s on a stage at 1 kHz, where it reports the initial
     /// parameters). Never set by the others.
     pub held: bool,
-    /// Times a non-finite value was caught and the estimator reset to its initial state.
+    /// Times a non-finite value was caught and the estimator reset to its initial state (an EKF also an innovation
+    /// RMS beyond a metre, or no relock after a start or a change: `estimators::ekf::RELOCK_NIS_RATIO`).
     pub numeric_resets: u32,
     /// Samples rejected by innovation gating.
     pub rejected_samples: u32,

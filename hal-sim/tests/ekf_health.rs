@@ -127,6 +127,42 @@ fn a_glitch_that_throws_the_continuous_filter_off_resets_it() {
     assert!(worst_after < 5e-3, "{worst_after}");
 }
 
+/// One reading of 10^5 um (10^5 times the PRBS's level; a logger's overflow value in a record replayed on the host,
+/// as the board's ADC cannot deliver one): its ring through the pre-filter passes for a plant change, the gate opens
+/// and the hybrid filter follows the ring into a wrong optimum, every value finite. It stayed there for good (at the
+/// start `b0` negative and `a0` 40 times the truth; at 7 s, parameters 16 to 35 times off 7 to 13 s later, the
+/// innovation RMS 2 um against 1 nm), its gate's and drift detector's references following its own innovations,
+/// and missed the payload change. Now, when drift detection resumes 5 s after the change it saw, `nu^2 / S` is still
+/// more than `RELOCK_NIS_RATIO` (100) times the level before it, and the filter is reset (counted) and converges
+/// again: a glitch at 0.1 s (the level before it the start's 1) or at 7 s (the level before it the long run's,
+/// about 1e-4). The same data without the glitch, payload change included, resets it never.
+#[test]
+fn a_filter_that_does_not_relock_is_reset() {
+    for glitch_s in [None, Some(0.1), Some(7.0)] {
+        let mut est = Hekf::new(EkfDesign::default().design());
+        let at = glitch_s.map_or(u64::MAX, |s: f64| (s * 1e4) as u64);
+        let glitch = |k: u64, y: f64| if k == at { y + 1e5 } else { y };
+        // The payload comes off at 16 s, after the filter reset at 12 s has converged again.
+        let (mut worst_before, mut worst_after) = (0.0f64, 0.0f64);
+        let observe = |k: u64, e: &Hekf<f64>| {
+            if (140_000..160_000).contains(&k) {
+                worst_before = worst_before.max(rel(&e.params(), &StageParams::PAYLOAD));
+            } else if k >= 180_000 {
+                worst_after = worst_after.max(rel(&e.params(), &StageParams::NO_PAYLOAD));
+            }
+        };
+        drive_raw(&mut est, 20.0, 16.0, |_| false, glitch, |_, _| {}, observe);
+        let h = est.health();
+        eprintln!(
+            "glitch at {glitch_s:?} s: resets {}, changes {}, worst error 14-16 s {worst_before:.1e}, 18-20 s \
+             {worst_after:.1e}",
+            h.numeric_resets, h.changes_detected
+        );
+        assert_eq!(h.numeric_resets, u32::from(glitch_s.is_some()), "{glitch_s:?}: {h:?}");
+        assert!(worst_before < 1e-3 && worst_after < 1e-3, "{glitch_s:?}: {worst_before:e} {worst_after:e}");
+    }
+}
+
 /// A NaN in the measurement and an infinity in the input, each in the raw and the pre-filtered value (the
 /// continuous-time RLS reads the raw ones): each resets the estimator to its initial state and is counted, no
 /// estimate is ever non-finite, and the estimator converges again. `seconds` of the reference-style PRBS, faults at
