@@ -623,6 +623,41 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     assert!(cekf > 1000 && hekf == 0, "{cekf} {hekf}");
 }
 
+/// A large excitation after a long pause: two minutes without excitation (the payload coming off meanwhile), then a
+/// PRBS or a multisine of 8 V, whose misfit (the board's second mode) makes innovations 15 times those of the pause
+/// (40 nm against 2.6 nm; `nu^2 / S` about 240 times its long-run level then). The EKFs see a change, relock, and are
+/// not taken for filters that did not: `RELOCK_NIS_RATIO` compares their level 5 s later with 1 as well as with the
+/// level before (compared with that alone, each EKF was reset once, 5 s after the excitation came back). 12 s after
+/// it `a0` and `b0` are within 1 % of the truth (`b0` 0.6 % high under the PRBS, against 0.3 % under the paper's 1 V
+/// one; not looked into).
+#[test]
+fn a_large_excitation_after_a_long_pause_resets_no_estimator() {
+    for excitation in ["excite prbs 8\n", "excite multisine 8 200 800\n"] {
+        let mut lab = Lab::new();
+        assert!(verdict(&lab.send("limits -10 10 1000000\n")).starts_with("ok"));
+        lab.run(100_000);
+        assert!(verdict(&lab.send("excite off\n")).starts_with("ok"));
+        lab.run(1_200_000);
+        assert!(verdict(&lab.send(excitation)).starts_with("ok"));
+        lab.run(120_000);
+        let st = lab.isr.status();
+        for (name, (p, h)) in ["ekf", "hekf"].iter().zip(&st.estimates[1..3]) {
+            let t = StageParams::NO_PAYLOAD;
+            let e = [p.a0 as f64 / t.a0, p.b0 as f64 / t.b0].map(|x| (x - 1.0).abs());
+            println!(
+                "{} {name}: changes {}, resets {}, a0 and b0 off by {:.1e} and {:.1e}",
+                excitation.trim(),
+                h.changes_detected,
+                h.numeric_resets,
+                e[0],
+                e[1]
+            );
+            assert!(h.changes_detected > 0 && h.numeric_resets == 0, "{excitation} {name}: {h:?}");
+            assert!(e.iter().all(|&e| e < 1e-2), "{excitation} {name}: {p:?}");
+        }
+    }
+}
+
 /// The telemetry's warnings: looked at every 0.1 s, the watch says how many numeric resets each estimator had
 /// since the last look (the continuous EKF's, with `R` a million below the paper's, in nearly every look; nobody
 /// else's), a new tuning (which restarts the estimators and their counts) is not taken for billions of resets, and
