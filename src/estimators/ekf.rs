@@ -185,8 +185,9 @@ impl Default for EkfDesign {
 ///
 /// - **Gating**: a sample whose normalised innovation `nu^2 / S` exceeds `gate_sigma^2` times its running mean
 ///   over the accepted samples (time constant `nis_tau_s`, 0.5 s: long enough to average the noise, short enough
-///   to forget the start-up transient within seconds) is not used, and counted. Relative, because the real noise need not match `R`: the
-///   paper's `R_d = R / T` stands for 122 nm per sample where the probe has about 1 nm, so `nu^2 / S` runs near 1e-4.
+///   to forget the start-up transient within seconds) is not used, and counted. Relative, because the real noise
+///   need not match `R`: the paper's `R_d = R / T` stands for 122 nm per sample where the probe has about 1 nm, so
+///   `nu^2 / S` runs near 1e-4.
 /// - **Change detection**: `change_samples` gated samples in a row are not an outlier but a changed plant (the
 ///   payload came off): the parameter covariance is reopened, the estimates kept, and gating paused for
 ///   `holdoff_s` while the filter relocks. Counted. Gating is only active together with change detection: a gate
