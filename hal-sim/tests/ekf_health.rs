@@ -130,8 +130,8 @@ fn a_glitch_that_throws_the_continuous_filter_off_resets_it() {
 /// One reading of 10^5 um (10^5 times the PRBS's level; a logger's overflow value in a record replayed on the host,
 /// as the board's ADC cannot deliver one): its ring through the pre-filter passes for a plant change, the gate opens
 /// and the hybrid filter follows the ring into a wrong optimum, every value finite. It stayed there for good (at the
-/// start `b0` negative and `a0` 40 times the truth; at 7 s, parameters 16 to 35 times off 7 to 13 s later, the
-/// innovation RMS 2 um against 1 nm), its gate's and drift detector's references following its own innovations,
+/// start `b0` negative and `a0` 40 times the truth; at 7 s, parameters off by 1 600 % to 3 500 % 7 to 13 s later,
+/// the innovation RMS 2 um against 1 nm), its gate's and drift detector's references following its own innovations,
 /// and missed the payload change. Now, when drift detection resumes 5 s after the change it saw, `nu^2 / S` is still
 /// more than `RELOCK_NIS_RATIO` (100) times 1, what a filter whose noise model is right averages, and the filter is
 /// reset (counted) and converges again: a glitch at 0.1 s or at 7 s (after the start's wait). The same data without

@@ -256,8 +256,8 @@ fn identify_reports_an_estimator_that_keeps_resetting() {
     assert!(ekf > 50 && hekf == 0, "{ekf} {hekf}");
     let stderr = String::from_utf8(out.stderr).unwrap();
     let note = format!(
-        "note: ekf met a non-finite value (or an innovation beyond a metre, or no relock 5 s after a change) and went \
-         back to its initial parameters {ekf} times in window 1:2"
+        "note: ekf met a non-finite value (or an innovation beyond a metre, or no relock within 5 s) and went back to \
+         its initial parameters {ekf} times in window 1:2"
     );
     assert!(stderr.contains(&note), "{note} missing in {stderr}");
     assert!(!stderr.contains("hekf met"), "{stderr}");

@@ -23,9 +23,8 @@
 //!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `held`, the
 //!   share of the window the estimator's parameters were held (the ARX's, while its discrete model had no continuous
 //!   equivalent: not yet converged), where the mean is of the last it could report; and `resets`, the
-//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre, or no relock 5 s
-//!   after a change) and went back
-//!   to its initial parameters (a tuning that does not suit the record resets it over and over, and its mean is then
+//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre, or no relock
+//!   within 5 s of a start or a change) and went back to its initial parameters (a tuning that does not suit the record resets it over and over, and its mean is then
 //!   of runs that diverged). Above 10 %
 //!   starved or held, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
 //!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
@@ -979,10 +978,9 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             }
             if f.resets > 0 {
                 notes.push(format!(
-                    "{name} met a non-finite value (or an innovation beyond a metre, or no relock 5 s after a change) \
-                     and went back to its initial \
-                     parameters {} times in window {}:{} (a tuning that does not suit this record): its means there \
-                     are of runs that diverged",
+                    "{name} met a non-finite value (or an innovation beyond a metre, or no relock within 5 s) and \
+                     went back to its initial parameters {} times in window {}:{} (a tuning that does not suit this \
+                     record): its means there are of runs that diverged",
                     f.resets, w.t0, w.t1
                 ));
             }
