@@ -980,7 +980,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 notes.push(format!(
                     "{name} met a non-finite value (or an innovation beyond a metre, or no relock within 5 s) and \
                      went back to its initial parameters {} times in window {}:{} (a tuning that does not suit this \
-                     record): its means there are of runs that diverged",
+                     record, or a glitch in it): its means there are of runs that diverged",
                     f.resets, w.t0, w.t1
                 ));
             }
