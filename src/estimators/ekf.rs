@@ -132,7 +132,9 @@ impl EkfDesign {
             // for it per sample.
             drift_ratio: T::of(if hd.drift_ratio > 0.0 { hd.drift_ratio } else { f64::INFINITY }),
             drift_alpha: T::of(t / hd.drift_tau_s),
-            drift_wait_samples: libm::round(hd.drift_wait_s / t) as u32,
+            // At least one sample: the long-run level held over a wait (the relock's reference, at least 1 after a
+            // change) is released only at its end.
+            drift_wait_samples: libm::round(hd.drift_wait_s / t).max(1.0) as u32,
             pe: PeFloor::new(hd.pe_floor_v2),
             // The innovation RMS in the health report is over the last second.
             innovation_block,
@@ -245,7 +247,7 @@ pub struct EkfHealthDesign {
     pub drift_ratio: f64,
     /// Time constant of the long-run `nu^2 / S`, s.
     pub drift_tau_s: f64,
-    /// No drift detection for this long after a start, a reset or a detected change, s.
+    /// No drift detection for this long after a start, a reset or a detected change, s (at least one sample).
     pub drift_wait_s: f64,
     /// Filtered input power below which adaptation starves, V^2 (0: the excitation monitor off).
     pub pe_floor_v2: f64,
@@ -1121,6 +1123,17 @@ mod tests {
 
     /// A continuous step whose residual the gate rejects is the step without the measurement from the state before
     /// it (not from the rejected step's result); one the gate passes uses the measurement.
+    /// A wait of no length is one of a sample: without its end the long-run level, floored at 1 for the relock test
+    /// at a change, would stay there and blind the drift detector for tens of seconds.
+    #[test]
+    fn a_drift_wait_is_at_least_one_sample() {
+        let mut design = EkfDesign::default();
+        design.health.drift_wait_s = 0.0;
+        assert_eq!(design.design::<f64>().drift_wait_samples, 1);
+        design.health.drift_wait_s = 5.0;
+        assert_eq!(design.design::<f64>().drift_wait_samples, 50_000);
+    }
+
     #[test]
     fn a_rejected_continuous_step_is_taken_again_from_where_it_started_without_the_measurement() {
         let before = converged_hybrid(0.01).core;
