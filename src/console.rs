@@ -30,8 +30,8 @@ use core::fmt::{self, Write};
 pub const REPLY_BYTES: usize = 512;
 
 /// The excitation's amplitude, V, from which a PRBS or a multisine with the paper's `Q2` is noted
-/// ([`Controller::tuning_note`]): on the simulated board at 2 V the EKFs' `b0` wanders up to 0.70 % off the truth
-/// instead of 0.59 % at 1 V (0.86 % at 4 V, 1.07 % at 8 V); below, nothing measurable.
+/// ([`Controller::tuning_note`]): on the simulated board at 2 V the hybrid EKF's `b0` wanders up to 0.70 % off the
+/// truth instead of 0.59 % at 1 V (0.86 % at 4 V, 1.07 % at 8 V; the paper's 200 s in `hal_sim::experiment`).
 pub const Q2_STRONG_AMPLITUDE_V: f64 = 2.0;
 
 /// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
