@@ -673,7 +673,9 @@ fn a_large_excitation_after_a_long_pause_resets_no_estimator() {
 /// --nocapture strong_excitation`): the largest excursion of the EKFs' `b0` from the truth from 20 s on, but for
 /// the second after the payload comes off: at 1 V 0.52-0.54 %, at 8 V 1.03-1.05 % (beyond the 1 % within which
 /// `paper` counts a relock), at 8 V with the note's `q` 0.54-0.56 % (1.04 times 1 V's); the `a1` bias of their means
-/// over 75-100 s +0.02-0.03 %, +0.10-0.18 %, +0.03 %. A multisine of 200-800 Hz: at 1 V 0.41-0.42 %, at 6 V
+/// over 75-100 s +0.02-0.03 %, +0.10-0.18 %, +0.03 %. With the default slew limit, which ramps the 8 V PRBS's steps
+/// (39 V^2 of power left, not 64), the same `q` does as well: 1.05-1.07 % with Q2, 0.54-0.55 % with it; `a1`
+/// +0.14-0.21 %, +0.04-0.05 %. A multisine of 200-800 Hz: at 1 V 0.41-0.42 %, at 6 V
 /// 0.88-0.90 %, with the note's `q` (over 18) 0.40-0.41 %; its `a1` +0.10 %, +0.05 to -0.00 %, +0.10 %.
 /// (`hal_sim::experiment`'s 200 s of PRBS in f64 and f32 alike: 0.59-0.61, 1.07-1.09, 0.55-0.57 %; relock 0.2 s at 1 V
 /// and with the note's `q`, at 8 V with Q2 never for good.)
@@ -718,9 +720,9 @@ fn a_strong_excitation_with_the_papers_q_is_noted_and_its_advice_keeps_the_ekfs_
 
     // What the note is about, on the firmware: the worst `b0` of both EKFs from 20 s on (but the second after the
     // payload comes off at 100 s), and their `a1` mean over 75-100 s.
-    let run = |excite: &str, tune: Option<&str>| {
+    let run = |excite: &str, limits: &str, tune: Option<&str>| {
         let mut lab = Lab::new();
-        assert!(verdict(&lab.send("limits -10 10 1000000\n")).starts_with("ok"));
+        assert!(verdict(&lab.send(limits)).starts_with("ok"));
         if let Some(t) = tune {
             assert!(verdict(&lab.send(&format!("{t}\n"))).starts_with("ok"));
         }
@@ -740,15 +742,23 @@ fn a_strong_excitation_with_the_papers_q_is_noted_and_its_advice_keeps_the_ekfs_
                 }
             }
         }
-        println!("{excite}, {}: worst b0 of ekf, hekf {worst:.5?}, a1 75-100 s {a1:+.5?}", tune.unwrap_or("Q2"));
+        let (limits, tune) = (limits.trim(), tune.unwrap_or("Q2"));
+        println!("{excite}, {limits}, {tune}: worst b0 of ekf, hekf {worst:.5?}, a1 75-100 s {a1:+.5?}");
         (worst, a1)
     };
-    for (weak, strong) in [("prbs 1", "prbs 8"), ("multisine 1 200 800", "multisine 6 200 800")] {
+    // The paper's PRBS against one of 8 V with the slew limit out of the way, and with the default one (25 000 V/s,
+    // which ramps its steps of 16 V over 7 samples: 39 V^2 of power left, and the advice still right); a multisine.
+    let (wide, default) = ("limits -10 10 1000000\n", "limits -10 10 25000\n");
+    for (weak, strong, limits) in [
+        ("prbs 1", "prbs 8", wide),
+        ("prbs 1", "prbs 8", default),
+        ("multisine 1 200 800", "multisine 6 200 800", wide),
+    ] {
         let advice = noted(&mut Lab::new(), &format!("excite {strong}\n")).expect("noted");
         let tune = &advice[advice.find("tune ekf q").expect("a command")..];
-        let (paper_worst, paper_a1) = run(weak, None);
-        let (strong_worst, strong_a1) = run(strong, None);
-        let (advised_worst, advised_a1) = run(strong, Some(tune));
+        let (paper_worst, paper_a1) = run(weak, limits, None);
+        let (strong_worst, strong_a1) = run(strong, limits, None);
+        let (advised_worst, advised_a1) = run(strong, limits, Some(tune));
         for j in 0..2 {
             assert!(strong_worst[j] > 1.5 * paper_worst[j], "{strong} {j}: {strong_worst:?} against {paper_worst:?}");
             // The PRBS's `a1` reads high with it; the multisine's moves the other way, less.
@@ -756,7 +766,9 @@ fn a_strong_excitation_with_the_papers_q_is_noted_and_its_advice_keeps_the_ekfs_
                 assert!(strong_a1[j] > 2.0 * paper_a1[j], "{strong} {j}: {strong_a1:?} against {paper_a1:?}");
             }
             assert!(advised_worst[j] < 1.1 * paper_worst[j], "{strong} {j}: {advised_worst:?} against {paper_worst:?}");
-            assert!((advised_a1[j] - paper_a1[j]).abs() < 2e-4, "{strong} {j}: {advised_a1:?} against {paper_a1:?}");
+            // Within 0.025 % of a1: 0.007 % at most, but 0.018-0.021 % for the ramped PRBS, no scaled copy of the
+            // paper's (its `a1` +0.21 / +0.14 % with Q2).
+            assert!((advised_a1[j] - paper_a1[j]).abs() < 2.5e-4, "{strong} {j}: {advised_a1:?} against {paper_a1:?}");
         }
     }
 }
