@@ -33,7 +33,7 @@ pub const REPLY_BYTES: usize = 512;
 /// 1 V, 1 V^2) is noted ([`Controller::tuning_note`]): a PRBS of 2 V, a multisine of 2.83 V. On the simulated board a
 /// PRBS of 2 V makes the hybrid EKF's `b0` wander up to 0.70 % off the truth instead of 0.59 % at 1 V (0.86 % at
 /// 4 V, 1.07 % at 8 V; the paper's 200 s in `hal_sim::experiment`).
-pub const Q2_STRONG_POWER_V2: f64 = 4.0;
+const Q2_STRONG_POWER_V2: f64 = 4.0;
 
 /// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
 /// at a time by [`Rest::write_next`] from the snapshot taken when the command ran.
