@@ -290,7 +290,7 @@ impl Controller {
     /// the paper's PRBS (`A^2` for a PRBS of `A`, `A^2 / 2` for a multisine, which has a sine's power). The EKFs'
     /// misfit grows with the input; `Q` fixed, their parameters follow it faster and wander further: on the
     /// simulated board a PRBS of 8 V sets `b0` up to 1.03-1.05 % off the truth instead of 0.52-0.54 % at 1 V,
-    /// 0.54-0.56 % with `Q / 64`; a multisine of 6 V up to 0.88-0.90 % instead of 0.41-0.42 % at 1 V, 0.40-0.41 % with
+    /// 0.54-0.56 % with `Q / 64`; a multisine of 6 V up to 0.88-0.90 % instead of 0.39-0.40 % at 1 V, 0.39-0.40 % with
     /// `Q / 18` (`tests/instrument.rs`, the firmware's figures). `quiet` is for an `excite` with more urgent notes,
     /// whose length leaves no room for this one: the clamp's, [`Self::identify_note`]'s multisine beside the
     /// resonance, or within a step.
