@@ -42,6 +42,10 @@ enum Command {
         /// --hum 150:5)
         #[arg(long, value_name = "HZ:NM")]
         hum: Vec<hal_sim::cmd::HumArg>,
+        /// The excitation's amplitude, V, 0 to 10, as the console's `excite` takes it (the paper's: 1), through the
+        /// firmware's default output limits
+        #[arg(long, value_name = "V", allow_negative_numbers = true)]
+        amplitude: Option<f64>,
         /// Output CSV file.
         #[arg(long)]
         out: PathBuf,
@@ -199,7 +203,7 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, hum, out } => {
+        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, hum, amplitude, out } => {
             let args = simulate::SimulateArgs {
                 scenario: scenario.into(),
                 duration_s: duration,
@@ -208,6 +212,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 creep,
                 gain_drift_pct_per_min: gain_drift,
                 hum,
+                amplitude_v: amplitude,
                 out: &out,
             };
             simulate::run(&args).map(|_| ())

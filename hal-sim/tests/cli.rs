@@ -108,6 +108,32 @@ fn simulate_adds_mains_hum_on_request() {
     assert_eq!(rows(&["--hum", "50:0"], "zero.csv"), quiet, "no amplitude: the same file");
 }
 
+/// `--amplitude` scales the excitation as `excite` would, through the firmware's default output limits: a PRBS of
+/// 0.5 V is +-0.5 V (to half a DAC code); one of 8 V reaches +-8 V, its steps of 16 V ramped by the slew limit's 2.5 V
+/// a sample (41 V^2 of power over this second, not 64); the time and the truth are the same.
+#[test]
+fn simulate_drives_the_excitation_at_another_amplitude_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = |extra: &[&str], name: &str| simulated_rows(dir.path(), "1", extra, name);
+    let (paper, half, strong) =
+        (rows(&[], "one.csv"), rows(&["--amplitude", "0.5"], "half.csv"), rows(&["--amplitude", "8"], "eight.csv"));
+    for ((p, h), s) in paper.iter().zip(&half).zip(&strong) {
+        assert_eq!((h[0], h[3], h[4], h[5]), (p[0], p[3], p[4], p[5]));
+        assert_eq!((s[0], s[3], s[4], s[5]), (p[0], p[3], p[4], p[5]));
+    }
+    for h in &half[1..] {
+        assert!((h[1].abs() - 0.5).abs() < 0.0025, "{h:?}");
+    }
+    let u: Vec<f64> = strong.iter().map(|r| r[1]).collect();
+    let peak = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mean = u.iter().sum::<f64>() / u.len() as f64;
+    let power = u.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / u.len() as f64;
+    let largest_step = u.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0f64, f64::max);
+    assert!((peak - 8.0).abs() < 0.0025 && (30.0..50.0).contains(&power), "peak {peak}, power {power}");
+    assert!(largest_step < 2.5 + 0.005, "{largest_step}");
+    assert_eq!(rows(&["--amplitude", "1"], "again.csv"), paper, "the default");
+}
+
 #[test]
 fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
     let dir = tempfile::tempdir().unwrap();
@@ -286,6 +312,10 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
             &["simulate", "--scenario", "prbs", "--hum", "50:1", "--hum", "150:1", "--hum", "250:1", "--out", "x.csv"],
             "--hum: at most 2 tones (3 given)",
         ),
+        (&["simulate", "--scenario", "prbs", "--amplitude", "11", "--out", "x.csv"], "--amplitude 11: must be 0 to 10"),
+        (&["simulate", "--scenario", "prbs", "--amplitude", "-1", "--out", "x.csv"], "--amplitude -1: must be"),
+        (&["simulate", "--scenario", "prbs", "--amplitude", "NaN", "--out", "x.csv"], "--amplitude NaN: must be"),
+        (&["simulate", "--scenario", "prbs", "--amplitude", "big", "--out", "x.csv"], "big"),
         (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
         (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),

@@ -1353,6 +1353,7 @@ mod tests {
             creep: false,
             gain_drift_pct_per_min: 0.0,
             hum: Vec::new(),
+            amplitude_v: None,
             out: &input,
         };
         crate::cmd::simulate::run(&sim).unwrap();

@@ -1,11 +1,13 @@
 //! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] [--gain-drift PCT_PER_MIN]
-//! [--hum HZ:NM]... --out FILE.csv`
+//! [--hum HZ:NM]... [--amplitude V] --out FILE.csv`
 //!
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
 //! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it), and mains pickup on the probe
-//! ([`crate::board::BoardSettings::hum`]). Writes `t,u,y,a0,a1,b0` per
+//! ([`crate::board::BoardSettings::hum`]), the excitation at another amplitude if asked (through the firmware's
+//! default output limits: an 8 V PRBS's steps of 16 V are ramped by its slew limit of 2.5 V a sample, as on the
+//! board). Writes `t,u,y,a0,a1,b0` per
 //! sample: time (s), the commanded input as output by the DAC (V), the probe reading (um), and the true stage
 //! parameters at that sample.
 
@@ -16,6 +18,9 @@ use std::path::Path;
 
 /// Longest run accepted, s (a day of samples at 10 kHz is 864 M rows, about 40 GB of CSV).
 pub const MAX_DURATION_S: f64 = 86_400.0;
+
+/// Largest `--amplitude`, V: what the console's `excite` takes (the DAC reaches 8.78 V; the clamp cuts beyond).
+pub const MAX_AMPLITUDE_V: f64 = 10.0;
 
 /// What `simulate` was asked for.
 #[derive(Clone, Debug)]
@@ -34,6 +39,8 @@ pub struct SimulateArgs<'a> {
     pub gain_drift_pct_per_min: f64,
     /// Mains pickup on the probe's reading (at most two tones).
     pub hum: Vec<super::HumArg>,
+    /// The excitation's amplitude, V (default: the scenario's, 1 V).
+    pub amplitude_v: Option<f64>,
     /// Where to write.
     pub out: &'a Path,
 }
@@ -56,8 +63,14 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
             show(args.duration_s)
         ));
     }
+    if let Some(a) = args.amplitude_v.filter(|a| !(0.0..=MAX_AMPLITUDE_V).contains(a)) {
+        return fail(format!("--amplitude {}: must be 0 to {MAX_AMPLITUDE_V} V, as `excite` takes it", show(a)));
+    }
     let seed = args.seed.unwrap_or(args.scenario.default_seed());
-    let (mut board, pipeline) = args.scenario.settings(args.duration_s, seed);
+    let (mut board, mut pipeline) = args.scenario.settings(args.duration_s, seed);
+    if let Some(a) = args.amplitude_v {
+        pipeline.excitation.amplitude_v = a;
+    }
     board.plant.hysteresis = args.hysteresis.then(crate::plant::Hysteresis::default);
     board.plant.creep = args.creep.then(crate::plant::Creep::default);
     board.plant.gain_drift_per_s = drift_per_s;
