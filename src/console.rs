@@ -29,11 +29,11 @@ use core::fmt::{self, Write};
 /// about 300.
 pub const REPLY_BYTES: usize = 512;
 
-/// The power of the excitation, V^2, from which a PRBS or a multisine with the paper's `Q2` (made for its PRBS of
-/// 1 V, 1 V^2) is noted ([`Controller::tuning_note`]): a PRBS of 2 V, a multisine of 2.83 V. On the simulated board a
-/// PRBS of 2 V makes the hybrid EKF's `b0` wander up to 0.70 % off the truth instead of 0.59 % at 1 V (0.86 % at
-/// 4 V, 1.07 % at 8 V; the paper's 200 s in `hal_sim::experiment`).
-const Q2_STRONG_POWER_V2: f64 = 4.0;
+/// The excitation's amplitude, V, from which a PRBS or a multisine with the paper's `Q2` (made for its PRBS of 1 V)
+/// is noted ([`Controller::tuning_note`]). On the simulated board a PRBS of 2 V makes the hybrid EKF's `b0` wander
+/// up to 0.70 % off the truth instead of 0.59 % at 1 V (0.86 % at 4 V, 1.07 % at 8 V; the paper's 200 s in
+/// `hal_sim::experiment`).
+const Q2_STRONG_AMPLITUDE_V: f64 = 2.0;
 
 /// What remains of a reply once [`Controller::execute`] wrote its first part: for `status`, its lines, written one
 /// at a time by [`Rest::write_next`] from the snapshot taken when the command ran.
@@ -285,13 +285,13 @@ impl Controller {
     /// triangle within a step of the DAC (`within_step`, as [`Self::fit_note`] found it), which identifies nothing
     /// (a reply of that note, the clamp's and this one could overflow [`REPLY_BYTES`]).
     ///
-    /// Or, unless `quiet`, a line when a PRBS or a multisine of [`Q2_STRONG_POWER_V2`] or more runs with `Q2`, with
-    /// the `tune ekf q` that keeps the paper's behaviour: the parameters' entries divided by the power relative to
-    /// the paper's PRBS (`A^2` for a PRBS of `A`, `A^2 / 2` for a multisine, which has a sine's power). The EKFs'
-    /// misfit grows with the input; `Q` fixed, their parameters follow it faster and wander further: on the
+    /// Or, unless `quiet`, a line when a PRBS or a multisine of [`Q2_STRONG_AMPLITUDE_V`] or more runs with `Q2`,
+    /// with the `tune ekf q` that keeps them as at 1 V: the parameters' entries divided by the amplitude squared (the
+    /// filter on the input scaled by `A` is then the one on the input at 1 V, but for the noise, which weighs less).
+    /// The EKFs' misfit grows with the input; `Q` fixed, their parameters follow it faster and wander further: on the
     /// simulated board a PRBS of 8 V sets `b0` up to 1.03-1.05 % off the truth instead of 0.52-0.54 % at 1 V,
-    /// 0.54-0.56 % with `Q / 64`; a multisine of 6 V up to 0.88-0.90 % instead of 0.39-0.40 % at 1 V, 0.39-0.40 % with
-    /// `Q / 18` (`tests/instrument.rs`, the firmware's figures). `quiet` is for an `excite` with more urgent notes,
+    /// 0.54-0.56 % with `Q / 64`; a multisine of 6 V up to 0.88-0.90 % instead of 0.39-0.40 % at 1 V, 0.35-0.36 % with
+    /// `Q / 36` (`tests/instrument.rs`, the firmware's figures). `quiet` is for an `excite` with more urgent notes,
     /// whose length leaves no room for this one: the clamp's, [`Self::identify_note`]'s multisine beside the
     /// resonance, or within a step.
     fn tuning_note(&self, within_step: bool, quiet: bool, reply: &mut impl Write) -> fmt::Result {
@@ -299,27 +299,24 @@ impl Controller {
         // Bit for bit: `Q2` is what `tuning prbs` sets (and `tune ekf q` with its values), and an integer comparison
         // takes less code than soft double's.
         let q2 = self.tuning.ekf.q_diag.map(f64::to_bits) == EkfDesign::Q2.map(f64::to_bits);
-        let a2 = c.amplitude_v * c.amplitude_v;
-        let power = if matches!(c.waveform, Waveform::Multisine { .. }) { a2 / 2.0 } else { a2 };
         match c.waveform {
             _ if !q2 => Ok(()),
             Waveform::Triangle { .. } if !within_step => writeln!(
                 reply,
                 "note: the EKFs fail on the triangle with Q2, the paper's q for the PRBS: tuning triangle gives its Q1"
             ),
-            Waveform::Prbs { .. } | Waveform::Multisine { .. } if power >= Q2_STRONG_POWER_V2 && !quiet => {
-                let q = EkfDesign::Q2;
+            Waveform::Prbs { .. } | Waveform::Multisine { .. } if c.amplitude_v >= Q2_STRONG_AMPLITUDE_V && !quiet => {
+                let (q, a2) = (EkfDesign::Q2, c.amplitude_v * c.amplitude_v);
                 write!(
                     reply,
-                    "note: the EKFs' q is Q2, for the paper's PRBS of 1 V: with {} times its power their parameters \
-                     follow the data faster and wander further; q's last three over {} keep them as at 1 V: tune ekf \
-                     q {} {}",
-                    Num(power, 6),
-                    Num(power, 6),
+                    "note: the EKFs' q is Q2, for the paper's PRBS of 1 V: at {} V their parameters follow the data \
+                     faster and wander further; q's last three over {} keep them as at 1 V: tune ekf q {} {}",
+                    Num(c.amplitude_v, 6),
+                    Num(a2, 6),
                     Num(q[0], 6),
                     Num(q[1], 6)
                 )?;
-                q[2..].iter().try_for_each(|x| write!(reply, " {}", Num(*x / power, 6)))?;
+                q[2..].iter().try_for_each(|x| write!(reply, " {}", Num(*x / a2, 6)))?;
                 writeln!(reply)
             }
             _ => Ok(()),
