@@ -106,6 +106,10 @@ pub struct WindowFigures {
     /// How fast the input moves over the window: the frequency of a sine whose change from sample to sample has the
     /// same RMS, relative to its own, as the input's ([`input_rms_hz`]; the same for every estimator of the window).
     pub input_rms_hz: f64,
+    /// How strongly the input reaches the estimators: its pre-filtered power over the window (the excitation
+    /// monitor's) relative to the paper's 1 V PRBS's through the same pipeline ([`prbs_power_v2`]; the same for
+    /// every estimator of the window).
+    pub input_strength: f64,
     /// RMS of the model's output about its mean over the window, nm, driven by the input as in the validation: the
     /// response the model gives the input ([`validation_nm`]).
     pub model_rms_nm: f64,
@@ -258,6 +262,9 @@ struct Kept {
     t: Vec<f64>,
     u: Vec<f64>,
     y: Vec<f64>,
+    /// The pre-filtered input's power as the excitation monitor measures it (`FilteredSample::pe`), V^2: in f32,
+    /// half the memory, for a figure a note gives to three digits.
+    pe: Vec<f32>,
 }
 
 /// The identification of a record that comes in blocks, each the columns `u`, `y`, `t` and, when the record has
@@ -331,6 +338,7 @@ fn identify_blocks<T: Real>(
         (true, Some(t_last)) => Some(default_windows(t_last)),
         (true, None) => None,
     };
+    let prbs_power = prbs_power_v2(&cfg);
     let mut kept: Vec<Kept> = match &planned {
         Some(ws) => ws.iter().map(|w| Kept { from: w.t0 - 1.0, to: w.t1, ..Kept::default() }).collect(),
         None => vec![Kept { from: f64::NEG_INFINITY, to: f64::INFINITY, ..Kept::default() }],
@@ -367,6 +375,7 @@ fn identify_blocks<T: Real>(
                     keep.t.push(t[k]);
                     keep.u.push(s.u.as_f64());
                     keep.y.push(s.y.as_f64());
+                    keep.pe.push(s.pe.power.as_f64() as f32);
                 }
                 filtered.push(s);
                 n += 1;
@@ -448,6 +457,8 @@ fn identify_blocks<T: Real>(
         let validation = |p: &StageParams<f64>| validation_nm(p, &keep.t, &keep.u, &keep.y, dt, w);
         let reading_rms_nm = reading_rms_nm(&keep.t, &keep.y, w);
         let input_rms_hz = input_rms_hz(&keep.t, &keep.u, dt, w);
+        let pe = inside(&keep.t, &keep.pe, w);
+        let input_strength = pe.iter().map(|&p| p as f64).sum::<f64>() / pe.len() as f64 / prbs_power;
         let figures = (0..names.len())
             .map(|col| {
                 let mean = mean_params(rows.iter().map(|&i| estimates[i][col]));
@@ -472,6 +483,7 @@ fn identify_blocks<T: Real>(
                     resets,
                     reading_rms_nm,
                     input_rms_hz,
+                    input_strength,
                     model_rms_nm,
                     offset_nm,
                     fit_nm,
@@ -490,6 +502,7 @@ fn identify_blocks<T: Real>(
                 resets: 0,
                 reading_rms_nm,
                 input_rms_hz,
+                input_strength,
                 model_rms_nm,
                 offset_nm,
                 fit_nm,
@@ -593,7 +606,7 @@ fn run_group<T: Real>(
 
 /// The samples of `x` (a column of the record, its times `t`) inside the window: the record is uniformly sampled, so
 /// its times are sorted and the window is one slice.
-fn inside<'a>(t: &[f64], x: &'a [f64], w: &Window) -> &'a [f64] {
+fn inside<'a, X>(t: &[f64], x: &'a [X], w: &Window) -> &'a [X] {
     &x[t.partition_point(|&t| t < w.t0)..t.partition_point(|&t| t < w.t1)]
 }
 
@@ -625,6 +638,25 @@ pub const RESPONSE_MIN: f64 = 3.0;
 fn tidy(x: f64, dt: f64) -> f64 {
     let decimals = (-(dt * 1e-6).log10()).ceil().clamp(0.0, 20.0) as usize;
     format!("{x:.decimals$}").parse().expect("a float as Rust writes it parses")
+}
+
+/// The pre-filtered power (V^2) of the paper's PRBS of 1 V through a pipeline of `cfg`, as its excitation monitor
+/// measures it: the mean over 1 s after 0.2 s of settling (2.53 V^2 with the defaults at 10 kHz). What
+/// [`WindowFigures::input_strength`] compares a record's input with: the input the paper's `Q2` was made for.
+pub fn prbs_power_v2<T: Real>(cfg: &nanopos_id::pipeline::PipelineConfig<T>) -> f64 {
+    let fs = 1.0 / cfg.sample_period_s;
+    let prbs = nanopos_id::excitation::ExcitationDesign::PAPER_PRBS.design::<T>(fs);
+    let mut state = Default::default();
+    let mut pipeline = Pipeline::new(cfg, ());
+    let (settle, count) = ((0.2 * fs).round() as usize, (fs.round() as usize).max(1));
+    let mut sum = 0.0;
+    for k in 0..settle + count {
+        let s = pipeline.replay(cfg, prbs.next(&mut state), T::zero());
+        if k >= settle {
+            sum += s.pe.power.as_f64();
+        }
+    }
+    sum / count as f64
 }
 
 /// How fast `u` moves over the window, Hz: the frequency `f` of a sine whose RMS change from one sample to the next,
@@ -923,7 +955,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 ));
             }
         }
-        if let Some(note) = slow_input_note(r, figs) {
+        if let Some(note) = slow_input_note(r, figs).or_else(|| strong_input_note(r, figs)) {
             notes.push(format!("window {}:{}: {note}", w.t0, w.t1));
         }
         for (name, f) in r.names.iter().zip(figs) {
@@ -1028,6 +1060,40 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
         r.names[best],
     ))
 }
+
+/// Where EKFs ran with the paper's `Q2` on an input [`STRONG_INPUT`] times or more as strong as the 1 V PRBS it was
+/// made for ([`WindowFigures::input_strength`]): their parameters follow the data faster and wander further (the
+/// board's console says so at `excite`, for the amplitude it is given: `tests/instrument.rs`), and `Q2`'s parameter
+/// entries over the strength keep them about as at 1 V. The strength is the pre-filtered power's ratio, not the
+/// amplitude squared, which a record does not give: for a PRBS of 8 V ramped by the default slew limit 46 (the
+/// console's 64 does a little better: `b0` up to 0.54-0.55 % off against 0.57-0.58 % with 45), for a multisine of
+/// 6 V 32 (the console's 36).
+fn strong_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
+    let strength = figs.first()?.input_strength;
+    // A NaN strength (a window without samples) is not strong.
+    let strong = strength >= STRONG_INPUT;
+    if !r.names.iter().any(|n| n.ends_with("ekf")) || r.ekf_q != EkfDesign::Q2 || !strong {
+        return None;
+    }
+    let q = EkfDesign::Q2;
+    Some(format!(
+        "the input reaches the estimators {} times as strongly as the paper's PRBS of 1 V (its power through the \
+         pre-filter), for which the EKFs' Q, the paper's Q2, was made: with it their parameters follow the data \
+         faster and wander further (on the simulated board at 8 V, b0 up to 1.05 % off the truth instead of 0.54 %); \
+         a --tuning file with [ekf] q = [{:e}, {:e}, {}, {}, {}] (Q2's last three over that) keeps them about as at \
+         1 V",
+        sig(strength),
+        q[0],
+        q[1],
+        sig(q[2] / strength),
+        sig(q[3] / strength),
+        sig(q[4] / strength),
+    ))
+}
+
+/// How much stronger than the paper's 1 V PRBS ([`WindowFigures::input_strength`]) an input must reach the
+/// estimators for [`health_notes`]' note on the EKFs' `Q2`: a PRBS of 2 V, as the board's console has it.
+pub const STRONG_INPUT: f64 = 4.0;
 
 /// The share of the resonance below which [`health_notes`]' note on the tuning calls an input's [`input_rms_hz`]
 /// slow: on the simulated board's records the smoothed triangle's is 0.026 of the resonance, the multisine's of
