@@ -306,17 +306,15 @@ impl Controller {
                 "note: the EKFs fail on the triangle with Q2, the paper's q for the PRBS: tuning triangle gives its Q1"
             ),
             Waveform::Prbs { .. } | Waveform::Multisine { .. } if c.amplitude_v >= Q2_STRONG_AMPLITUDE_V && !quiet => {
-                let (q, a2) = (EkfDesign::Q2, c.amplitude_v * c.amplitude_v);
+                let a2 = c.amplitude_v * c.amplitude_v;
                 write!(
                     reply,
                     "note: the EKFs' q is Q2, for the paper's PRBS of 1 V: at {} V their parameters follow the data \
-                     faster and wander further; q's last three over {} keep them as at 1 V: tune ekf q {} {}",
+                     faster and wander further; q's last three over {} keep them as at 1 V: tune ekf q",
                     Num(c.amplitude_v, 6),
                     Num(a2, 6),
-                    Num(q[0], 6),
-                    Num(q[1], 6)
                 )?;
-                q[2..].iter().try_for_each(|x| write!(reply, " {}", Num(*x / a2, 6)))?;
+                EkfDesign::q2_for_strength(a2).iter().try_for_each(|x| write!(reply, " {}", Num(*x, 6)))?;
                 writeln!(reply)
             }
             _ => Ok(()),

@@ -95,6 +95,16 @@ impl EkfDesign {
     /// `Q1`, the paper's tuning for the smoothed triangle.
     pub const Q1: [f64; 5] = [1e-12, 1e-6, 1.5e11, 2.5e1, 5.0e10];
 
+    /// `Q2` for an input `strength` times as strong, in power, as the paper's PRBS of 1 V it was made for: its
+    /// parameters' entries over `strength`, its states' as they are. On an input scaled by `A` (`strength` `A^2`)
+    /// the EKFs are then the ones on the input at 1 V, but for the noise, which weighs less; with `Q2` they wander
+    /// further (README, "The EKFs' `Q` is for an amplitude"; the console's and `identify`'s notes give it).
+    pub fn q2_for_strength(strength: f64) -> [f64; 5] {
+        let mut q = Self::Q2;
+        q[2..].iter_mut().for_each(|x| *x /= strength);
+        q
+    }
+
     /// The paper's tuning with process noise `q` (`P0 = 10 Q`, `R = 1.5e-6`, 4 substeps).
     pub fn paper(q: [f64; 5]) -> Self {
         EkfDesign {
@@ -1121,8 +1131,6 @@ mod tests {
         f
     }
 
-    /// A continuous step whose residual the gate rejects is the step without the measurement from the state before
-    /// it (not from the rejected step's result); one the gate passes uses the measurement.
     /// A wait of no length is one of a sample: without its end the long-run level, floored at 1 for the relock test
     /// at a change, would stay there and blind the drift detector for tens of seconds.
     #[test]
@@ -1134,6 +1142,8 @@ mod tests {
         assert_eq!(design.design::<f64>().drift_wait_samples, 50_000);
     }
 
+    /// A continuous step whose residual the gate rejects is the step without the measurement from the state before
+    /// it (not from the rejected step's result); one the gate passes uses the measurement.
     #[test]
     fn a_rejected_continuous_step_is_taken_again_from_where_it_started_without_the_measurement() {
         let before = converged_hybrid(0.01).core;

@@ -1075,7 +1075,7 @@ fn strong_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
     if !r.names.iter().any(|n| n.ends_with("ekf")) || r.ekf_q != EkfDesign::Q2 || !strong {
         return None;
     }
-    let q = EkfDesign::Q2;
+    let q = EkfDesign::q2_for_strength(strength);
     Some(format!(
         "the input reaches the estimators {} times as strongly as the paper's PRBS of 1 V (its power through the \
          pre-filter), for which the EKFs' Q, the paper's Q2, was made: with it their parameters follow the data \
@@ -1085,9 +1085,9 @@ fn strong_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
         sig(strength),
         q[0],
         q[1],
-        sig(q[2] / strength),
-        sig(q[3] / strength),
-        sig(q[4] / strength),
+        sig(q[2]),
+        sig(q[3]),
+        sig(q[4]),
     ))
 }
 
