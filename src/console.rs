@@ -737,8 +737,8 @@ impl Controller {
         let c = &s.counters;
         writeln!(
             w,
-            "ok status samples={} excitation={} {} faults={} over_range={} stuck={} not_finite={} deadline_misses={} \
-             adc_overruns={} isr_cycles_max={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} \
+            "ok status samples={} excitation={} {} faults={} over_range={} stuck={} spikes={} not_finite={} \
+             deadline_misses={} adc_overruns={} isr_cycles_max={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} \
              record={}",
             s.samples,
             Exc(&self.chosen),
@@ -746,6 +746,7 @@ impl Controller {
             FaultNames(s.faults),
             c.probe_over_range,
             c.probe_stuck,
+            c.spikes,
             c.command_not_finite,
             c.deadline_misses,
             c.adc_overruns,

@@ -19,7 +19,7 @@ use crate::{Real, StageParams};
 pub struct FilteredSample<T> {
     /// Command after the filter replicas, `u'`, V.
     pub u: T,
-    /// Measured displacement `y'`, um.
+    /// Measured displacement `y'`, um (from the pipeline: after its spike gate).
     pub y: T,
     /// `W_p u'` and its derivatives.
     pub u_f: Prefiltered<T>,

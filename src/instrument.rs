@@ -617,6 +617,7 @@ struct Counts {
     deadline_misses: u32,
     adc_overruns: u32,
     limited: u32,
+    spikes: u32,
 }
 
 /// Looks (0.1 s apart in the telemetry) at which the EKFs disagree ([`disagreement`]), with no agreement between them,
@@ -637,6 +638,8 @@ pub struct News {
     pub adc_overruns: u32,
     /// Samples whose command the output limits changed ([`crate::pipeline::FaultCounters::limited`]).
     pub limited: u32,
+    /// Probe readings the spike gate replaced ([`crate::pipeline::FaultCounters::spikes`]).
+    pub spikes: u32,
     /// The limits changed commands both since the last look and in the interval before it: the excitation does not
     /// fit them. A single step of the command (a start about an offset: a sample or two, once) does not count.
     pub limiting: bool,
@@ -652,7 +655,7 @@ pub struct News {
 impl EventWatch {
     /// Nothing seen yet, for an interrupt at `sample_rate_hz`.
     pub const fn new(sample_rate_hz: f32) -> Self {
-        let seen = Counts { resets: [0; 4], deadline_misses: 0, adc_overruns: 0, limited: 0 };
+        let seen = Counts { resets: [0; 4], deadline_misses: 0, adc_overruns: 0, limited: 0, spikes: 0 };
         EventWatch { seen, limited_before: false, disagreeing: 0, fast: 0, weak: 0, sample_rate_hz }
     }
 
@@ -664,6 +667,7 @@ impl EventWatch {
             deadline_misses: status.counters.deadline_misses,
             adc_overruns: status.counters.adc_overruns,
             limited: status.counters.limited,
+            spikes: status.counters.spikes,
         };
         let grown = |now: u32, seen: u32| if now >= seen { now - seen } else { now };
         let limited = grown(now.limited, self.seen.limited);
@@ -683,6 +687,7 @@ impl EventWatch {
             deadline_misses: grown(now.deadline_misses, self.seen.deadline_misses),
             adc_overruns: grown(now.adc_overruns, self.seen.adc_overruns),
             limited,
+            spikes: grown(now.spikes, self.seen.spikes),
             limiting: limited > 0 && self.limited_before,
             disagreement: found.filter(|_| disagreeing && self.disagreeing == WARNING_LOOKS),
             fast_resonance: fast.filter(|_| self.fast == WARNING_LOOKS),

@@ -1,7 +1,7 @@
 //! One sample of the signal chain, the same on the board and on the host (SPEC section 3a):
 //!
 //! ```text
-//! probe code --front end--> y' (um) ------------------------------------------+
+//! probe code --front end--> y' (um) --spike gate------------------------------+
 //! excitation --> target (V) --> clamp, slew --> DAC code --> u (V, as output)  |
 //!                                                  u --> replicas --> u' (V)   |
 //!                              (u', y') --> pre-filter W_p --> estimators <----+
@@ -24,13 +24,17 @@
 //! A probe code at either end of the ADC range (within a margin) is an over-range; the same code for
 //! `stuck_samples` consecutive samples while the command moves is a stuck probe. Either latches a fault: the
 //! excitation stops, the output returns to its safe value through the slew limiter, and the estimators stop adapting
-//! (they are not fed) until [`Pipeline::clear_faults`]. Each event is counted. Cost per sample, without estimators:
+//! (they are not fed) until [`Pipeline::clear_faults`]. Each event is counted. A reading out of line with the
+//! readings before it, by far more than the stage moves in a sample (a glitch at the ADC's input), is replaced by
+//! the curve through them before any filter sees it, and counted ([`crate::filters::spike`]); it latches nothing.
+//! Cost per sample, without estimators:
 //! three replica biquads, two pre-filters, the excitation monitor (its shaping filter and averages: about 50
 //! flops), the excitation, the limits: about 140 flops (QEMU: `pipeline_bare_f32`, 441 instructions).
 
 use crate::estimator::{EstimatorBank, FilteredSample, PeLevel, SampleFilter};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
+use crate::filters::spike::{SpikeBound, SpikeGate};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign};
 use crate::hal::{BoardDescription, BoardFaults};
 use crate::scalar::{fmax, fmin};
@@ -125,11 +129,18 @@ pub struct FaultSettings {
     pub over_range_margin_codes: u32,
     /// This many identical consecutive probe codes while the command moves is a stuck probe.
     pub stuck_samples: u32,
+    /// A reading whose third difference from the readings before it exceeds this many times their mean (and
+    /// [`FaultSettings::spike_floor_codes`]) is replaced before the filters see it ([`crate::filters::spike`]);
+    /// 0: never (the gate off). Integers, as the other fault settings, which the console's settings hold in
+    /// RAM several times over.
+    pub spike_ratio: u16,
+    /// ... and this many probe codes.
+    pub spike_floor_codes: u16,
 }
 
 impl Default for FaultSettings {
     fn default() -> Self {
-        FaultSettings { over_range_margin_codes: 16, stuck_samples: 1000 }
+        FaultSettings { over_range_margin_codes: 16, stuck_samples: 1000, spike_ratio: 32, spike_floor_codes: 16 }
     }
 }
 
@@ -313,6 +324,8 @@ pub struct PipelineConfig<T> {
     pub safe_v: T,
     /// Stuck-probe threshold, samples.
     pub stuck_samples: u32,
+    /// The spike gate's bounds.
+    pub spike: SpikeBound<T>,
     /// Samples between writing a DAC code and its output (0 or 1).
     pub actuation_delay_samples: u8,
     /// Sample period, s.
@@ -428,6 +441,7 @@ impl PipelineSettings {
         // V -> code: (u * gain + offset) / (V/code)
         let vpc_out = amplifier_dac.volts_per_code();
         let margin = self.faults.over_range_margin_codes;
+        let um_per_code = libm::fabs(vpc_in * k_probe);
         // Each filter as it will run, checked: the frequency ranges above do not guarantee a design (the lag
         // replica matched at 1e-6 Hz comes out NaN, and would feed NaN to every estimator on every sample).
         let (reconstruction, antialias, lags) =
@@ -466,6 +480,13 @@ impl PipelineSettings {
             max_step_v: T::of(l.max_slew_v_per_s / fs),
             safe_v: T::of(l.safe_v),
             stuck_samples: self.faults.stuck_samples.max(2),
+            spike: SpikeBound {
+                ratio: match self.faults.spike_ratio {
+                    0 => T::infinity(),
+                    r => T::of(f64::from(r)),
+                },
+                floor_um: T::of(f64::from(self.faults.spike_floor_codes) * um_per_code),
+            },
             actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
             command_lsb_v: vpc_out / libm::fabs(a.dac_v_per_command_v),
@@ -558,6 +579,10 @@ pub struct FaultCounters {
     pub deadline_misses: u32,
     /// Lost probe conversions (board-reported).
     pub adc_overruns: u32,
+    /// Probe readings the spike gate replaced ([`crate::filters::spike`]): out of line with the readings before
+    /// them, by far more than the stage moves in a sample. A few over hours are glitches the estimators did not
+    /// see; a count that keeps climbing means a noisy or loose connection at the ADC's input.
+    pub spikes: u32,
     /// Samples whose command the output limits changed while the estimators were fed: the excitation (with the
     /// external command) clamped to `min_v..max_v` or slew-limited, so that the stage runs on a distorted input.
     /// The estimators see the command as written and stay consistent, but the distortion's sharp corners put the
@@ -576,7 +601,7 @@ pub struct SampleOutput<T> {
     pub dac_code: u32,
     /// The command in effect over this sample period, as the DAC outputs it, V.
     pub u_v: T,
-    /// The probe reading, um.
+    /// The probe reading, um (as read: before the spike gate).
     pub y_um: T,
     /// The probe code it came from.
     pub probe_code: u32,
@@ -602,6 +627,7 @@ pub struct Pipeline<T, E> {
     reconstruction: BiquadState<T>,
     antialias: BiquadState<T>,
     lags: BiquadState<T>,
+    spike: SpikeGate<T>,
     sample_filter: SampleFilter<T>,
     last_probe_code: u32,
     same_code_run: u32,
@@ -624,6 +650,7 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
             reconstruction: BiquadState::default(),
             antialias: BiquadState::default(),
             lags: BiquadState::default(),
+            spike: SpikeGate::new(),
             sample_filter: SampleFilter::new(cfg.sample_period_s, cfg.command_lsb_v),
             last_probe_code: u32::MAX,
             same_code_run: 0,
@@ -752,19 +779,20 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         self.last_probe_code = code;
     }
 
-    /// The command in effect `u_v` through the replicas, both signals through the pre-filter, and the filtered
-    /// input's excitation measured once for every estimator (this runs every sample, faults or not, so the filters
-    /// never hold stale state).
+    /// The command in effect `u_v` through the replicas, the reading `y_um` through the spike gate, both through
+    /// the pre-filter, and the filtered input's excitation measured once for every estimator (this runs every
+    /// sample, faults or not, so the filters never hold stale state).
     #[inline]
     fn filter(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
         let rc = cfg.reconstruction.update(&mut self.reconstruction, u_v);
         let u_replica = cfg.lags.update(&mut self.lags, cfg.antialias.update(&mut self.antialias, rc));
-        self.sample_filter.sample(&cfg.prefilter, u_replica, y_um)
+        let y = self.spike.pass(&cfg.spike, y_um, &mut self.counters.spikes);
+        self.sample_filter.sample(&cfg.prefilter, u_replica, y)
     }
 
     /// One sample of a recording: `u_v` the command in effect over the sample period, `y_um` the reading at its
-    /// start (the convention of `simulate`'s output and of the firmware's recording). The same filters and
-    /// estimators as [`Pipeline::step`], without excitation, limits or fault checks.
+    /// start (the convention of `simulate`'s output and of the firmware's recording). The same spike gate, filters
+    /// and estimators as [`Pipeline::step`], without excitation, limits or fault checks.
     #[inline]
     pub fn replay(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
         let sample = self.filter(cfg, u_v, y_um);

@@ -387,26 +387,30 @@ fn identify_notes_a_prefilter_far_from_the_resonance() {
     assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
-/// One wild sample in a record (a glitch, or a logger's overflow value): the pre-filter spreads it over tenths of a
-/// second and the estimators take it for data. At 10^5 um (10^5 times the PRBS record's level) the hybrid EKF
-/// kept a model 200-300 times worse than the data for the rest of the record (and before its health logic reset on an
-/// innovation beyond a metre, the continuous one at 10^4 um), with exit 0 and not a word: now a note names the
-/// sample, and another the estimator whose model does not fit the window after it; and since the EKFs reset a filter
-/// that has not relocked 5 s after a change (`RELOCK_NIS_RATIO`), the hybrid one fits the last window again. The
-/// same record without it gets no such note; nor does one spike a hundred times smaller, below the bound
-/// (`Spread::WILD`).
+/// Wild samples in a record (a glitch, or a logger's overflow value). One reading of 10^5 um (10^5 times the PRBS
+/// record's level) went through the pre-filter as an impulse and the estimators took it for data: the hybrid EKF kept
+/// a model 200-300 times worse than the data for the rest of the record, with exit 0 and not a word. Now the spike
+/// gate replaces it before the filters (`nanopos_id::filters::spike`), and the notes name the sample, say that it was
+/// replaced, and count the gate's replacements; no estimator misfits. A burst of five such readings is more than the
+/// gate replaces in a row (`spike::MAX_RUN`): its third is taken, and the estimators see it. That one the notes say
+/// the estimators took for data, with the estimator whose model does not fit the window after it; and since the EKFs
+/// reset a filter that has not relocked 5 s after a change (`RELOCK_NIS_RATIO`), the hybrid one fits the last window
+/// again. A spike a thousand times smaller, below the wild bound (`Spread::WILD`), gets the gate's note alone; the
+/// record as simulated, none.
 #[test]
 fn wild_samples_are_noted() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulate_prbs(d, "8");
     let run = std::fs::read_to_string(d.join("run.csv")).unwrap();
-    let with = |column: usize, line: usize, value: &str| {
-        let mut lines: Vec<String> = run.lines().map(str::to_string).collect();
-        let mut fields: Vec<&str> = lines[line - 1].split(',').collect();
-        fields[column] = value;
-        lines[line - 1] = fields.join(",");
-        lines.join("\n") + "\n"
+    let with = |column: usize, lines: std::ops::Range<usize>, value: &str| {
+        let mut all: Vec<String> = run.lines().map(str::to_string).collect();
+        for line in lines {
+            let mut fields: Vec<&str> = all[line - 1].split(',').collect();
+            fields[column] = value;
+            all[line - 1] = fields.join(",");
+        }
+        all.join("\n") + "\n"
     };
     let notes = |csv: &str| {
         std::fs::write(d.join("wild.csv"), csv).unwrap();
@@ -416,16 +420,27 @@ fn wild_samples_are_noted() {
         assert!(out.status.success(), "{stderr}");
         stderr
     };
-    let stderr = notes(&with(2, 1000, "1e5"));
+    let replaced = |n: usize| format!("note: the spike gate replaced {n} of y's readings, the first at 0.0998 s: ");
+    let stderr = notes(&with(2, 1000..1001, "1e5"));
     eprintln!("{stderr}");
     assert!(stderr.contains("note: y reaches 100000 um at 0.0998 s, "), "{stderr}");
     assert!(stderr.contains("times the level 90 % of the record stays within"), "{stderr}");
+    assert!(stderr.contains("The spike gate replaced it, and every reading that far out: the estimators did not"));
+    assert!(stderr.contains(&replaced(1)), "{stderr}");
+    assert!(!stderr.contains("'s model fits window"), "{stderr}");
+    let stderr = notes(&with(2, 1000..1005, "1e5"));
+    eprintln!("{stderr}");
+    assert!(stderr.contains("note: y reaches 100000 um at 0.0998 s, "), "{stderr}");
+    assert!(stderr.contains("The filters spread one such sample over tenths of a second and the estimators take it"));
+    // The burst's first two readings, and the first two after it (the drop back), replaced.
+    assert!(stderr.contains(&replaced(4)), "{stderr}");
     assert!(stderr.contains("note: hekf's model fits window 3:4 "), "{stderr}");
     assert!(!stderr.contains("note: hekf's model fits window 7:8 "), "{stderr}");
     assert!(!stderr.contains("note: ekf's model"), "{stderr}");
-    let stderr = notes(&with(1, 5000, "-9.9e37"));
+    let stderr = notes(&with(1, 5000..5001, "-9.9e37"));
     assert!(stderr.contains("note: u reaches 9.90e37 V at 0.4998 s, "), "{stderr}");
-    assert!(notes(&with(2, 1000, "1e2")).is_empty(), "a spike under the bound");
+    let stderr = notes(&with(2, 1000..1001, "1e2"));
+    assert!(stderr.starts_with(&format!("nanopos-sim: {}", replaced(1))) && stderr.lines().count() == 1, "{stderr}");
     assert!(notes(&run).is_empty(), "the record as simulated");
 }
 

@@ -8,11 +8,13 @@
 //! - [`prefilter`]: the identification pre-filter `W_p` (paper Section II-B) as a state-space filter that yields the
 //!   filtered signal and its first and second derivatives.
 //! - [`response`]: frequency responses, for design checks and tests.
+//! - [`spike`]: the gate that replaces a probe reading out of line with the readings before it.
 
 pub mod biquad;
 pub mod design;
 pub mod prefilter;
 pub mod response;
+pub mod spike;
 
 pub use biquad::{Biquad, BiquadState};
 pub use prefilter::{Prefilter, PrefilterDesign, PrefilterState, Prefiltered};

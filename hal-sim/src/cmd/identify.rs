@@ -150,6 +150,19 @@ pub struct Identified {
     pub ekf_q: [f64; 5],
     /// How large the record's `u` and `y` run (for the note of a wild sample).
     pub spread: [Spread; 2],
+    /// The readings the pipeline's spike gate replaced.
+    pub spikes: Spikes,
+}
+
+/// The readings of `y` the pipeline's spike gate replaced ([`nanopos_id::filters::spike`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Spikes {
+    /// How many.
+    pub count: u32,
+    /// The first one's time, s.
+    pub first_at: f64,
+    /// The largest `|y|` of the readings the gate took (the estimators' data), um.
+    pub largest_taken: f64,
 }
 
 /// The input's step for one DAC code that `identify` assumes without `--dac-step`, V: the simulated board's, which is
@@ -354,6 +367,7 @@ fn identify_blocks<T: Real>(
     let (mut times, mut truth_rows) = (Vec::new(), Vec::new());
     let (mut n, mut t_last) = (0usize, t_first);
     let mut spread = [Spread::default(), Spread::default()];
+    let mut spikes = Spikes::default();
     let mut progress = Progress::new("identify", record.progress_total);
     let results: Result<Vec<GroupRows>, CliError> = std::thread::scope(|scope| {
         let (feeds, jobs): (Vec<_>, Vec<_>) = groups
@@ -371,6 +385,15 @@ fn identify_blocks<T: Real>(
                 spread[0].add(u[k], t[k]);
                 spread[1].add(y[k], t[k]);
                 let s = pipeline.replay(&cfg, T::of(u[k]), T::of(y[k]));
+                let replaced = pipeline.fault_counters().spikes;
+                let spike = replaced != spikes.count;
+                if spike && spikes.count == 0 {
+                    spikes.first_at = t[k];
+                }
+                spikes.count = replaced;
+                if !spike {
+                    spikes.largest_taken = spikes.largest_taken.max(y[k].abs());
+                }
                 for keep in kept.iter_mut().filter(|keep| t[k] >= keep.from && t[k] < keep.to) {
                     keep.t.push(t[k]);
                     keep.u.push(s.u.as_f64());
@@ -526,6 +549,7 @@ fn identify_blocks<T: Real>(
         prefilter,
         ekf_q: tuning.ekf.q_diag,
         spread,
+        spikes,
     })
 }
 
@@ -830,11 +854,25 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
     let by = r.names.iter().position(|&n| n == "hekf").unwrap_or(0);
     for (column, unit, spread) in [("u", "V", &r.spread[0]), ("y", "um", &r.spread[1])] {
         if let Some(note) = spread.wild_note(column, unit, &format!("{} s", show(spread.largest_at))) {
-            notes.push(
-                note
-                    + " The filters spread one such sample over tenths of a second and the estimators take it for data",
-            );
+            // Whether the gate kept every reading that far out from the estimators (a burst of more than
+            // `spike::MAX_RUN` readings in a row is taken from its third on).
+            let kept_out = spread.wild_at(r.spikes.largest_taken).is_none();
+            notes.push(if column == "y" && kept_out {
+                note + " The spike gate replaced it, and every reading that far out: the estimators did not see them"
+            } else {
+                note + " The filters spread one such sample over tenths of a second and the estimators take it for data"
+            });
         }
+    }
+    if r.spikes.count > 0 {
+        notes.push(format!(
+            "the spike gate replaced {} of y's readings, the first at {} s: each out of line with the readings before \
+             it by far more than a stage moves in a sample (a glitch, or a logger's error), and replaced by the curve \
+             through them before the filters saw it; a few are glitches the estimators did not see, many a noisy \
+             reading",
+            r.spikes.count,
+            show(r.spikes.first_at)
+        ));
     }
     // A command beyond what an amplifier's input takes for most of the record: most likely not in V (a logger's mV,
     // DAC codes, the piezo's own voltage), which scales every gain the estimators give and nothing else.

@@ -126,8 +126,13 @@ impl Spread {
 
     /// The largest sample's ratio to the level 90 % of the samples stay within, when it is over [`Self::WILD`].
     pub fn wild(&self) -> Option<f64> {
+        self.wild_at(self.largest)
+    }
+
+    /// [`Self::wild`] of a sample of magnitude `x`.
+    pub fn wild_at(&self, x: f64) -> Option<f64> {
         let level = self.level(0.9);
-        (level > 0.0 && self.largest > Self::WILD * level).then(|| self.largest / level)
+        (level > 0.0 && x > Self::WILD * level).then(|| x / level)
     }
 
     /// When [`Self::wild`], what a note says of it: the column's largest sample, `at` (where it is, as the command

@@ -370,7 +370,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         let mean = s.window_cycles.checked_div(s.window_samples).unwrap_or(0);
         let c = &st.counters;
         defmt::info!(
-            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample, from the conversion | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} not_finite={=u32}",
+            "samples={=u64} isr_cycles mean={=u32} max={=u32} of {=u32} a sample, from the conversion | y={=f32} um u={=f32} V | pe_power={=f32} V^2 pe_single={=bool} | faults={} over_range={=u32} stuck={=u32} spikes={=u32} not_finite={=u32}",
             st.samples,
             mean,
             s.window_max_cycles,
@@ -382,6 +382,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
             st.faults,
             c.probe_over_range,
             c.probe_stuck,
+            c.spikes,
             c.command_not_finite
         );
         for (i, (p, h)) in st.estimates.iter().enumerate() {
@@ -414,6 +415,13 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
                     resets
                 );
             }
+        }
+        if news.spikes > 0 {
+            defmt::warn!(
+                "spike gate: {=u32} probe readings replaced in the last 0.1 s (spikes={=u32}), each out of line with the readings before it by far more than the stage moves in a sample: glitches at the ADC's input, which the estimators did not see; many mean a noisy or loose connection",
+                news.spikes,
+                c.spikes
+            );
         }
         if news.deadline_misses > 0 || news.adc_overruns > 0 {
             defmt::warn!("deadline misses={=u32} adc overruns={=u32}", c.deadline_misses, c.adc_overruns);
