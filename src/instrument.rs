@@ -23,8 +23,20 @@ use crate::pipeline::{FaultCounters, Faults, Pipeline, PipelineConfig, SampleOut
 use crate::record::RawSample;
 use crate::{Real, StageParams};
 
-/// Samples the recording ring holds: 0.1 s at 10 kHz, 4 KiB (the firmware's static RAM stays under 16 KiB).
-pub const RECORD_BUFFER: usize = 1024;
+/// Samples the recording ring holds: 0.1 s at 10 kHz, 4 000 bytes (the firmware's static RAM stays under 16 000
+/// bytes: 1 024 samples, as it was, would be 96 more).
+pub const RECORD_BUFFER: usize = 1000;
+
+/// The ring's slot of `i`, a slot plus at most a ring's length (a compare rather than a division by 1 000).
+#[inline(always)]
+fn ring_slot(i: usize) -> usize {
+    debug_assert!(i < 2 * RECORD_BUFFER);
+    if i >= RECORD_BUFFER {
+        i - RECORD_BUFFER
+    } else {
+        i
+    }
+}
 
 /// A change prepared at low priority and applied whole between two samples.
 #[derive(Clone, Debug, Default)]
@@ -252,7 +264,7 @@ impl<T: Real> Instrument<T> {
         if self.ring_len == 0 {
             self.ring_first = self.pipeline.samples() - 1;
         }
-        self.ring[(self.ring_head + self.ring_len) % RECORD_BUFFER] = s;
+        self.ring[ring_slot(self.ring_head + self.ring_len)] = s;
         self.ring_len += 1;
         self.record.recorded += 1;
         if let Some(n) = &mut self.record.remaining {
@@ -268,10 +280,10 @@ impl<T: Real> Instrument<T> {
     pub fn drain_recorded(&mut self, out: &mut [RawSample]) -> (u64, usize) {
         let n = out.len().min(self.ring_len);
         for (k, o) in out[..n].iter_mut().enumerate() {
-            *o = self.ring[(self.ring_head + k) % RECORD_BUFFER];
+            *o = self.ring[ring_slot(self.ring_head + k)];
         }
         let first = self.ring_first;
-        self.ring_head = (self.ring_head + n) % RECORD_BUFFER;
+        self.ring_head = ring_slot(self.ring_head + n);
         self.ring_len -= n;
         self.ring_first += n as u64;
         (first, n)
