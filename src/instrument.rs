@@ -279,9 +279,10 @@ impl<T: Real> Instrument<T> {
     /// since start, counting from 0) and how many. The samples of one call are consecutive.
     pub fn drain_recorded(&mut self, out: &mut [RawSample]) -> (u64, usize) {
         let n = out.len().min(self.ring_len);
-        for (k, o) in out[..n].iter_mut().enumerate() {
-            *o = self.ring[ring_slot(self.ring_head + k)];
-        }
+        // The samples from the head to the ring's end, then those from its start.
+        let to_end = n.min(RECORD_BUFFER - self.ring_head);
+        out[..to_end].copy_from_slice(&self.ring[self.ring_head..self.ring_head + to_end]);
+        out[to_end..n].copy_from_slice(&self.ring[..n - to_end]);
         let first = self.ring_first;
         self.ring_head = ring_slot(self.ring_head + n);
         self.ring_len -= n;
