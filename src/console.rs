@@ -738,8 +738,8 @@ impl Controller {
         writeln!(
             w,
             "ok status samples={} excitation={} {} faults={} over_range={} stuck={} spikes={} not_finite={} \
-             deadline_misses={} adc_overruns={} isr_cycles_max={} limited={} command_v={} pe_power_v2={} pe_single={} selected={} tuning={}{} \
-             record={}",
+             deadline_misses={} adc_overruns={} isr_cycles_max={} limited={} command_v={} pe_power_v2={} \
+             pe_single={} selected={} tuning={}{} record={}",
             s.samples,
             Exc(&self.chosen),
             if self.running { "running" } else { "stopped" },

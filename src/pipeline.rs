@@ -29,7 +29,7 @@
 //! the curve through them before any filter sees it, and counted ([`crate::filters::spike`]); it latches nothing.
 //! Cost per sample, without estimators:
 //! three replica biquads, two pre-filters, the excitation monitor (its shaping filter and averages: about 50
-//! flops), the excitation, the limits: about 140 flops (QEMU: `pipeline_bare_f32`, 441 instructions).
+//! flops), the excitation, the limits, the spike gate: about 150 flops (QEMU: `pipeline_bare_f32`, 467 instructions).
 
 use crate::estimator::{EstimatorBank, FilteredSample, PeLevel, SampleFilter};
 use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
