@@ -82,6 +82,11 @@ enum Command {
         /// input that is not rounded) [default: the board's, 3.3 V / 4096 / 0.165 = 4.88 mV].
         #[arg(long, value_name = "V", allow_negative_numbers = true)]
         dac_step: Option<hal_sim::cmd::identify::DacStep>,
+        /// The spike gate's ratio: a reading whose third difference exceeds this many times its recent mean (and 16
+        /// ADC codes) is replaced by the curve through the readings before it, as on the board (0: the gate off)
+        /// [default: 32, the firmware's].
+        #[arg(long, value_name = "N", allow_negative_numbers = true)]
+        spike_ratio: Option<hal_sim::cmd::identify::SpikeRatio>,
         /// The scalar of the pipeline and the estimators: f64 (the reference) or f32 (the firmware's: what the board
         /// computes from these samples, and which tunings it refuses).
         #[arg(long, value_enum, default_value = "f64")]
@@ -217,7 +222,19 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             };
             simulate::run(&args).map(|_| ())
         }
-        Command::Identify { input, estimators, tuning, windows, out, summary, plot, health, dac_step, precision } => {
+        Command::Identify {
+            input,
+            estimators,
+            tuning,
+            windows,
+            out,
+            summary,
+            plot,
+            health,
+            dac_step,
+            spike_ratio,
+            precision,
+        } => {
             use hal_sim::cmd::identify;
             // A decoded board recording has the board's tuning beside it: a replay without it runs the preset.
             let beside = hal_sim::cmd::decode::tuning_path(&input);
@@ -240,6 +257,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 plot: plot.as_deref(),
                 health: health.as_deref(),
                 dac_step_v: dac_step,
+                spike_ratio,
                 precision: precision.into(),
             };
             let result = identify::run(&args)?;

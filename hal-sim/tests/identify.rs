@@ -395,8 +395,8 @@ fn identify_notes_a_prefilter_far_from_the_resonance() {
 /// gate replaces in a row (`spike::MAX_RUN`): its third is taken, and the estimators see it. That one the notes say
 /// the estimators took for data, with the estimator whose model does not fit the window after it; and since the EKFs
 /// reset a filter that has not relocked 5 s after a change (`RELOCK_NIS_RATIO`), the hybrid one fits the last window
-/// again. A spike a thousand times smaller, below the wild bound (`Spread::WILD`), gets the gate's note alone; the
-/// record as simulated, none.
+/// again; so does the single reading with the gate off (`--spike-ratio 0`). A spike a thousand times smaller, below
+/// the wild bound (`Spread::WILD`), gets the gate's note alone; the record as simulated, none.
 #[test]
 fn wild_samples_are_noted() {
     let dir = tempfile::tempdir().unwrap();
@@ -412,14 +412,15 @@ fn wild_samples_are_noted() {
         }
         all.join("\n") + "\n"
     };
-    let notes = |csv: &str| {
+    let notes_with = |csv: &str, options: &[&str]| {
         std::fs::write(d.join("wild.csv"), csv).unwrap();
-        let out =
-            nanopos_sim(&["identify", "--input", "wild.csv", "--estimators", "ekf,hekf", "--summary", "s.json"], d);
+        let args = ["identify", "--input", "wild.csv", "--estimators", "ekf,hekf", "--summary", "s.json"];
+        let out = nanopos_sim(&[&args[..], options].concat(), d);
         let stderr = String::from_utf8(out.stderr).unwrap();
         assert!(out.status.success(), "{stderr}");
         stderr
     };
+    let notes = |csv: &str| notes_with(csv, &[]);
     let replaced = |n: usize| format!("note: the spike gate replaced {n} of y's readings, the first at 0.0998 s: ");
     let stderr = notes(&with(2, 1000..1001, "1e5"));
     eprintln!("{stderr}");
@@ -428,6 +429,10 @@ fn wild_samples_are_noted() {
     assert!(stderr.contains("The spike gate replaced it, and every reading that far out: the estimators did not"));
     assert!(stderr.contains(&replaced(1)), "{stderr}");
     assert!(!stderr.contains("'s model fits window"), "{stderr}");
+    // The gate off (`--spike-ratio 0`): the estimators take it, as before the gate.
+    let stderr = notes_with(&with(2, 1000..1001, "1e5"), &["--spike-ratio", "0"]);
+    assert!(stderr.contains("The filters spread one such sample over tenths of a second and the estimators take it"));
+    assert!(stderr.contains("note: hekf's model fits window 3:4 ") && !stderr.contains("spike gate"), "{stderr}");
     let stderr = notes(&with(2, 1000..1005, "1e5"));
     eprintln!("{stderr}");
     assert!(stderr.contains("note: y reaches 100000 um at 0.0998 s, "), "{stderr}");
@@ -767,6 +772,9 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (&["identify", "--input", "ok.csv", "--window", "5:1"], "T0 < T1"),
         (&["identify", "--input", "ok.csv", "--dac-step", "-1"], "'-1': expected the input's step for one DAC code"),
         (&["identify", "--input", "ok.csv", "--dac-step", "nan"], "'nan': expected the input's step"),
+        (&["identify", "--input", "ok.csv", "--spike-ratio", "-1"], "'-1': expected the spike gate's ratio, a whole"),
+        (&["identify", "--input", "ok.csv", "--spike-ratio", "2.5"], "'2.5': expected the spike gate's ratio"),
+        (&["identify", "--input", "ok.csv", "--spike-ratio", "65536"], "'65536': expected the spike gate's ratio"),
         (&["identify", "--input", "ok.csv", "--precision", "f16"], "invalid value 'f16' for '--precision"),
         (&["identify", "--input", "ok.csv", "--window", "50:60", "--out", "e.csv"], "window 50:60 holds no estimate"),
         // 10 ms: its default windows fall between the 100 Hz rows.

@@ -8,9 +8,11 @@
 //! disturbance coupled into the ADC's input, a bit error) or a logger's (an overflow value). One such sample goes
 //! through the band-pass pre-filter as an impulse, which rings at the pre-filter's centre, where the estimators
 //! look for the resonance, for tens of milliseconds: the estimators took it for the stage. On the simulated board's
-//! PRBS, one reading of 50 um (inside the probe's +-50 um, so not an over-range) moved every estimator's `a1` by
-//! 14-19 % and `b0` by 3-11 % for half a second, and the ARX's `a1` was still 7 % off a second later; one of 10 um
-//! moved `b0` by 0.8 % (`nanopos-sim identify` on a 20 s record, the reading at 3 s replaced by hand).
+//! PRBS, one reading of 50 um (inside the probe's +-50 um, so not an over-range) moved the EKFs' and the ARX's `a1`
+//! by 14-19 % and `b0` by up to 11 % on average over the half second after it, and the ARX's `a1` was still 7 % off
+//! over the half second after that; one of 10 um moved `b0` by 0.8 % (`nanopos-sim identify` on a 20 s record, the
+//! reading at 3 s replaced by hand). On the board (`tests/instrument.rs`), one of 26 um moved the EKFs' parameters by
+//! up to 63-67 % within half a second; with the gate, by under 3e-5.
 //!
 //! ## How
 //! Each reading `y_k` is compared with the parabola through the three readings passed on before it,

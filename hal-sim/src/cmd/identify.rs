@@ -1,9 +1,9 @@
 //! `nanopos-sim identify --input FILE.csv [--estimators rls,ekf,hekf,arx] [--tuning prbs|triangle]
 //! [--window T0:T1]... [--out EST.csv] [--summary SUMMARY.json] [--plot FIG.svg] [--health HEALTH.csv]
-//! [--dac-step V] [--precision f64|f32]`
+//! [--dac-step V] [--spike-ratio N] [--precision f64|f32]`
 //!
-//! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: filter replicas, pre-filter,
-//! estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
+//! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: spike gate, filter replicas,
+//! pre-filter, estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
 //! start (the convention of `simulate` and of the firmware's recording); `a0,a1,b0` columns, when present, are the
 //! truth and are reported next to the estimates.
 //!
@@ -30,12 +30,16 @@
 //!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
 //!   of an estimator whose means are not of a stage (`a0 <= 0` or not finite: it diverged) or whose validation RMSE
 //!   is more than 3 times the best one's in the window (not yet converged, or diverged); and of a sample of `u` or `y`
-//!   more than 1 000 times the level 90 % of the record stays within (a glitch, or a logger's overflow value: the
-//!   filters spread it over tenths of a second, and the estimators take it for data).
+//!   more than 1 000 times the level 90 % of the record stays within (a glitch, or a logger's overflow value: of
+//!   `y`, whether the spike gate replaced it; else the filters spread it over tenths of a second, and the estimators
+//!   take it for data); and of the readings the spike gate replaced.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
 //!   rounded).
+//! - The spike gate ([`nanopos_id::filters::spike`]) replaces a reading out of line with the three before it, as on
+//!   the board, with the firmware's ratio (32); `--spike-ratio N` another, 0 the gate off. A note counts the
+//!   readings it replaced.
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
 //! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file is read a block (8 MiB) at
@@ -234,7 +238,7 @@ pub(crate) fn identify_streamed<T: Real>(
     windows: &[Window],
     blocks: impl Iterator<Item = Result<(Vec<Vec<f64>>, u64), CliError>>,
 ) -> Result<Identified, CliError> {
-    let record = Stream { source, last_t, has_truth, progress_total: rows, dac_step_v: None };
+    let record = Stream { source, last_t, has_truth, progress_total: rows, dac_step_v: None, spike_ratio: None };
     identify_blocks::<T>(&record, names, &TuningArg::from(*tuning), windows, blocks)
 }
 
@@ -264,6 +268,8 @@ struct Stream<'a> {
     progress_total: u64,
     /// The input's step for one DAC code, V, which the excitation monitor discounts (`None`: the simulated board's).
     dac_step_v: Option<f64>,
+    /// The spike gate's ratio (`None`: the firmware's).
+    spike_ratio: Option<u16>,
 }
 
 /// What is kept of the pipeline's output for the validation of one window: `t`, `u'`, `y'` from a second before the
@@ -331,8 +337,11 @@ fn identify_blocks<T: Real>(
     })?;
     // The stage's pre-filter is the tuning's (the continuous-time RLS has its own copy of it), the replicas matched
     // at its centre as on the board.
-    let settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
+    let mut settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
         .with_prefilter(tuning.rls.prefilter);
+    if let Some(ratio) = record.spike_ratio {
+        settings.faults.spike_ratio = ratio;
+    }
     let board = SimBoard::new(Default::default());
     let mut cfg = settings
         .design::<T>(&board.description())
@@ -764,6 +773,8 @@ pub struct IdentifyArgs<'a> {
     pub health: Option<&'a Path>,
     /// The input's step for one DAC code, V (0: not rounded; `None`: the simulated board's, as the firmware's).
     pub dac_step_v: Option<DacStep>,
+    /// The spike gate's ratio (`None`: the firmware's).
+    pub spike_ratio: Option<SpikeRatio>,
     /// The scalar the pipeline and the estimators run in.
     pub precision: Precision,
 }
@@ -794,6 +805,20 @@ impl std::str::FromStr for DacStep {
     }
 }
 
+/// `--spike-ratio N`: the pipeline's spike gate's ratio ([`nanopos_id::pipeline::FaultSettings::spike_ratio`]), a
+/// whole number from 0 (the gate off) to 65 535.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SpikeRatio(pub u16);
+
+impl std::str::FromStr for SpikeRatio {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        s.trim().parse::<u16>().map(SpikeRatio).map_err(|_| {
+            format!("'{s}': expected the spike gate's ratio, a whole number from 0 (the gate off) to 65535")
+        })
+    }
+}
+
 /// Run the command: the input is read a block at a time ([`Reader`]); what is held is what the report needs (the
 /// 100 Hz rows and the windows' samples), not the record.
 pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
@@ -814,6 +839,7 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
         has_truth: reader.has_optional(),
         progress_total: reader.progress().1,
         dac_step_v: args.dac_step_v.map(|s| s.0),
+        spike_ratio: args.spike_ratio.map(|r| r.0),
     };
     let blocks = std::iter::from_fn(|| match reader.next_block() {
         Ok(Some(block)) => Some(Ok((block, reader.progress().0))),
@@ -1473,6 +1499,7 @@ mod tests {
             plot: None,
             health: None,
             dac_step_v: None,
+            spike_ratio: None,
             precision: Precision::F64,
         };
         let streamed = run(&args).unwrap();
@@ -1491,6 +1518,7 @@ mod tests {
                 has_truth: true,
                 progress_total: t.len() as u64,
                 dac_step_v: None,
+                spike_ratio: None,
             };
             identify_blocks::<f64>(&record, &NAMES, &tuning.into(), &[], blocks).unwrap()
         };
