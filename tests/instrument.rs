@@ -515,11 +515,17 @@ fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
 #[test]
 fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
     // Each estimator's parameters every 10 ms for 0.5 s from the glitch's sample on, and the lab after.
+    // The telemetry's news (a warning in the log) of the replaced readings, at its looks 0.1 s apart around it.
     let run = |glitch: bool, spike_ratio: u16| {
         let (board, mut settings) = Lab::settings(None);
         settings.faults.spike_ratio = spike_ratio;
         let mut lab = Lab::on_board(board, settings);
-        lab.run(30_000);
+        let mut watch = EventWatch::new(1e4);
+        let mut news = Vec::new();
+        for _ in 0..300 {
+            lab.run(100);
+            news.push(watch.look(&lab.isr.status()).spikes);
+        }
         if glitch {
             lab.board.forced_probe_code = Some(50_000);
             let out = lab.run(1)[0];
@@ -529,7 +535,8 @@ fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
             lab.run(1);
         }
         let seen: Vec<_> = (0..50).map(|_| (lab.run(100), lab.isr.status().estimates).1).collect();
-        (seen, lab)
+        news.extend((0..2).map(|_| watch.look(&lab.isr.status()).spikes));
+        (seen, lab, news)
     };
     // The largest relative difference of any parameter, per estimator, between two runs.
     let worst = |a: &[[(StageParams<f32>, _); 4]], b: &[[(StageParams<f32>, _); 4]]| {
@@ -544,9 +551,12 @@ fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
         worst
     };
     let default = nanopos_id::pipeline::FaultSettings::default().spike_ratio;
-    let (clean, _) = run(false, default);
-    let (gated, mut lab) = run(true, default);
-    let ((off, off_lab), (clean_off, _)) = (run(true, 0), run(false, 0));
+    let (clean, _, _) = run(false, default);
+    let (gated, mut lab, news) = run(true, default);
+    let ((off, off_lab, _), (clean_off, _, _)) = (run(true, 0), run(false, 0));
+    // Nothing before the glitch, from the gate's start on; the one, once.
+    assert_eq!(news[..300], [0; 300]);
+    assert_eq!(news[300..], [1, 0]);
     let (with, without) = (worst(&gated, &clean), worst(&off, &clean_off));
     let show = |w: [f64; 4]| w.map(|x| format!("{x:.1e}")).join(" ");
     eprintln!("the most a0, a1, b0 moved over 0.5 s (rls ekf hekf arx): gate {}, off {}", show(with), show(without));
@@ -1453,6 +1463,7 @@ fn identify_f32(csv: &Path, tuning: hal_sim::tuning::TuningArg) -> hal_sim::cmd:
         plot: None,
         health: None,
         dac_step_v: None,
+        spike_ratio: None,
         precision: Precision::F32,
     };
     identify::run(&args).unwrap()
