@@ -3,9 +3,9 @@
 //! [--dac-step V] [--spike-ratio N] [--precision f64|f32]`
 //!
 //! Runs the firmware's pipeline ([`nanopos_id::pipeline::Pipeline::replay`]: spike gate, filter replicas,
-//! pre-filter, estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the reading at its
-//! start (the convention of `simulate` and of the firmware's recording); `a0,a1,b0` columns, when present, are the
-//! truth and are reported next to the estimates.
+//! pre-filter, estimators) on a recorded run: `t,u,y` with `u` the command in effect over each sample and `y` the
+//! reading at its start (the convention of `simulate` and of the firmware's recording); `a0,a1,b0` columns, when
+//! present, are the truth and are reported next to the estimates.
 //!
 //! - `EST.csv`: `t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain` at 100 Hz.
 //! - `HEALTH.csv`: on the same rows, `t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um`: each
