@@ -543,9 +543,7 @@ fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
         let mut worst = [0.0f64; 4];
         for (x, y) in a.iter().zip(b) {
             for (i, ((p, _), (q, _))) in x.iter().zip(y).enumerate() {
-                for (v, w) in [(p.a0, q.a0), (p.a1, q.a1), (p.b0, q.b0)] {
-                    worst[i] = worst[i].max(f64::from(v / w - 1.0).abs());
-                }
+                worst[i] = worst[i].max(worst_relative(&[p.cast()], &[*q]));
             }
         }
         worst

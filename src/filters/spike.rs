@@ -106,8 +106,8 @@ impl<T: Real> SpikeGate<T> {
     #[cold]
     #[inline(never)]
     fn out_of_line(&mut self, y: T, predicted: T, replaced: &mut u32) -> T {
-        let [y1, y2, _] = self.last;
         if let Some(held) = self.replaced.get_mut(usize::from(self.run)) {
+            let [y1, y2, _] = self.last;
             *held = y;
             self.run += 1;
             *replaced = replaced.saturating_add(1);
