@@ -102,6 +102,7 @@ impl Controller {
         let mut tuning = Tuning::of(TuningPreset::Prbs);
         // One pre-filter for the stage, as in the paper: the pipeline's, and the continuous-time RLS's own.
         tuning.rls.prefilter = settings.prefilter;
+        tuning.spike_ratio = settings.faults.spike_ratio;
         let c = Controller {
             chosen: settings.excitation,
             settings,
@@ -431,9 +432,10 @@ impl Controller {
     ) -> Result<Change<T>, Refusal> {
         let mut change = Change { tuning: Some(t.runnable()?), ..Change::default() };
         // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
-        // together, in one sample.
-        if t.rls.prefilter != self.settings.prefilter {
-            let s = self.settings.with_prefilter(t.rls.prefilter);
+        // together, in one sample; the spike gate's ratio with them.
+        if t.rls.prefilter != self.settings.prefilter || t.spike_ratio != self.settings.faults.spike_ratio {
+            let mut s = self.settings.with_prefilter(t.rls.prefilter);
+            s.faults.spike_ratio = t.spike_ratio;
             change.config = Some(self.design(&s, self.running)?);
             self.settings = s;
         }

@@ -13,7 +13,7 @@
 //! | `select EST,...` / `select all` / `select none` | which estimators run (`rls`, `ekf`, `hekf`, `arx`; commas or spaces) |
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
-//! | `tune initial B0 A1 A0` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
+//! | `tune initial B0 A1 A0` / `tune spike_ratio N` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
 //! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0 here; the design refuses one under [`crate::pipeline::OutputLimits::min_slew_v_per_s`]) |
 //! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
 
@@ -31,7 +31,7 @@ start | stop
 select all | none | EST... (EST: rls ekf hekf arx)
 reset | freeze | adapt all | EST...
 tuning prbs | triangle
-tune initial B0 A1 A0 | initial EST | stage EST | prefilter F_LC F_P ZETA
+tune initial B0 A1 A0 | initial EST | stage EST | prefilter F_LC F_P ZETA | spike_ratio N
 tune rls | ekf | arx KEY [VALUE...] (no KEY: the keys; no VALUE: the value in use)
 limits MIN_V MAX_V SLEW_V_PER_S
 record off | on | burst N
@@ -386,7 +386,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             })
         }
         "tune" => {
-            const SECTIONS: &str = "initial, prefilter, stage, rls, ekf (both EKFs) or arx";
+            const SECTIONS: &str = "initial, prefilter, spike_ratio, stage, rls, ekf (both EKFs) or arx";
             let (word, section) = words.next(SECTIONS)?;
             if section == "stage" {
                 let (word, name) = words.next(ESTIMATOR)?;
@@ -626,6 +626,8 @@ mod tests {
             Ok(Command::Tune { key: TuningKey::EkfQ, values: Some([1e-12, 1e-6, 1.5e9, 0.25, 5e8]) })
         );
         assert_eq!(p("tune ekf q"), Ok(Command::Tune { key: TuningKey::EkfQ, values: None }));
+        assert_eq!(p("tune spike_ratio 0"), Ok(Command::Tune { key: TuningKey::SpikeRatio, values: Some([0.0; 5]) }));
+        assert_eq!(p("tune spike_ratio"), Ok(Command::Tune { key: TuningKey::SpikeRatio, values: None }));
         assert_eq!(p("tune initial arx"), Ok(Command::FromEstimate { estimator: 3, prefilter: false }));
         assert_eq!(p("tune initial  rls "), Ok(Command::FromEstimate { estimator: 0, prefilter: false }));
         assert_eq!(p("tune stage hekf"), Ok(Command::FromEstimate { estimator: 2, prefilter: true }));
@@ -696,13 +698,19 @@ mod tests {
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
             (b"status\xff", NotAscii { at: 6 }),
-            (b"tune", Missing { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" }),
+            (
+                b"tune",
+                Missing { word: 2, expected: "initial, prefilter, spike_ratio, stage, rls, ekf (both EKFs) or arx" },
+            ),
             (
                 b"tune kalman q 1",
-                Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" },
+                Invalid { word: 2, expected: "initial, prefilter, spike_ratio, stage, rls, ekf (both EKFs) or arx" },
             ),
             // The hybrid EKF's keys are the continuous one's section's.
-            (b"tune hekf q 1", Invalid { word: 2, expected: "initial, prefilter, stage, rls, ekf (both EKFs) or arx" }),
+            (
+                b"tune hekf q 1",
+                Invalid { word: 2, expected: "initial, prefilter, spike_ratio, stage, rls, ekf (both EKFs) or arx" },
+            ),
             (b"tune stage", Missing { word: 3, expected: ESTIMATOR }),
             (b"tune stage 5e5", Invalid { word: 3, expected: ESTIMATOR }),
             (b"tune stage arx 1", Extra { word: 4 }),

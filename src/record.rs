@@ -38,10 +38,10 @@
 //! **Throughput.** 48 samples take 64 base64 characters per 12 bytes, 256 for the frame's 192, plus 20 of framing:
 //! 276 bytes per 4.8 ms, 57.5 kB/s, 575 kbit/s with start and stop bits. Continuous recording at 10 kHz needs the
 //! link at 921 600 baud (62 % of it); at 115 200 baud only bursts that fit the board's buffer
-//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete. The tuning lines, 1 346 bytes with the
-//! PRBS preset at sample 777 (18 more for each further digit of the sample index), hold the frames back by 15 ms
+//! ([`crate::instrument::RECORD_BUFFER`] samples, 0.1 s) are complete. The tuning lines, 1 408 bytes with the
+//! PRBS preset at sample 777 (19 more for each further digit of the sample index), hold the frames back by 15 ms
 //! at 921 600 baud (at the start, and at a change of the tuning), which the buffer covers and the link's 38 % to
-//! spare catches up in 24 ms; a burst that fits the buffer is complete at any rate, as before.
+//! spare catches up in 25 ms; a burst that fits the buffer is complete at any rate, as before.
 
 use crate::estimators::TuningKey;
 

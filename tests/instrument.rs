@@ -510,16 +510,21 @@ fn a_probe_over_range_or_stuck_stops_the_excitation_until_start() {
 /// over-range), 3 s into the paper's PRBS on the board. The spike gate replaces it and counts it (`status`:
 /// `spikes=1`), and over the half second after it every estimator stays within 1e-4 of the same run without the
 /// glitch (measured: 2.5e-5 at most, the EKFs, from the few nm by which the curve misses the true reading); with the
-/// gate off (`spike_ratio` 0, the firmware as it was) the glitch moved the EKFs' parameters by up to 63-67 % and the
-/// ARX's by 9 % in that half second (the RLS's by 0.2 %).
+/// gate off (`tune spike_ratio 0` on the console, the firmware as it was) the glitch moved the EKFs' parameters by up
+/// to 83 % and the ARX's by 9 % in that half second (the RLS's by 0.1 %; with the gate set in the settings instead,
+/// the glitch one sample earlier in the PRBS, 63-67 %, 9 % and 0.2 %).
 #[test]
 fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
     // Each estimator's parameters every 10 ms for 0.5 s from the glitch's sample on, and the lab after.
     // The telemetry's news (a warning in the log) of the replaced readings, at its looks 0.1 s apart around it.
     let run = |glitch: bool, spike_ratio: u16| {
-        let (board, mut settings) = Lab::settings(None);
-        settings.faults.spike_ratio = spike_ratio;
+        let (board, settings) = Lab::settings(None);
         let mut lab = Lab::on_board(board, settings);
+        if spike_ratio != settings.faults.spike_ratio {
+            let reply = lab.send(&format!("tune spike_ratio {spike_ratio}\n"));
+            assert_eq!(reply, format!("ok tune spike_ratio = {spike_ratio} (estimators restarted)\n"));
+            assert_eq!(lab.send("tune spike_ratio\n"), format!("ok tune spike_ratio = {spike_ratio}\n"));
+        }
         let mut watch = EventWatch::new(1e4);
         let mut news = Vec::new();
         for _ in 0..300 {
@@ -1307,7 +1312,7 @@ fn a_recording_carries_exactly_what_the_interrupt_saw() {
     // In effect from the recording's first sample, the 778th.
     assert!(lines.iter().all(|l| l.at == 777), "{tuning}");
     // 15 ms of the link at 921 600 baud before the first frame, inside the board's 0.1 s buffer (src/record.rs).
-    assert_eq!(tuning.len(), 1346);
+    assert_eq!(tuning.len(), 1408);
     // `send` ran the sample that applied the change: the first recorded sample is that one.
     let first_index = lab.isr.status().samples - 1;
     let mut outputs = Vec::new();
@@ -1515,7 +1520,7 @@ fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in
         let after = lab.link[start..].strip_prefix(reply.as_str()).unwrap().to_string();
         assert!(verdict(&reply).starts_with("ok"), "{command}: {reply}");
         let lines: Vec<_> = after.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap()).collect();
-        assert!(lines.is_empty() || lines.len() == 18, "{command}: {after}");
+        assert!(lines.is_empty() || lines.len() == nanopos_id::estimators::TuningKey::ALL.len(), "{command}: {after}");
         // From the sample the change applied to: the one the command's sample ran.
         assert!(lines.iter().all(|l| l.at == lab.isr.pipeline.samples() - 1), "{command}: {after}");
         lines.iter().find(|l| l.key == nanopos_id::estimators::TuningKey::EkfR).map(|l| l.values[0])
@@ -2371,14 +2376,17 @@ fn a_tuning_files_commands_give_the_board_its_tuning() {
     std::fs::remove_dir_all(&dir).unwrap();
     let commands = hal_sim::cmd::commands::run(&arg).unwrap();
     assert!(commands.notes.is_empty(), "{:?}", commands.notes);
+    // The stage's keys always (`tuning` keeps the board's): the file's spike ratio is the preset's, 32.
     assert_eq!(
-        commands.lines[..3],
-        ["tuning triangle", "tune initial 6.5e5 72.5 6.3e6", "tune prefilter 120 430 0.15"]
+        commands.lines[..4],
+        ["tuning triangle", "tune initial 6.5e5 72.5 6.3e6", "tune prefilter 120 430 0.15", "tune spike_ratio 32"]
     );
     // The keys at the triangle preset's values are not sent; the file's eight others are, once.
-    assert_eq!(commands.lines.len(), 3 + 8, "{:?}", commands.lines);
+    assert_eq!(commands.lines.len(), 4 + 8, "{:?}", commands.lines);
     let mut lab = Lab::new();
-    for line in ["tune initial 2e6 100 5e7\n", "tune ekf gate_sigma 7\n", "tune arx max_trace 500\n", "tuning prbs\n"] {
+    let before =
+        ["tune initial 2e6 100 5e7\n", "tune spike_ratio 7\n", "tune ekf gate_sigma 7\n", "tune arx max_trace 500\n"];
+    for line in before.into_iter().chain(["tuning prbs\n"]) {
         assert!(verdict(&lab.send(line)).starts_with("ok "), "{line}");
     }
     for line in &commands.lines {

@@ -84,7 +84,8 @@ enum Command {
         dac_step: Option<hal_sim::cmd::identify::DacStep>,
         /// The spike gate's ratio: a reading whose third difference exceeds this many times its recent mean (and 16
         /// ADC codes) is replaced by the curve through the readings before it, as on the board (0: the gate off)
-        /// [default: 32, the firmware's].
+        /// [default: the tuning's `spike_ratio`: 32, the firmware's, unless a tuning file (the board's, from
+        /// `decode`) says otherwise].
         #[arg(long, value_name = "N", allow_negative_numbers = true)]
         spike_ratio: Option<hal_sim::cmd::identify::SpikeRatio>,
         /// The scalar of the pipeline and the estimators: f64 (the reference) or f32 (the firmware's: what the board

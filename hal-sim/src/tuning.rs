@@ -9,6 +9,7 @@
 //! preset = "triangle"            # the base (default: prbs)
 //! initial = [5e5, 70, 6e6]       # every estimator's initial [b0, a1, a0] (another stage: near its own values)
 //! prefilter = [100, 450, 0.1]    # W_p: f_lc Hz, f_p Hz (near the stage's resonance), zeta_p
+//! spike_ratio = 32               # the spike gate: third difference over its recent mean that is a spike (0: off)
 //! [rls]                          # continuous-time RLS
 //! gamma = 0.25                   # forgetting, 1/s
 //! p0 = [1e6, 1e1, 1e7]           # diag P(0) for [b0, a1, a0]
@@ -42,6 +43,7 @@ struct File {
     preset: Option<String>,
     initial: Option<[f64; 3]>,
     prefilter: Option<[f64; 3]>,
+    spike_ratio: Option<u32>,
     rls: Option<Rls>,
     ekf: Option<Ekf>,
     arx: Option<Arx>,
@@ -146,9 +148,10 @@ pub fn parse(name: &str, text: &str) -> Result<TuningArg, CliError> {
     let one = |x: Option<f64>| x.map(|x| vec![x]);
     let whole = |n: Option<u32>| n.map(|n| vec![n as f64]);
     let (r, e, a) = (file.rls.unwrap_or_default(), file.ekf.unwrap_or_default(), file.arx.unwrap_or_default());
-    let values: [(TuningKey, Option<Vec<f64>>); 18] = [
+    let values: [(TuningKey, Option<Vec<f64>>); 19] = [
         (TuningKey::Initial, file.initial.map(|v| v.to_vec())),
         (TuningKey::Prefilter, file.prefilter.map(|v| v.to_vec())),
+        (TuningKey::SpikeRatio, whole(file.spike_ratio)),
         (TuningKey::RlsGamma, one(r.gamma)),
         (TuningKey::RlsP0, r.p0.map(|v| v.to_vec())),
         (TuningKey::RlsR0, one(r.r0)),
@@ -193,6 +196,7 @@ mod tests {
         assert_eq!((t.rls.gamma, t.rls.pe_floor_v2), (0.5, 0.0));
         assert_eq!(t.arx, Tuning::preset("triangle").unwrap().arx);
         assert_eq!(at_board("[arx]\npe_floor_v2 = 2e-6\n").unwrap().arx.pe_floor_v2, 2e-6);
+        assert_eq!((t.spike_ratio, at_board("spike_ratio = 0\n").unwrap().spike_ratio), (32, 0));
         let q = at_board("[ekf]\nq = [1e-12, 1e-6, 1e9, 1.0, 1e8]\n").unwrap();
         assert_eq!(q.ekf.p0_diag, [1e-12, 1e-6, 1e9, 1.0, 1e8].map(|x: f64| 10.0 * x), "P0 follows Q unless given");
         // Another stage: every estimator starts from its parameters.
@@ -220,6 +224,9 @@ mod tests {
             ("[ekf]\nreopen = 5000\n", "[ekf] reopen = 5000: between 1 and 500 (the variance ceiling)"),
             ("initial = [5e5, 70, -6e6]\n", "t.toml: initial = -6000000: must be a positive number"),
             ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
+            ("spike_ratio = 70000\n", "t.toml: spike_ratio = 70000: a whole number from 0 (off) to 65535"),
+            ("spike_ratio = 2.5\n", "t.toml:1:"),
+            ("spike_ratio = -1\n", "t.toml:1:"),
         ];
         for (text, want) in cases {
             let e = at_board(text).unwrap_err().0;

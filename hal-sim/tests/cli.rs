@@ -688,7 +688,7 @@ fn commands_writes_the_console_lines_of_a_tuning_or_says_why_not() {
     assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(
         String::from_utf8(out.stdout).unwrap(),
-        "tuning prbs\ntune initial 5e5 70 6e6\ntune prefilter 100 450 0.1\n"
+        "tuning prbs\ntune initial 5e5 70 6e6\ntune prefilter 100 450 0.1\ntune spike_ratio 32\n"
     );
     // Five values of 17 significant digits: 11 + 5 * 23 bytes, beyond the console's 96.
     let long = "[ekf]\nq = [1.0000000000000002e-12, 1.0000000000000002e-6, 1500000000.0000002, 0.25000000000000006, \

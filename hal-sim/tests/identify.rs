@@ -433,6 +433,11 @@ fn wild_samples_are_noted() {
     let stderr = notes_with(&with(2, 1000..1001, "1e5"), &["--spike-ratio", "0"]);
     assert!(stderr.contains("The filters spread one such sample over tenths of a second and the estimators take it"));
     assert!(stderr.contains("note: hekf's model fits window 3:4 ") && !stderr.contains("spike gate"), "{stderr}");
+    // So in a tuning file (as `decode` writes the board's after `tune spike_ratio 0`); `--spike-ratio` overrides it.
+    std::fs::write(d.join("off.toml"), "spike_ratio = 0\n").unwrap();
+    assert_eq!(notes_with(&with(2, 1000..1001, "1e5"), &["--tuning", "off.toml"]), stderr);
+    let on = notes_with(&with(2, 1000..1001, "1e5"), &["--tuning", "off.toml", "--spike-ratio", "32"]);
+    assert!(on.contains(&replaced(1)) && !on.contains("'s model fits window"), "{on}");
     let stderr = notes(&with(2, 1000..1005, "1e5"));
     eprintln!("{stderr}");
     assert!(stderr.contains("note: y reaches 100000 um at 0.0998 s, "), "{stderr}");

@@ -37,6 +37,10 @@ pub struct Tuning {
     pub ekf: ekf::EkfDesign,
     /// The ARX RLS.
     pub arx: arx::ArxDesign,
+    /// The pipeline's spike gate: its ratio ([`crate::pipeline::FaultSettings::spike_ratio`], 0: off). Not an
+    /// estimator's, but what the estimators are fed: a tuning value so that the console's `tune spike_ratio` sets it
+    /// at run time and a recording's tuning lines carry it to the replay.
+    pub spike_ratio: u16,
 }
 
 impl Tuning {
@@ -55,7 +59,12 @@ impl Tuning {
             crate::control::TuningPreset::Prbs => ekf::EkfDesign::Q2,
             crate::control::TuningPreset::Triangle => ekf::EkfDesign::Q1,
         };
-        Tuning { rls: crls::CrlsDesign::default(), ekf: ekf::EkfDesign::paper(q), arx: arx::ArxDesign::default() }
+        Tuning {
+            rls: crls::CrlsDesign::default(),
+            ekf: ekf::EkfDesign::paper(q),
+            arx: arx::ArxDesign::default(),
+            spike_ratio: crate::pipeline::FaultSettings::default().spike_ratio,
+        }
     }
 
     /// Design every estimator's configuration in the working scalar.

@@ -5,6 +5,7 @@
 //! |---|---|---|
 //! | `initial` | `b0 a1 a0`: every estimator's initial parameters (and the normalisation of the continuous RLS and the EKFs) | positive |
 //! | `prefilter` | `f_lc f_p zeta_p` of the stage's pre-filter `W_p` (SPEC 4), one for all as in the paper: the pipeline's (whose output the EKFs and the ARX read) and the continuous-time RLS's own (inside its RK4 step); put `f_p` near the stage's resonance | positive, the frequencies below the Nyquist frequency (checked when the pipeline is designed) |
+//! | `spike_ratio` | the pipeline's spike gate ([`crate::filters::spike`]): a reading whose third difference exceeds this many times its recent mean (and 16 probe codes) is replaced; 0 turns the gate off | whole, 0 to 65 535 |
 //! | `rls gamma` | forgetting, 1/s | positive |
 //! | `rls p0` | diag `P(0)` for `[b0, a1, a0]` | positive |
 //! | `rls r0` | bound on `||P||_F` | positive |
@@ -34,6 +35,8 @@ pub enum TuningKey {
     Initial,
     /// The pre-filter `W_p`.
     Prefilter,
+    /// The pipeline's spike gate's ratio.
+    SpikeRatio,
     /// Continuous-time RLS forgetting.
     RlsGamma,
     /// Continuous-time RLS `diag P(0)`.
@@ -70,9 +73,10 @@ pub enum TuningKey {
 
 impl TuningKey {
     /// Every key, in the order of the table above.
-    pub const ALL: [TuningKey; 18] = [
+    pub const ALL: [TuningKey; 19] = [
         TuningKey::Initial,
         TuningKey::Prefilter,
+        TuningKey::SpikeRatio,
         TuningKey::RlsGamma,
         TuningKey::RlsP0,
         TuningKey::RlsR0,
@@ -91,11 +95,13 @@ impl TuningKey {
         TuningKey::ArxPeFloor,
     ];
 
-    /// `(section, name)`: the section is `""` for `initial` and `prefilter`, else `rls`, `ekf` or `arx`.
+    /// `(section, name)`: the section is `""` for `initial`, `prefilter` and `spike_ratio`, else `rls`, `ekf` or
+    /// `arx`.
     pub const fn path(self) -> (&'static str, &'static str) {
         match self {
             TuningKey::Initial => ("", "initial"),
             TuningKey::Prefilter => ("", "prefilter"),
+            TuningKey::SpikeRatio => ("", "spike_ratio"),
             TuningKey::RlsGamma => ("rls", "gamma"),
             TuningKey::RlsP0 => ("rls", "p0"),
             TuningKey::RlsR0 => ("rls", "r0"),
@@ -130,8 +136,9 @@ impl TuningKey {
         }
     }
 
-    /// The keys that describe the stage rather than the input: a preset chosen on the console keeps them.
-    pub const STAGE: [TuningKey; 2] = [TuningKey::Initial, TuningKey::Prefilter];
+    /// The keys that describe the stage and its probe rather than the input: a preset chosen on the console keeps
+    /// them.
+    pub const STAGE: [TuningKey; 3] = [TuningKey::Initial, TuningKey::Prefilter, TuningKey::SpikeRatio];
 
     /// How many values it takes.
     pub const fn len(self) -> usize {
@@ -179,6 +186,8 @@ pub enum Expected {
     Substeps,
     /// A whole number, zero or more.
     Whole,
+    /// A whole number from 0 to 65 535 (0: off).
+    Ratio,
     /// Zero or at least one.
     DriftRatio,
     /// From 1 to the variance ceiling.
@@ -202,6 +211,7 @@ impl fmt::Display for Expected {
             Expected::NonNegative => f.write_str("must be zero or positive"),
             Expected::Substeps => f.write_str("between 1 and 64"),
             Expected::Whole => f.write_str("must be a whole number, 0 or more"),
+            Expected::Ratio => f.write_str("a whole number from 0 (off) to 65535"),
             Expected::DriftRatio => f.write_str("0 (off) or at least 1"),
             // The crate's number formatting, not `f64`'s `Display` (which would add 30 KiB of flash to the firmware).
             Expected::Reopen { ceiling } => {
@@ -233,6 +243,7 @@ impl Expected {
             Expected::NonNegative => x.is_finite() && x >= 0.0,
             Expected::Substeps => whole && (1.0..=64.0).contains(&x),
             Expected::Whole => whole && (0.0..=u32::MAX as f64).contains(&x),
+            Expected::Ratio => whole && (0.0..=u16::MAX as f64).contains(&x),
             Expected::DriftRatio => x == 0.0 || (x.is_finite() && x >= 1.0),
             Expected::Reopen { ceiling } => (1.0..=ceiling).contains(&x),
             Expected::Forgetting => x > 0.0 && x <= 1.0,
@@ -247,6 +258,7 @@ impl Tuning {
         match key {
             TuningKey::EkfSubsteps => Expected::Substeps,
             TuningKey::EkfChangeSamples => Expected::Whole,
+            TuningKey::SpikeRatio => Expected::Ratio,
             TuningKey::EkfDriftRatio => Expected::DriftRatio,
             TuningKey::EkfReopen => Expected::Reopen { ceiling: self.ekf.health.ceiling },
             TuningKey::RlsPeFloor | TuningKey::EkfPeFloor | TuningKey::ArxPeFloor => Expected::NonNegative,
@@ -272,6 +284,7 @@ impl Tuning {
         self.ekf.initial = stage.ekf.initial;
         self.arx.initial = stage.arx.initial;
         self.rls.prefilter = stage.rls.prefilter;
+        self.spike_ratio = stage.spike_ratio;
         self
     }
 
@@ -285,6 +298,7 @@ impl Tuning {
                 let f = &self.rls.prefilter;
                 v[..3].copy_from_slice(&[f.f_lc_hz, f.f_p_hz, f.zeta_p]);
             }
+            TuningKey::SpikeRatio => v[0] = self.spike_ratio as f64,
             TuningKey::RlsGamma => v[0] = self.rls.gamma,
             TuningKey::RlsP0 => v[..3].copy_from_slice(&self.rls.p0_diag),
             TuningKey::RlsR0 => v[0] = self.rls.r0,
@@ -325,6 +339,7 @@ impl Tuning {
             TuningKey::Prefilter => {
                 self.rls.prefilter = PrefilterDesign { f_lc_hz: v[0], f_p_hz: v[1], zeta_p: v[2] };
             }
+            TuningKey::SpikeRatio => self.spike_ratio = x as u16,
             TuningKey::RlsGamma => self.rls.gamma = x,
             TuningKey::RlsP0 => self.rls.p0_diag.copy_from_slice(v),
             TuningKey::RlsR0 => self.rls.r0 = x,
@@ -403,7 +418,7 @@ mod tests {
     #[test]
     fn a_refused_value_names_its_index_and_changes_nothing() {
         let base = Tuning::of(TuningPreset::Triangle);
-        let cases: [(TuningKey, &[f64], usize, Expected); 10] = [
+        let cases: [(TuningKey, &[f64], usize, Expected); 13] = [
             (TuningKey::EkfQ, &[1e-12, 1e-6, -1.0, 1.0, 1.0], 2, Expected::Positive),
             (TuningKey::Initial, &[5e5, 70.0, f64::NAN], 2, Expected::Positive),
             (TuningKey::EkfSubsteps, &[0.0], 0, Expected::Substeps),
@@ -414,6 +429,9 @@ mod tests {
             (TuningKey::EkfPeFloor, &[f64::INFINITY], 0, Expected::NonNegative),
             (TuningKey::ArxLambda, &[1.5], 0, Expected::Forgetting),
             (TuningKey::RlsGamma, &[1e20], 0, Expected::Rate { max: 1e4 }),
+            (TuningKey::SpikeRatio, &[65536.0], 0, Expected::Ratio),
+            (TuningKey::SpikeRatio, &[2.5], 0, Expected::Ratio),
+            (TuningKey::SpikeRatio, &[-1.0], 0, Expected::Ratio),
         ];
         for (key, values, index, expected) in cases {
             let mut t = base;
@@ -427,6 +445,7 @@ mod tests {
         let mut stage = Tuning::of(TuningPreset::Prbs);
         stage.set(TuningKey::Initial, &[1e6, 90.0, 3.9e7]).unwrap();
         stage.set(TuningKey::Prefilter, &[150.0, 1000.0, 0.2]).unwrap();
+        stage.set(TuningKey::SpikeRatio, &[0.0]).unwrap();
         stage.set(TuningKey::EkfR, &[1e-3]).unwrap();
         let preset = Tuning::of(TuningPreset::Triangle);
         let both = preset.with_stage_of(&stage);

@@ -12,7 +12,7 @@
 //! by 14-19 % and `b0` by up to 11 % on average over the half second after it, and the ARX's `a1` was still 7 % off
 //! over the half second after that; one of 10 um moved `b0` by 0.8 % (`nanopos-sim identify` on a 20 s record, the
 //! reading at 3 s replaced by hand). On the board (`tests/instrument.rs`), one of 26 um moved the EKFs' parameters by
-//! up to 63-67 % within half a second; with the gate, by under 3e-5.
+//! up to 63-83 % within half a second (as it fell in the PRBS); with the gate, by under 3e-5.
 //!
 //! ## How
 //! Each reading `y_k` is compared with the parabola through the three readings passed on before it,

@@ -3,11 +3,11 @@
 //!
 //! The board loses its tuning when it resets; the recording carries it to the host (`decode` writes it beside the
 //! CSV) and these lines carry it back. They are `tuning PRESET` (the file's base: the console's `status` names it),
-//! then `tune initial` and `tune prefilter`, which `tuning` keeps from before, then `tune SECTION KEY VALUES` for
-//! every other key whose value differs from the preset's, in the order [`TuningKey::ALL`] gives (`q` before `p0`,
-//! which `q` sets to 10 Q). Each line is what the board's `tune` accepts: the tuning is checked here at the board's
+//! then `tune initial`, `tune prefilter` and `tune spike_ratio` ([`TuningKey::STAGE`]), which `tuning` keeps from
+//! before, then `tune SECTION KEY VALUES` for every other key whose value differs from the preset's, in the order
+//! [`TuningKey::ALL`] gives (`q` before `p0`, which `q` sets to 10 Q). Each line is what the board's `tune` accepts: the tuning is checked here at the board's
 //! sample rate as the console checks it (every value in its range, the whole runnable in f32, the pre-filter one the
-//! pipeline can match), and every line after the first two leaves a tuning the board can run. The values are written
+//! pipeline can match), and every line after the stage's leaves a tuning the board can run. The values are written
 //! in full (Rust's shortest form that reads back to the same `f64`), unless a line would pass the console's
 //! [`MAX_LINE`]: then to as many significant digits as fit, which a note says. The board's decimal parser is within a
 //! few ulps of the correctly rounded value, so the board's values are the file's to within a few ulps.
@@ -49,7 +49,7 @@ pub fn run(arg: &TuningArg) -> Result<Commands, CliError> {
     let mut board_tuning = Tuning::preset(preset).expect("a preset").at_sample_period(dt).with_stage_of(&target);
     for key in TuningKey::ALL {
         let values = &target.get(key)[..key.len()];
-        let stage = matches!(key, TuningKey::Initial | TuningKey::Prefilter);
+        let stage = TuningKey::STAGE.contains(&key);
         if !stage && board_tuning.get(key)[..key.len()] == *values {
             continue;
         }

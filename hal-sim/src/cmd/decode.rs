@@ -443,10 +443,17 @@ impl TuningLines {
         } else if self.lines.is_empty() {
             Some(format!("the recording carries no tuning (from a firmware before the tuning lines): {give}"))
         } else if missing > 0 {
+            // Named: a key newer than the firmware that recorded (`spike_ratio`, say) is missing from every line.
+            let names: Vec<String> = TuningKey::ALL
+                .into_iter()
+                .filter(|key| keys.iter().all(|(k, _)| k != key))
+                .map(|key| key.to_string())
+                .collect();
             Some(format!(
                 "the board's tuning is not written: {missing} of its {} keys are missing at the recording's start \
-                 (lines lost in the capture): {give}",
-                TuningKey::ALL.len()
+                 ({}: lines lost in the capture, or a firmware from before the key): {give}",
+                TuningKey::ALL.len(),
+                names.join(", ")
             ))
         } else if std::fs::metadata(out).is_ok_and(|m| super::is_stream(&m)) && damage == Damage::Refuse {
             Some(format!("--out {} is not a file: the board's tuning is not written beside it", out.display()))
@@ -485,7 +492,7 @@ pub fn tuning_toml(keys: &[(TuningKey, [f64; 5])], source: &str) -> String {
             text.push_str(&format!("\n[{sec}]\n"));
             section = sec;
         }
-        let whole = matches!(key, TuningKey::EkfSubsteps | TuningKey::EkfChangeSamples);
+        let whole = matches!(key, TuningKey::EkfSubsteps | TuningKey::EkfChangeSamples | TuningKey::SpikeRatio);
         let v: Vec<String> = values[..key.len()]
             .iter()
             .map(|v| if whole { format!("{}", *v as u64) } else { format!("{v:?}") })
@@ -674,7 +681,15 @@ mod tests {
         let mut lost = good.clone();
         lost.remove(first + 7);
         let (written, notes) = decode(&lost);
-        assert!(!written && notes.contains("1 of its 18 keys are missing at the recording's start"), "{notes}");
+        assert!(!written && notes.contains("1 of its 19 keys are missing at the recording's start"), "{notes}");
+        assert!(notes.contains("([ekf] q: lines lost in the capture, or a firmware from before the key)"), "{notes}");
+        // Without `spike_ratio`'s line, as from a firmware before `tune spike_ratio`: a lost line cannot be told
+        // from it, so no file (its ratio may not have been the default), and the key named.
+        let mut older = good.clone();
+        let spike_line = first + TuningKey::ALL.iter().position(|&k| k == TuningKey::SpikeRatio).unwrap();
+        assert!(older.remove(spike_line).starts_with(b"# nanopos-tuning at=1000 spike_ratio 4040"));
+        let (written, notes) = decode(&older);
+        assert!(!written && notes.contains("1 of its 19 keys are missing") && notes.contains("(spike_ratio: "));
         // One damaged.
         let mut damaged = good.clone();
         damaged[first + 3][20] ^= 1;

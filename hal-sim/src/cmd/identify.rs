@@ -38,8 +38,8 @@
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
 //!   rounded).
 //! - The spike gate ([`nanopos_id::filters::spike`]) replaces a reading out of line with the three before it, as on
-//!   the board, with the firmware's ratio (32); `--spike-ratio N` another, 0 the gate off. A note counts the
-//!   readings it replaced.
+//!   the board, with the tuning's ratio (`spike_ratio`: 32, the firmware's default, or the board's in a tuning file
+//!   `decode` wrote); `--spike-ratio N` another, 0 the gate off. A note counts the readings it replaced.
 //!
 //! It uses every core: the CSV is parsed in parallel pieces ([`crate::csv`]) and the estimators run on worker
 //! threads fed by the pipeline (same results as one loop, bit for bit). Memory: the file is read a block (8 MiB) at
@@ -268,7 +268,7 @@ struct Stream<'a> {
     progress_total: u64,
     /// The input's step for one DAC code, V, which the excitation monitor discounts (`None`: the simulated board's).
     dac_step_v: Option<f64>,
-    /// The spike gate's ratio (`None`: the firmware's).
+    /// The spike gate's ratio (`None`: the tuning's).
     spike_ratio: Option<u16>,
 }
 
@@ -339,9 +339,8 @@ fn identify_blocks<T: Real>(
     // at its centre as on the board.
     let mut settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
         .with_prefilter(tuning.rls.prefilter);
-    if let Some(ratio) = record.spike_ratio {
-        settings.faults.spike_ratio = ratio;
-    }
+    // The spike gate's ratio: the tuning's (the board's, in a file `decode` wrote), unless `--spike-ratio` is given.
+    settings.faults.spike_ratio = record.spike_ratio.unwrap_or(tuning.spike_ratio);
     let board = SimBoard::new(Default::default());
     let mut cfg = settings
         .design::<T>(&board.description())
@@ -773,7 +772,7 @@ pub struct IdentifyArgs<'a> {
     pub health: Option<&'a Path>,
     /// The input's step for one DAC code, V (0: not rounded; `None`: the simulated board's, as the firmware's).
     pub dac_step_v: Option<DacStep>,
-    /// The spike gate's ratio (`None`: the firmware's).
+    /// The spike gate's ratio (`None`: the tuning's).
     pub spike_ratio: Option<SpikeRatio>,
     /// The scalar the pipeline and the estimators run in.
     pub precision: Precision,
