@@ -5,12 +5,13 @@
 //! CSV) and these lines carry it back. They are `tuning PRESET` (the file's base: the console's `status` names it),
 //! then `tune initial`, `tune prefilter` and `tune spike_ratio` ([`TuningKey::STAGE`]), which `tuning` keeps from
 //! before, then `tune SECTION KEY VALUES` for every other key whose value differs from the preset's, in the order
-//! [`TuningKey::ALL`] gives (`q` before `p0`, which `q` sets to 10 Q). Each line is what the board's `tune` accepts: the tuning is checked here at the board's
-//! sample rate as the console checks it (every value in its range, the whole runnable in f32, the pre-filter one the
-//! pipeline can match), and every line after the stage's leaves a tuning the board can run. The values are written
-//! in full (Rust's shortest form that reads back to the same `f64`), unless a line would pass the console's
-//! [`MAX_LINE`]: then to as many significant digits as fit, which a note says. The board's decimal parser is within a
-//! few ulps of the correctly rounded value, so the board's values are the file's to within a few ulps.
+//! [`TuningKey::ALL`] gives (`q` before `p0`, which `q` sets to 10 Q). Each line is what the board's `tune` accepts:
+//! the tuning is checked here at the board's sample rate as the console checks it (every value in its range, the
+//! whole runnable in f32, the pre-filter one the pipeline can match), and every line after the stage's leaves a
+//! tuning the board can run. The values are written in full (Rust's shortest form that reads back to the same
+//! `f64`), unless a line would pass the console's [`MAX_LINE`]: then to as many significant digits as fit, which a
+//! note says. The board's decimal parser is within a few ulps of the correctly rounded value, so the board's values
+//! are the file's to within a few ulps.
 
 use super::{show, CliError};
 use crate::board::SimBoard;
