@@ -1456,20 +1456,7 @@ struct Recorded {
 /// `nanopos-sim identify --precision f32` with `tuning` on the decoded file `csv`.
 fn identify_f32(csv: &Path, tuning: hal_sim::tuning::TuningArg) -> hal_sim::cmd::identify::Identified {
     use hal_sim::cmd::identify::{self, IdentifyArgs, Precision};
-    let args = IdentifyArgs {
-        input: csv,
-        estimators: hal_sim::bank::NAMES.to_vec(),
-        tuning,
-        windows: Vec::new(),
-        out: None,
-        summary: None,
-        plot: None,
-        health: None,
-        dac_step_v: None,
-        spike_ratio: None,
-        precision: Precision::F32,
-    };
-    identify::run(&args).unwrap()
+    identify::run(&IdentifyArgs { precision: Precision::F32, ..IdentifyArgs::new(csv, tuning) }).unwrap()
 }
 
 #[test]
@@ -1550,7 +1537,9 @@ fn worst_relative(row: &[StageParams<f64>], board: &[StageParams<f32>]) -> f64 {
 
 /// A board tuned on the console records its tuning with its samples: `decode` writes it beside the CSV, and a replay
 /// with it is the interrupt's estimates bit for bit (this board's scalings are exact in f32: the decoded volts round
-/// to the interrupt's), where a replay with the preset is 20 % off.
+/// to the interrupt's), where a replay with the preset is 20 % off. The spike gate's ratio too: at 4, where the
+/// gate replaces some of the noise's tail, the replay replaces the same readings; at the default 32 it does not, and
+/// its estimates are not the board's.
 #[test]
 fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
     let mut lab = Lab::new();
@@ -1561,6 +1550,7 @@ fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
         "tune ekf r 2.2e-6\n",
         "tune ekf substeps 3\n",
         "tune arx lambda 0.9995\n",
+        "tune spike_ratio 4\n",
     ] {
         assert!(lab.send(command).contains("(estimators restarted)"), "{command}");
     }
@@ -1574,18 +1564,30 @@ fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
     assert_eq!((rec.tuning_file.as_deref(), rec.notes.len()), (Some(toml.as_path()), 0), "{:?}", rec.notes);
     let text = std::fs::read_to_string(&toml).unwrap();
     assert!(text.contains("\ninitial = [650000.0, 72.5, 6300000.0]\n") && text.contains("\nsubsteps = 3\n"), "{text}");
+    assert!(text.contains("\nspike_ratio = 4\n") && lab.isr.status().counters.spikes > 0, "{text}");
     let from_file = hal_sim::tuning::resolve(toml.to_str().unwrap()).unwrap();
     let designed = from_file.at(1e-4).unwrap().design::<f64>();
     assert!(designed == lab.ctl.tuning::<f64>(), "the file holds the board's tuning exactly");
-    let with_file = identify_f32(&csv, from_file);
+    let with_file = identify_f32(&csv, from_file.clone());
     let with_preset = identify_f32(&csv, hal_sim::bank::Tuning::preset("prbs").unwrap().into());
+    let args = hal_sim::cmd::identify::IdentifyArgs::new(&csv, from_file);
+    let default_gate = hal_sim::cmd::identify::IdentifyArgs {
+        precision: hal_sim::cmd::identify::Precision::F32,
+        spike_ratio: Some(hal_sim::cmd::identify::SpikeRatio(32)),
+        ..args
+    };
+    let default_gate = hal_sim::cmd::identify::run(&default_gate).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
-    let (tuned, preset) = (
+    let (tuned, preset, gate) = (
         worst_relative(with_file.estimates.last().unwrap(), &board),
         worst_relative(with_preset.estimates.last().unwrap(), &board),
+        worst_relative(default_gate.estimates.last().unwrap(), &board),
     );
-    println!("identify's last row against the board's estimates: with the recorded tuning {tuned:.1e}, with the preset {preset:.1e}");
-    assert!(tuned == 0.0 && preset > 1e-2, "{tuned} {preset}");
+    println!(
+        "identify's last row against the board's estimates: with the recorded tuning {tuned:.1e}, with the preset \
+         {preset:.1e}, with the recorded tuning but the default spike ratio {gate:.1e}"
+    );
+    assert!(tuned == 0.0 && preset > 1e-2 && gate > 0.0, "{tuned} {preset} {gate}");
 }
 
 /// A limit of the excitation monitor, kept measured: it judges richness through its 5-20 Hz shaping filter, where a

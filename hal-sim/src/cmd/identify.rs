@@ -778,6 +778,26 @@ pub struct IdentifyArgs<'a> {
     pub precision: Precision,
 }
 
+impl<'a> IdentifyArgs<'a> {
+    /// `identify --input INPUT` with `tuning` and every other option at its default: every estimator, the default
+    /// windows, no output file, the board's DAC step and the tuning's spike ratio, f64.
+    pub fn new(input: &'a Path, tuning: TuningArg) -> Self {
+        IdentifyArgs {
+            input,
+            estimators: NAMES.to_vec(),
+            tuning,
+            windows: Vec::new(),
+            out: None,
+            summary: None,
+            plot: None,
+            health: None,
+            dac_step_v: None,
+            spike_ratio: None,
+            precision: Precision::F64,
+        }
+    }
+}
+
 /// `--precision`: the scalar of the pipeline and the estimators.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Precision {
@@ -1488,19 +1508,7 @@ mod tests {
         crate::cmd::simulate::run(&sim).unwrap();
         assert!(std::fs::metadata(&input).unwrap().len() > 8 << 20, "more than one block");
         let tuning = Tuning::preset("prbs").unwrap();
-        let args = IdentifyArgs {
-            input: &input,
-            estimators: NAMES.to_vec(),
-            tuning: tuning.into(),
-            windows: Vec::new(),
-            out: None,
-            summary: None,
-            plot: None,
-            health: None,
-            dac_step_v: None,
-            spike_ratio: None,
-            precision: Precision::F64,
-        };
+        let args = IdentifyArgs::new(&input, tuning.into());
         let streamed = run(&args).unwrap();
         let streamed32 = run(&IdentifyArgs { precision: Precision::F32, ..args }).unwrap();
 
