@@ -251,7 +251,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                     SAFE_CODE.store(cfg.safe_code() as u16, Ordering::Relaxed);
                 }
                 recording |= change.record.is_some_and(|r| r != Some(0));
-                post(change).await;
+                post(&mut Some(change)).await;
             }
             // The reply in parts (`status` a line at a time), each sent before the next is written.
             loop {
@@ -328,14 +328,15 @@ fn idle_status() -> Status<f32> {
     }
 }
 
-/// Hand `change` to the interrupt and wait until a sample applied it.
-async fn post(mut change: Change<f32>) {
-    loop {
-        // The refused change comes back whole (a kilobyte, on this task's stack), to be posted again.
+/// Hand `change` to the interrupt and wait until a sample applied it. By reference: the kilobyte stays where the
+/// console's future holds it (by value, this future held a second copy: 1 KiB more of static RAM).
+async fn post(change: &mut Option<Change<f32>>) {
+    while let Some(c) = change.take() {
+        // The refused change comes back whole, to be posted again.
         #[allow(clippy::result_large_err)]
-        match with_task(|t| t.instrument.post(change)) {
+        match with_task(|t| t.instrument.post(c)) {
             Some(Ok(())) => break,
-            Some(Err(busy)) => change = busy.0,
+            Some(Err(busy)) => *change = Some(busy.0),
             None => return,
         }
         Timer::after_micros(100).await;
