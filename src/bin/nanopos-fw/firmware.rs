@@ -239,19 +239,21 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
         }
         for parsed in line.read(&frame[..n], error, CONSOLE_RX_BYTES) {
             reply.clear();
-            let (change, mut rest) = match parsed {
+            let (mut change, mut rest) = match parsed {
                 Ok(cmd) => ctl.execute(cmd, board_status, &mut reply),
                 Err(e) => {
                     ctl.refuse(e, &mut reply);
                     (None, Rest::none())
                 }
             };
-            if let Some(change) = change {
-                if let Some(cfg) = &change.config {
+            // The change stays in `change` (one copy in this future: a binding or a temporary of it across the
+            // await would be another kilobyte of static RAM).
+            if let Some(c) = &change {
+                if let Some(cfg) = &c.config {
                     SAFE_CODE.store(cfg.safe_code() as u16, Ordering::Relaxed);
                 }
-                recording |= change.record.is_some_and(|r| r != Some(0));
-                post(&mut Some(change)).await;
+                recording |= c.record.is_some_and(|r| r != Some(0));
+                post(&mut change).await;
             }
             // The reply in parts (`status` a line at a time), each sent before the next is written.
             loop {
