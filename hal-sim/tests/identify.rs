@@ -436,8 +436,13 @@ fn wild_samples_are_noted() {
     // So in a tuning file (as `decode` writes the board's after `tune spike_ratio 0`); `--spike-ratio` overrides it.
     std::fs::write(d.join("off.toml"), "spike_ratio = 0\n").unwrap();
     assert_eq!(notes_with(&with(2, 1000..1001, "1e5"), &["--tuning", "off.toml"]), stderr);
+    let summary = std::fs::read_to_string(d.join("s.json")).unwrap();
+    assert!(summary.ends_with(", \"spike_gate\": {\"ratio\": 0, \"replaced\": 0}}\n"), "{summary}");
     let on = notes_with(&with(2, 1000..1001, "1e5"), &["--tuning", "off.toml", "--spike-ratio", "32"]);
     assert!(on.contains(&replaced(1)) && !on.contains("'s model fits window"), "{on}");
+    // The summary says what the gate did: the last run's (ratio 32, one replaced).
+    let summary = std::fs::read_to_string(d.join("s.json")).unwrap();
+    assert!(summary.ends_with(", \"spike_gate\": {\"ratio\": 32, \"replaced\": 1}}\n"), "{summary}");
     let stderr = notes(&with(2, 1000..1005, "1e5"));
     eprintln!("{stderr}");
     assert!(stderr.contains("note: y reaches 100000 um at 0.0998 s, "), "{stderr}");

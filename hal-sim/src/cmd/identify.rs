@@ -161,6 +161,8 @@ pub struct Identified {
 /// The readings of `y` the pipeline's spike gate replaced ([`nanopos_id::filters::spike`]).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Spikes {
+    /// The gate's ratio (0: off).
+    pub ratio: u16,
     /// How many.
     pub count: u32,
     /// The first one's time, s.
@@ -375,7 +377,7 @@ fn identify_blocks<T: Real>(
     let (mut times, mut truth_rows) = (Vec::new(), Vec::new());
     let (mut n, mut t_last) = (0usize, t_first);
     let mut spread = [Spread::default(), Spread::default()];
-    let mut spikes = Spikes::default();
+    let mut spikes = Spikes { ratio: settings.faults.spike_ratio, ..Spikes::default() };
     let mut progress = Progress::new("identify", record.progress_total);
     let results: Result<Vec<GroupRows>, CliError> = std::thread::scope(|scope| {
         let (feeds, jobs): (Vec<_>, Vec<_>) = groups
@@ -1273,7 +1275,8 @@ fn json_params(p: &StageParams<f64>) -> String {
     )
 }
 
-/// The summary as JSON (SPEC section 9), with the truth per window when known (and its validation RMSE).
+/// The summary as JSON (SPEC section 9), with the truth per window when known (and its validation RMSE), and the
+/// spike gate's ratio and how many readings it replaced.
 pub fn summary_json(r: &Identified) -> String {
     let num = json_number;
     let windows: Vec<String> = r
@@ -1302,7 +1305,14 @@ pub fn summary_json(r: &Identified) -> String {
             format!("{{\"t0\": {:?}, \"t1\": {:?}, \"estimators\": {{{}}}{truth}}}", w.t0, w.t1, ests.join(", "))
         })
         .collect();
-    format!("{{\"precision\": \"{}\", \"windows\": [{}]}}\n", r.precision, windows.join(", "))
+    // After the windows, which the SPEC's format starts with: what the spike gate did (its ratio, 0 off).
+    format!(
+        "{{\"precision\": \"{}\", \"windows\": [{}], \"spike_gate\": {{\"ratio\": {}, \"replaced\": {}}}}}\n",
+        r.precision,
+        windows.join(", "),
+        r.spikes.ratio,
+        r.spikes.count
+    )
 }
 
 fn write_summary(mut f: OutputFile, r: &Identified) -> Result<OutputFile, CliError> {
