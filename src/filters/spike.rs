@@ -34,7 +34,9 @@
 //! - At the start the mean residual is a millimetre ([`START_UM`]), beyond any nanopositioning stage's reading:
 //!   the gate passes everything until the average has learnt the reading's own (about 80 ms at 10 kHz, the average
 //!   falling by `1 - 1/64` a sample to a few nm).
-//! - A `ratio` of 0 in the settings (infinite here) turns it off.
+//! - A `ratio` of 0 in the settings (infinite here) turns it off. The ratio is a tuning value (`spike_ratio`,
+//!   [`crate::estimators::TuningKey::SpikeRatio`]): the console's `tune spike_ratio N` sets it at run time; off, the
+//!   gate still learns its average, so that turned on again it judges at once.
 //!
 //! Cost per sample: about 10 flops (the prediction, the residual, the average), a compare and a branch; the
 //! replacement is out of line.
