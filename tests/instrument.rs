@@ -326,6 +326,9 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "tune ekf reopen 5000",
         "tune ekf q 1 1 -1 1 1",
         "tune initial 5e5 70 0",
+        "tune spike_ratio 2.5",
+        "tune spike_ratio 65536",
+        "tune spike_ratio -1",
         // In range, but out of f32's once normalised (`q_b0 / b0^2`, `1 / R`); the last hung the console before
         // `linalg::zoh` counted its halvings in floating point.
         "tune initial 1e-20 70 6e6",
@@ -348,6 +351,10 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     );
     assert_eq!(lab.send("tune ekf q 1 1 -1 1 1\n").trim_end(), "error: word 6: -1: must be a positive number");
     assert_eq!(lab.send("tune initial 5e5 70 0\n").trim_end(), "error: word 5: 0: must be a positive number");
+    assert_eq!(
+        lab.send("tune spike_ratio 65536\n").trim_end(),
+        "error: word 3: 65536: a whole number from 0 (off) to 65535"
+    );
     assert_eq!(
         lab.send("tune rls gamma 1e20\n").trim_end(),
         "error: word 4: 1e20: above 0 and at most 10000 /s (the sample rate)"
