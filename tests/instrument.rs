@@ -208,10 +208,17 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen, "frozen ones stay frozen");
     assert!(lab.send("status\n").contains("tuning=triangle+tune "));
     assert_eq!(verdict(&lab.send("tune ekf drift_ratio 0\n")), "ok tune [ekf] drift_ratio = 0 (estimators restarted)");
-    // A preset replaces every value but the stage's (initial parameters, pre-filter).
+    // The spike gate's ratio, in the configuration the interrupt runs from the sample that applied it; 0: off.
+    assert_eq!(lab.isr.config().spike.ratio, 32.0);
+    assert_eq!(verdict(&lab.send("tune spike_ratio 16\n")), "ok tune spike_ratio = 16 (estimators restarted)");
+    assert_eq!(lab.isr.config().spike.ratio, 16.0);
+    // A preset replaces every value but the stage's (initial parameters, pre-filter, spike ratio).
     lab.send("tuning triangle\n");
     assert_eq!(verdict(&lab.send("tune ekf drift_ratio\n")), "ok tune [ekf] drift_ratio = 4");
     assert_eq!(verdict(&lab.send("tune initial\n")), "ok tune initial = 1e6 90 3.9e7");
+    assert_eq!(verdict(&lab.send("tune spike_ratio\n")), "ok tune spike_ratio = 16");
+    assert_eq!(verdict(&lab.send("tune spike_ratio 0\n")), "ok tune spike_ratio = 0 (estimators restarted)");
+    assert_eq!(lab.isr.config().spike.ratio, f32::INFINITY);
     assert!(lab.send("status\n").contains("tuning=triangle+tune "));
     // The stage's pre-filter: the pipeline's and the continuous-time RLS's own change together.
     let before = *lab.isr.config();
@@ -247,6 +254,7 @@ fn every_command_is_answered_and_does_what_it_says() {
     );
     lab.send("tune prefilter 100 450 0.1\n");
     lab.send("tune initial 5e5 70 6e6\n");
+    lab.send("tune spike_ratio 32\n");
     // Frozen, so that the sample that applies a restart does not also move the estimate.
     lab.send("freeze hekf\n");
     lab.send("tuning triangle\n");
