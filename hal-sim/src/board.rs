@@ -7,8 +7,9 @@
 //!   DAC, a code takes effect at the next sample instant (`actuation_delay_samples = 1`; 0 applies it at once).
 //! - **ADC timing**: the firmware centres the oversampling window on the sample instant, so the reading is the
 //!   displacement at `t_k` (the window's averaging, a 0.03 % droop at 450 Hz, is not modelled).
-//! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed; optionally mains
-//!   pickup, sinusoids on the reading ([`BoardSettings::hum`]; none by default).
+//! - **Noise**: 1.25 nm RMS on the displacement (the paper's noise floor), Gaussian, from the seed; optionally with
+//!   heavier tails at the same RMS (Student's t, [`BoardSettings::noise_tail_dof`]: a real probe's noise is not
+//!   known to be Gaussian), and mains pickup, sinusoids on the reading ([`BoardSettings::hum`]; none by default).
 //! - **ADC**: the G474's 12-bit ADC with hardware oversampling: `ratio` conversions are accumulated and shifted right
 //!   by `shift`, giving `12 + log2(ratio) - shift` bits (the firmware's 64x and shift 2: 16 bits, from 0 to
 //!   `4095 * 64 / 4 = 65520`, where a reading beyond the reference stops). Each conversion carries its own
@@ -91,6 +92,10 @@ pub struct BoardSettings {
     pub plant: PlantSettings,
     /// Displacement noise, um RMS (0: none).
     pub noise_um_rms: f64,
+    /// The displacement noise's distribution: `None` Gaussian; `Some(dof)` Student's t with `dof` degrees of freedom
+    /// (3 or more, for a finite RMS), scaled to the same RMS: heavier tails, the fewer the degrees (its extra draws
+    /// from a stream of their own, so the Gaussian numerators are the Gaussian noise's).
+    pub noise_tail_dof: Option<u32>,
     /// Noise seed.
     pub seed: u64,
     /// Probe ADC.
@@ -122,6 +127,7 @@ impl Default for BoardSettings {
         BoardSettings {
             plant: PlantSettings::default(),
             noise_um_rms: 1.25e-3,
+            noise_tail_dof: None,
             seed: 1,
             adc: AdcModel::default(),
             dac: DacModel::default(),
@@ -140,6 +146,7 @@ pub struct SimBoard {
     plant: Plant,
     probe_noise: NormalStream,
     adc_noise: NormalStream,
+    tail_noise: NormalStream,
     last_u_v: f64,
     pending_code: Option<u32>,
     /// The last code written (what the holding register has).
@@ -153,11 +160,13 @@ pub struct SimBoard {
 impl SimBoard {
     /// A board at rest.
     pub fn new(settings: BoardSettings) -> Self {
+        assert!(settings.noise_tail_dof.is_none_or(|dof| dof >= 3), "Student's t noise needs 3 or more degrees");
         SimBoard {
             plant: Plant::new(settings.plant),
             probe_noise: NormalStream::new(settings.seed),
             // A separate stream, so switching the ADC noise off leaves the probe noise sample-for-sample the same.
             adc_noise: NormalStream::new(settings.seed ^ 0xADC0_ADC0_ADC0_ADC0),
+            tail_noise: NormalStream::new(settings.seed ^ 0x7A11_7A11_7A11_7A11),
             last_u_v: 0.0,
             pending_code: None,
             written_code: None,
@@ -214,7 +223,14 @@ impl StageBoard for SimBoard {
     }
 
     fn read_probe(&mut self) -> u32 {
-        let mut y_um = self.plant.output_um() + self.settings.noise_um_rms * self.probe_noise.next_normal();
+        let mut noise = self.probe_noise.next_normal();
+        if let Some(dof) = self.settings.noise_tail_dof {
+            // t = z / sqrt(chi2 / dof), its variance dof / (dof - 2): scaled back to 1.
+            let chi2: f64 = (0..dof).map(|_| self.tail_noise.next_normal().powi(2)).sum();
+            let dof = f64::from(dof);
+            noise *= ((dof - 2.0) / chi2).sqrt();
+        }
+        let mut y_um = self.plant.output_um() + self.settings.noise_um_rms * noise;
         let t_s = self.plant.sample() as f64 * self.settings.plant.sample_period_s;
         for tone in self.settings.hum.iter().filter(|t| t.amplitude_um != 0.0) {
             y_um += tone.amplitude_um * (2.0 * std::f64::consts::PI * tone.freq_hz * t_s).sin();

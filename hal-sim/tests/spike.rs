@@ -83,3 +83,28 @@ fn the_gate_replaces_none_of_the_simulated_boards_readings() {
         assert!(n > 0 && f64::from(n) < 0.01 * seconds * 1e4, "{name}: {n} readings replaced at a ratio of 4");
     }
 }
+
+/// A real probe's noise need not be Gaussian. With the displacement noise drawn from Student's t at the same RMS
+/// (`BoardSettings::noise_tail_dof`), 60 s of the PRBS at the default ratio (32): on the simulated board (1.25 nm of
+/// probe noise under 3 nm of the ADC's Gaussian conversion noise) none replaced even with 3 degrees of freedom (at a
+/// ratio of 16: 4; at 10: 21); with a probe noise of 10 nm, which then dominates the reading, 15 readings (0.25 a
+/// second) with 3 degrees, 2 with 4, none with 5 or more (at 10: 367, 85, 26). Those are the noise's own far tail
+/// (beyond 32 times its mean third difference) taken for spikes: `spikes=` then climbs by about one every 4 s on the
+/// board, which README's Safety section says how to read and `tune spike_ratio` how to change.
+#[test]
+fn the_gate_on_heavy_tailed_noise_replaces_its_far_tail_only() {
+    let run = |dof: u32, noise_um: Option<f64>| {
+        replaced(Scenario::Prbs, 60.0, 0.0, 32, |b, _| {
+            b.noise_tail_dof = Some(dof);
+            if let Some(rms) = noise_um {
+                b.noise_um_rms = rms;
+            }
+        })
+    };
+    let (board_t3, loud_t3, loud_t4, loud_t5) =
+        (run(3, None), run(3, Some(10e-3)), run(4, Some(10e-3)), run(5, Some(10e-3)));
+    eprintln!("replaced of 600 000: board t3 {board_t3}; 10 nm probe: t3 {loud_t3}, t4 {loud_t4}, t5 {loud_t5}");
+    assert_eq!(board_t3, 0);
+    assert!((1..=60).contains(&loud_t3), "{loud_t3}: some, under one a second");
+    assert!(loud_t4 <= loud_t3 && loud_t5 == 0, "{loud_t4} {loud_t5}");
+}
