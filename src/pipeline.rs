@@ -140,7 +140,12 @@ pub struct FaultSettings {
 
 impl Default for FaultSettings {
     fn default() -> Self {
-        FaultSettings { over_range_margin_codes: 16, stuck_samples: 1000, spike_ratio: 32, spike_floor_codes: 16 }
+        FaultSettings {
+            over_range_margin_codes: 16,
+            stuck_samples: 1000,
+            spike_ratio: crate::filters::spike::DEFAULT_RATIO,
+            spike_floor_codes: 16,
+        }
     }
 }
 
@@ -480,13 +485,7 @@ impl PipelineSettings {
             max_step_v: T::of(l.max_slew_v_per_s / fs),
             safe_v: T::of(l.safe_v),
             stuck_samples: self.faults.stuck_samples.max(2),
-            spike: SpikeBound {
-                ratio: match self.faults.spike_ratio {
-                    0 => T::infinity(),
-                    r => T::of(f64::from(r)),
-                },
-                floor_um: T::of(f64::from(self.faults.spike_floor_codes) * um_per_code),
-            },
+            spike: SpikeBound::new(self.faults.spike_ratio, f64::from(self.faults.spike_floor_codes) * um_per_code),
             actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
             command_lsb_v: vpc_out / libm::fabs(a.dac_v_per_command_v),

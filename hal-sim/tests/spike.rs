@@ -87,10 +87,11 @@ fn the_gate_replaces_none_of_the_simulated_boards_readings() {
 /// A real probe's noise need not be Gaussian. With the displacement noise drawn from Student's t at the same RMS
 /// (`BoardSettings::noise_tail_dof`), 60 s of the PRBS at the default ratio (32): on the simulated board (1.25 nm of
 /// probe noise under 3 nm of the ADC's Gaussian conversion noise) none replaced even with 3 degrees of freedom (at a
-/// ratio of 16: 4; at 10: 21); with a probe noise of 10 nm, which then dominates the reading, 15 readings (0.25 a
-/// second) with 3 degrees, 2 with 4, none with 5 or more (at 10: 367, 85, 26). Those are the noise's own far tail
-/// (beyond 32 times its mean third difference) taken for spikes: `spikes=` then climbs by about one every 4 s on the
-/// board, which README's Safety section says how to read and `tune spike_ratio` how to change.
+/// ratio of 16: 4; at 10: 21); with a probe noise of 10 nm, which then dominates the reading, 1 reading with 3
+/// degrees, none with 4 or more (at 16: 66, 8, 2; at 10: 363, 83, 26): the noise's own far tail, beyond 32 times its
+/// mean third difference. It was 15 with 3 degrees (2 with 4) before the gate clipped the curve at a reading taken
+/// far off it (`spike::SUSPECT`): 14 of them good readings replaced by predictions that such a reading had thrown
+/// off, which moved the estimates (below).
 #[test]
 fn the_gate_on_heavy_tailed_noise_replaces_its_far_tail_only() {
     let run = |dof: u32, noise_um: Option<f64>| {
@@ -101,10 +102,41 @@ fn the_gate_on_heavy_tailed_noise_replaces_its_far_tail_only() {
             }
         })
     };
-    let (board_t3, loud_t3, loud_t4, loud_t5) =
-        (run(3, None), run(3, Some(10e-3)), run(4, Some(10e-3)), run(5, Some(10e-3)));
+    let board_t3 = run(3, None);
+    let (loud_t3, loud_t4, loud_t5) = (run(3, Some(10e-3)), run(4, Some(10e-3)), run(5, Some(10e-3)));
     eprintln!("replaced of 600 000: board t3 {board_t3}; 10 nm probe: t3 {loud_t3}, t4 {loud_t4}, t5 {loud_t5}");
     assert_eq!(board_t3, 0);
-    assert!((1..=60).contains(&loud_t3), "{loud_t3}: some, under one a second");
-    assert!(loud_t4 <= loud_t3 && loud_t5 == 0, "{loud_t4} {loud_t5}");
+    assert!(loud_t3 <= 5 && loud_t4 == 0 && loud_t5 == 0, "{loud_t3} {loud_t4} {loud_t5}");
+}
+
+/// The estimates on such noise (10 nm, Student's t with 3 degrees of freedom), the paper's PRBS experiment: after the
+/// payload change and the relock, the hybrid EKF (f64) and the continuous one (f32) stay within 1 % of the truth's
+/// a0 and b0, as with the gate off (0.86-0.88 % at most, both ways) and as on Gaussian noise (0.74-0.76 %). Before
+/// the curve was clipped they did not: up to 18-19 % off in b0 (20 rows of 100 Hz beyond 1 % from 118 s to 171 s),
+/// each time a good reading replaced by a prediction a taken outlier had thrown off.
+#[test]
+fn heavy_tailed_noise_through_the_gate_moves_no_estimate_off() {
+    use hal_sim::experiment::{rel_errors, run};
+    use nanopos_id::estimators::ekf::{Cekf, EkfDesign, Hekf};
+    let d = EkfDesign::default();
+    let h = run(
+        Scenario::Prbs,
+        200.0,
+        1,
+        || Hekf::new(d.design::<f64>()),
+        || Cekf::new(d.design::<f32>()),
+        |b, _| {
+            b.noise_tail_dof = Some(3);
+            b.noise_um_rms = 10e-3;
+        },
+    );
+    for (name, history) in [("hekf f64", &h.f64), ("ekf f32", &h.f32)] {
+        let worst = history
+            .iter()
+            .filter(|s| s.t_s > 101.0)
+            .map(|s| rel_errors(&s.est, &s.truth))
+            .fold(0.0f64, |w, e| w.max(e[0].abs()).max(e[2].abs()));
+        eprintln!("{name}: a0 and b0 at most {:.2} % off the truth from 101 s on", 100.0 * worst);
+        assert!(worst < 0.01, "{name}: {worst}");
+    }
 }
