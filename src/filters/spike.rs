@@ -44,8 +44,8 @@
 //!   gate still learns its average (spikes included, which raise it for some tens of samples), so that turned on
 //!   again it judges at once, without the start's 80 ms.
 //!
-//! Cost per sample: about 10 flops (the prediction, the residual, the average), a compare and a branch; the
-//! replacement is out of line.
+//! Cost per sample: about 10 flops (the prediction, the residual, the average, the clip's margin), four compares and
+//! two branches; the replacement and the clip are out of line.
 
 use crate::Real;
 
