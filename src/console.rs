@@ -434,8 +434,7 @@ impl Controller {
         // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
         // together, in one sample; the spike gate's ratio with them.
         if t.rls.prefilter != self.settings.prefilter || t.spike_ratio != self.settings.faults.spike_ratio {
-            let mut s = self.settings.with_prefilter(t.rls.prefilter);
-            s.faults.spike_ratio = t.spike_ratio;
+            let s = self.settings.with_stage_of(&t);
             change.config = Some(self.design(&s, self.running)?);
             self.settings = s;
         }

@@ -356,6 +356,14 @@ impl PipelineSettings {
         self
     }
 
+    /// These settings with what of `tuning` is the pipeline's: the stage's pre-filter ([`Self::with_prefilter`])
+    /// and the spike gate's ratio. The console, `identify` and `commands` take a tuning to the pipeline through it.
+    pub fn with_stage_of(self, tuning: &crate::estimators::Tuning) -> Self {
+        let mut s = self.with_prefilter(tuning.rls.prefilter);
+        s.faults.spike_ratio = tuning.spike_ratio;
+        s
+    }
+
     /// The DAC's codes within its swing ([`BoardDescription::amplifier_codes`]) and the commands they give with
     /// this amplifier front end, V, lowest first: what the output can reach (with the defaults on the board, codes
     /// 249 to 3847, -8.78 to 8.78 V). The clamp in force is the output limits within it. `None` if the swing holds

@@ -79,9 +79,10 @@ pub struct SpikeBound<T> {
     /// ... and this floor, um.
     pub floor_um: T,
     /// A reading taken goes into the curve clipped to this many times the mean residual around the prediction
-    /// (and [`SUSPECT`] times the floor): [`SUSPECT`] times the larger of `ratio` and [`DEFAULT_RATIO`] (infinite:
-    /// never).
+    /// (and `clip_floor_um`): [`SUSPECT`] times the larger of `ratio` and [`DEFAULT_RATIO`] (infinite: never).
     pub clip_ratio: T,
+    /// ... and [`SUSPECT`] times the floor, um.
+    pub clip_floor_um: T,
 }
 
 impl<T: Real> SpikeBound<T> {
@@ -95,6 +96,7 @@ impl<T: Real> SpikeBound<T> {
             ratio: T::of(ratio),
             floor_um: T::of(floor_um),
             clip_ratio: T::of(SUSPECT * ratio.max(f64::from(DEFAULT_RATIO))),
+            clip_floor_um: T::of(SUSPECT * floor_um),
         }
     }
 }
@@ -138,7 +140,7 @@ impl<T: Real> SpikeGate<T> {
         }
         self.mean = self.mean + T::of(AVERAGE_WEIGHT) * (size - self.mean);
         self.run = 0;
-        let margin = [T::of(SUSPECT) * bound.floor_um, bound.clip_ratio * self.mean];
+        let margin = [bound.clip_floor_um, bound.clip_ratio * self.mean];
         if size > margin[0] && size > margin[1] {
             return self.suspect(y, predicted, margin);
         }
@@ -149,8 +151,8 @@ impl<T: Real> SpikeGate<T> {
     /// A reading taken, but too far off the curve to extend it as it is: the next three predictions would carry its
     /// residual `e` as `-3e`, `3e` and `-e`, and the good readings after it could look out of line and be replaced
     /// by them. Passed on as read, not counted; the curve goes on from it clipped to the `margin` around the
-    /// prediction (the larger of the two: [`SUSPECT`] times the floor, and [`SpikeBound::clip_ratio`] times the mean
-    /// residual), so that it cannot push the next reading over the bound alone, and a reading that moved is still
+    /// prediction (the larger of the two: [`SpikeBound::clip_floor_um`], and [`SpikeBound::clip_ratio`] times the
+    /// mean residual), so that it cannot push the next reading over the bound alone, and a reading that moved is still
     /// followed, a margin a sample.
     #[cold]
     #[inline(never)]
@@ -188,7 +190,7 @@ impl<T: Real> SpikeGate<T> {
 mod tests {
     use super::*;
 
-    const BOUND: SpikeBound<f64> = SpikeBound { ratio: 32.0, floor_um: 0.025, clip_ratio: 8.0 };
+    const BOUND: SpikeBound<f64> = SpikeBound { ratio: 32.0, floor_um: 0.025, clip_ratio: 8.0, clip_floor_um: 0.00625 };
 
     /// A 400 Hz sine of 1 um with 1.25 nm of deterministic "noise", sample `k`.
     fn reading(k: usize) -> f64 {

@@ -39,7 +39,7 @@ pub fn run(arg: &TuningArg) -> Result<Commands, CliError> {
         .runnable::<f32>()
         .map_err(|u| CliError(format!("{}: at the board's {} Hz, in f32: {u}", arg.name, show(1.0 / dt))))?;
     settings
-        .with_prefilter(target.rls.prefilter)
+        .with_stage_of(&target)
         .design::<f32>(&board.description())
         .map_err(|e| CliError(format!("{}: the board's pipeline refuses its pre-filter: {e}", arg.name)))?;
     // A tuning made otherwise than from a preset is told as the PRBS preset's with every key that differs.

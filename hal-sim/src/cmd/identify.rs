@@ -338,11 +338,13 @@ fn identify_blocks<T: Real>(
         CliError(format!("{name}: at the sample period of {source} ({} s), in {}: {u}", show(dt), T::NAME))
     })?;
     // The stage's pre-filter is the tuning's (the continuous-time RLS has its own copy of it), the replicas matched
-    // at its centre as on the board.
-    let mut settings = PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }
-        .with_prefilter(tuning.rls.prefilter);
-    // The spike gate's ratio: the tuning's (the board's, in a file `decode` wrote), unless `--spike-ratio` is given.
-    settings.faults.spike_ratio = record.spike_ratio.unwrap_or(tuning.spike_ratio);
+    // at its centre as on the board; so is the spike gate's ratio (the board's, in a file `decode` wrote), unless
+    // `--spike-ratio` is given.
+    let mut settings =
+        PipelineSettings { sample_rate_hz: 1.0 / dt, ..PipelineSettings::default() }.with_stage_of(&tuning);
+    if let Some(ratio) = record.spike_ratio {
+        settings.faults.spike_ratio = ratio;
+    }
     let board = SimBoard::new(Default::default());
     let mut cfg = settings
         .design::<T>(&board.description())
