@@ -42,6 +42,13 @@ enum Command {
         /// --hum 150:5)
         #[arg(long, value_name = "HZ:NM")]
         hum: Vec<hal_sim::cmd::HumArg>,
+        /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
+        #[arg(long, value_name = "NM", allow_negative_numbers = true)]
+        noise: Option<f64>,
+        /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
+        /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
+        #[arg(long, value_name = "DOF")]
+        noise_tail: Option<u32>,
         /// The excitation's amplitude, V, 0 to 10, as the console's `excite` takes it (the paper's: 1), through the
         /// firmware's default output limits
         #[arg(long, value_name = "V", allow_negative_numbers = true)]
@@ -143,6 +150,13 @@ enum Command {
         /// --hum 150:5)
         #[arg(long, value_name = "HZ:NM")]
         hum: Vec<hal_sim::cmd::HumArg>,
+        /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
+        #[arg(long, value_name = "NM", allow_negative_numbers = true)]
+        noise: Option<f64>,
+        /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
+        /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
+        #[arg(long, value_name = "DOF")]
+        noise_tail: Option<u32>,
     },
     /// The board's console commands that give it a tuning (a file decode wrote, or one for identify --tuning), one
     /// a line on standard output: send them one at a time, each after the last one's verdict.
@@ -209,7 +223,19 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate { scenario, duration, seed, hysteresis, creep, gain_drift, hum, amplitude, out } => {
+        Command::Simulate {
+            scenario,
+            duration,
+            seed,
+            hysteresis,
+            creep,
+            gain_drift,
+            hum,
+            noise,
+            noise_tail,
+            amplitude,
+            out,
+        } => {
             let args = simulate::SimulateArgs {
                 scenario: scenario.into(),
                 duration_s: duration,
@@ -218,6 +244,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 creep,
                 gain_drift_pct_per_min: gain_drift,
                 hum,
+                noise: hal_sim::cmd::NoiseArgs { rms_nm: noise, tail_dof: noise_tail },
                 amplitude_v: amplitude,
                 out: &out,
             };
@@ -349,13 +376,14 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             Ok(())
         }
-        Command::Console { status_every, stage, payload_off, gain_drift, hum } => {
+        Command::Console { status_every, stage, payload_off, gain_drift, hum, noise, noise_tail } => {
             let args = hal_sim::cmd::console::ConsoleArgs {
                 status_every_s: status_every,
                 stage,
                 payload_off,
                 gain_drift_pct_per_min: gain_drift,
                 hum,
+                noise: hal_sim::cmd::NoiseArgs { rms_nm: noise, tail_dof: noise_tail },
                 interrupted,
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {

@@ -91,6 +91,37 @@ fn simulate_drifts_the_gain_and_the_truth_on_request() {
     assert_eq!(rows(&["--gain-drift", "0"], "zero.csv"), still, "no drift: the same file");
 }
 
+/// `--noise NM` sets the probe's noise and `--noise-tail DOF` makes it Student's t: the same command and truth; the
+/// reading moved by the noise asked for (the difference to a run without noise, whose ADC noise is the same: its own
+/// stream of the seed), at the RMS asked for, and with the tails asked for. Over 10 s (100 000 readings) of 10 nm:
+/// beyond 4 times the RMS a Gaussian has 6 readings to expect, Student's t with 5 degrees about 360.
+#[test]
+fn simulate_sets_the_probes_noise_and_its_tails_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = |extra: &[&str], name: &str| simulated_rows(dir.path(), "10", extra, name);
+    let silent = rows(&["--noise", "0"], "silent.csv");
+    for (extra, name) in [(&["--noise", "10"][..], "gauss.csv"), (&["--noise", "10", "--noise-tail", "5"], "t5.csv")] {
+        let noisy = rows(extra, name);
+        assert_eq!(noisy.len(), silent.len());
+        let mut d = Vec::with_capacity(noisy.len());
+        for (k, (s, n)) in silent.iter().zip(&noisy).enumerate() {
+            assert_eq!((n[0], n[1], n[3], n[4], n[5]), (s[0], s[1], s[3], s[4], s[5]), "{name} row {k}: t, u, truth");
+            d.push(1e3 * (n[2] - s[2]));
+        }
+        let rms = (d.iter().map(|d| d * d).sum::<f64>() / d.len() as f64).sqrt();
+        let beyond = d.iter().filter(|d| d.abs() > 40.0).count();
+        println!("{extra:?}: the reading moved by {rms:.3} nm RMS, {beyond} readings beyond 40 nm");
+        // The standard error of the RMS: 0.2 % (Gaussian), 0.5 % (t5, kurtosis 9); the ADC's 1.5 nm code rounds
+        // each run's reading, 0.6 nm RMS more on their difference in quadrature (+0.2 %).
+        assert!((rms / 10.0 - 1.0).abs() < 0.03, "{name}: {rms} nm RMS");
+        match extra.len() {
+            2 => assert!(beyond < 30, "{name}: {beyond} beyond 4 RMS"),
+            _ => assert!((200..600).contains(&beyond), "{name}: {beyond} beyond 4 RMS"),
+        }
+    }
+    assert_eq!(rows(&["--noise", "1.25"], "paper.csv"), rows(&[], "default.csv"), "the paper's noise is the default");
+}
+
 /// `--hum HZ:NM` adds mains pickup to the reading: the same command and truth, the reading moved by the tone (to the
 /// ADC's 1.5 nm code and the noise: the two runs share the noise's seed).
 #[test]
@@ -312,6 +343,16 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
             &["simulate", "--scenario", "prbs", "--hum", "50:1", "--hum", "150:1", "--hum", "250:1", "--out", "x.csv"],
             "--hum: at most 2 tones (3 given)",
         ),
+        (&["simulate", "--scenario", "prbs", "--noise", "-1", "--out", "x.csv"], "--noise -1: must be 0 to 50000 nm"),
+        (&["simulate", "--scenario", "prbs", "--noise", "NaN", "--out", "x.csv"], "--noise NaN: must be"),
+        (&["simulate", "--scenario", "prbs", "--noise", "1e6", "--out", "x.csv"], "--noise 1000000: must be"),
+        (&["simulate", "--scenario", "prbs", "--noise", "loud", "--out", "x.csv"], "loud"),
+        (
+            &["simulate", "--scenario", "prbs", "--noise-tail", "2", "--out", "x.csv"],
+            "--noise-tail 2: must be 3 to 100",
+        ),
+        (&["simulate", "--scenario", "prbs", "--noise-tail", "101", "--out", "x.csv"], "--noise-tail 101: must be"),
+        (&["simulate", "--scenario", "prbs", "--noise-tail", "3.5", "--out", "x.csv"], "'3.5'"),
         (&["simulate", "--scenario", "prbs", "--amplitude", "11", "--out", "x.csv"], "--amplitude 11: must be 0 to 10"),
         (&["simulate", "--scenario", "prbs", "--amplitude", "-1", "--out", "x.csv"], "--amplitude -1: must be"),
         (&["simulate", "--scenario", "prbs", "--amplitude", "NaN", "--out", "x.csv"], "--amplitude NaN: must be"),

@@ -158,12 +158,39 @@ fn a_session_with_the_payload_off_when_asked_and_a_drifting_gain() {
         (&["--payload-off", "-1"], "'-1': expected the seconds"),
         (&["--payload-off", "1", "--stage", "1e6,80,7e6"], "--payload-off: only on the paper's stage"),
         (&["--gain-drift", "inf"], "--gain-drift inf: must be a number (% per minute)"),
+        (&["--noise", "-3"], "--noise -3: must be 0 to 50000 nm RMS"),
+        (&["--noise-tail", "2"], "--noise-tail 2: must be 3 to 100 degrees of freedom"),
     ] {
         let out = console(args, b"");
         assert_eq!(out.status.code(), Some(2), "{args:?}");
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{args:?}: {stderr}");
     }
+}
+
+/// `--noise NM` sets the probe's noise: a burst recorded at rest (the excitation off, its last 0.4 s, when the
+/// stage's ringing has decayed by 2e-7) is the noise, 100 nm RMS with the option against the board's floor of 3.3 nm
+/// without it (the ADC's and the probe's 1.25 nm).
+#[test]
+fn the_probes_noise_is_set_from_the_command_line() {
+    let rest_rms_nm = |args: &[&str]| {
+        let out = console(args, b"excite off\nrecord burst 8000\n");
+        assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("cap.txt"), &out.stdout).unwrap();
+        let decoded = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+        assert!(decoded.status.success(), "{}", String::from_utf8_lossy(&decoded.stderr));
+        let text = std::fs::read_to_string(dir.path().join("run.csv")).unwrap();
+        let y: Vec<f64> = text.lines().skip(4001).map(|l| l.split(',').nth(2).unwrap().parse().unwrap()).collect();
+        assert_eq!(y.len(), 4000);
+        let mean = y.iter().sum::<f64>() / y.len() as f64;
+        1e3 * (y.iter().map(|y| (y - mean).powi(2)).sum::<f64>() / y.len() as f64).sqrt()
+    };
+    let (floor, noisy) = (rest_rms_nm(&[]), rest_rms_nm(&["--noise", "100"]));
+    println!("at rest: {floor:.2} nm RMS; with --noise 100: {noisy:.2} nm RMS");
+    // 4 000 readings: the RMS within about 1.1 % (one standard error), the floor's within 0.5 nm of the model's.
+    assert!((floor - 3.3).abs() < 0.5, "{floor} nm");
+    assert!((noisy / (100f64.powi(2) + 3.05f64.powi(2) + 0.44f64.powi(2)).sqrt() - 1.0).abs() < 0.06, "{noisy} nm");
 }
 
 /// Ctrl-C (SIGINT) ends the session as the input's end does, with the input still open: a `record on` is stopped and

@@ -1514,6 +1514,7 @@ mod tests {
             creep: false,
             gain_drift_pct_per_min: 0.0,
             hum: Vec::new(),
+            noise: Default::default(),
             amplitude_v: None,
             out: &input,
         };

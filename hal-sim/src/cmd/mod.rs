@@ -194,6 +194,47 @@ pub fn hum_tones(hum: &[HumArg]) -> Result<[crate::board::Tone; 2], CliError> {
     Ok(tones)
 }
 
+/// Largest `--noise`, nm RMS: the probe's range, as `--hum` takes it.
+pub const MAX_NOISE_NM: f64 = 5e4;
+
+/// Most degrees of freedom `--noise-tail` takes: each reading draws that many normals more, and at 100 the noise's
+/// excess kurtosis is 0.06 (0 for a Gaussian), beyond which the option changes nothing one could measure.
+pub const MAX_NOISE_TAIL_DOF: u32 = 100;
+
+/// `--noise NM` and `--noise-tail DOF`: the probe's noise on the displacement, its RMS
+/// ([`crate::board::BoardSettings::noise_um_rms`], the paper's 1.25 nm if not given) and its distribution (Gaussian,
+/// or Student's t with `DOF` degrees of freedom at the same RMS, [`crate::board::BoardSettings::noise_tail_dof`]:
+/// heavier tails, the fewer the degrees).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct NoiseArgs {
+    /// RMS, nm.
+    pub rms_nm: Option<f64>,
+    /// Student's t's degrees of freedom (3 to [`MAX_NOISE_TAIL_DOF`]).
+    pub tail_dof: Option<u32>,
+}
+
+impl NoiseArgs {
+    /// Checked, onto `board`.
+    pub fn apply(&self, board: &mut crate::board::BoardSettings) -> Result<(), CliError> {
+        if let Some(nm) = self.rms_nm {
+            if !(0.0..=MAX_NOISE_NM).contains(&nm) {
+                return fail(format!("--noise {}: must be 0 to {MAX_NOISE_NM} nm RMS", show(nm)));
+            }
+            board.noise_um_rms = nm / 1e3;
+        }
+        if let Some(dof) = self.tail_dof {
+            if !(3..=MAX_NOISE_TAIL_DOF).contains(&dof) {
+                return fail(format!(
+                    "--noise-tail {dof}: must be 3 to {MAX_NOISE_TAIL_DOF} degrees of freedom (below 3 the noise has \
+                     no finite RMS)"
+                ));
+            }
+            board.noise_tail_dof = Some(dof);
+        }
+        Ok(())
+    }
+}
+
 /// Shorthand for building a [`CliError`].
 pub fn fail<T>(msg: impl Into<String>) -> Result<T, CliError> {
     Err(CliError(msg.into()))

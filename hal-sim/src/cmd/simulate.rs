@@ -1,11 +1,11 @@
 //! `nanopos-sim simulate --scenario NAME [--duration S] [--seed N] [--hysteresis] [--creep] [--gain-drift PCT_PER_MIN]
-//! [--hum HZ:NM]... [--amplitude V] --out FILE.csv`
+//! [--hum HZ:NM]... [--noise NM] [--noise-tail DOF] [--amplitude V] --out FILE.csv`
 //!
 //! The paper's experiment on the simulated stage, driven by the real pipeline: payload on, removed at half the
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
 //! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it), and mains pickup on the probe
-//! ([`crate::board::BoardSettings::hum`]), the excitation at another amplitude if asked (through the firmware's
+//! ([`crate::board::BoardSettings::hum`]), another probe noise ([`super::NoiseArgs`]), the excitation at another amplitude if asked (through the firmware's
 //! default output limits: an 8 V PRBS's steps of 16 V are ramped by its slew limit of 2.5 V a sample, as on the
 //! board). Writes `t,u,y,a0,a1,b0` per
 //! sample: time (s), the commanded input as output by the DAC (V), the probe reading (um), and the true stage
@@ -39,6 +39,8 @@ pub struct SimulateArgs<'a> {
     pub gain_drift_pct_per_min: f64,
     /// Mains pickup on the probe's reading (at most two tones).
     pub hum: Vec<super::HumArg>,
+    /// The probe's noise, if not the paper's 1.25 nm RMS Gaussian.
+    pub noise: super::NoiseArgs,
     /// The excitation's amplitude, V (default: the scenario's, 1 V).
     pub amplitude_v: Option<f64>,
     /// Where to write.
@@ -75,6 +77,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     board.plant.creep = args.creep.then(crate::plant::Creep::default);
     board.plant.gain_drift_per_s = drift_per_s;
     board.hum = super::hum_tones(&args.hum)?;
+    args.noise.apply(&mut board)?;
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
