@@ -18,7 +18,7 @@ use crate::hal::BoardDescription;
 use crate::instrument::{self, Change, RecordStatus, Status, DISAGREEMENT_F0_RATIO};
 use crate::pipeline::{Faults, PipelineConfig, PipelineSettings, SettingsError};
 use crate::record::RecordHeader;
-use crate::text::Num;
+use crate::text::{Num, TextBuf};
 use crate::Real;
 use core::fmt::{self, Write};
 
@@ -28,6 +28,47 @@ use core::fmt::{self, Write};
 /// `the_widest_status_reply_fits_the_consoles_buffer_line_by_line` in `tests/instrument.rs`); the longest error is
 /// about 300.
 pub const REPLY_BYTES: usize = 512;
+
+/// The most bytes a command's reply takes before [`Controller::execute`] fits it into [`REPLY_BYTES`] (a scratch
+/// buffer on the stack while the command runs, not in the console's state). Its notes can add up to more than the
+/// reply's buffer: `excite sine 2.9e-5 1.2e-9 -9.77` (within a step of the DAC, beyond the clamp, a sine) has three
+/// and its verdict, 600 bytes. Every note together, about 1 100.
+const BODY_BYTES: usize = 3 * REPLY_BYTES;
+
+/// `body`, lines each ended by `\n` and the last the verdict, into `reply` within [`REPLY_BYTES`]: whole, or with its
+/// last `note:` lines left out and a line saying how many, so that the verdict always ends the reply. The notes come
+/// most urgent first ([`Controller::fit_note`]'s before [`Controller::tuning_note`]'s).
+fn fit_reply(body: &str, reply: &mut impl Write) -> fmt::Result {
+    const LEFT_OUT: usize = "note: 99 more notes left out (the reply's buffer is full)\n".len();
+    let notes = || body.split_inclusive('\n').filter(|l| l.starts_with("note: "));
+    let (mut kept_notes, mut len) = (notes().count(), body.len());
+    let mut from_last = notes().rev();
+    while len + if kept_notes < notes().count() { LEFT_OUT } else { 0 } > REPLY_BYTES {
+        match from_last.next() {
+            Some(note) => (kept_notes, len) = (kept_notes - 1, len - note.len()),
+            None => break,
+        }
+    }
+    let (mut seen_notes, mut lines) = (0, body.split_inclusive('\n').peekable());
+    while let Some(line) = lines.next() {
+        if lines.peek().is_none() && kept_notes < notes().count() {
+            let n = notes().count() - kept_notes;
+            writeln!(
+                reply,
+                "note: {n} more note{} left out (the reply's buffer is full)",
+                if n == 1 { "" } else { "s" }
+            )?;
+        }
+        if line.starts_with("note: ") {
+            seen_notes += 1;
+            if seen_notes > kept_notes {
+                continue;
+            }
+        }
+        reply.write_str(line)?;
+    }
+    Ok(())
+}
 
 /// The excitation's amplitude, V, from which a PRBS or a multisine with the paper's `Q2` (made for its PRBS of 1 V)
 /// is noted ([`Controller::tuning_note`]). On the simulated board a PRBS of 2 V makes the hybrid EKF's `b0` wander
@@ -479,10 +520,13 @@ impl Controller {
         if matches!(cmd, Command::Status) {
             return (None, Rest { status: Some(status()), next: 0 });
         }
+        // The reply in full first, then fitted to the console's buffer (`fit_reply`): a note cut there took the
+        // verdict with it, and the note's write error refused the command after its settings were taken.
+        let mut body = TextBuf::<BODY_BYTES>::default();
         // For `tune initial|stage ESTIMATOR`, that estimator's estimate; for the notes of `excite multisine` and `tune
         // prefilter`, the resonance as the interrupt estimates it now.
         let result = if let Command::FromEstimate { estimator, prefilter } = cmd {
-            self.seed_from(&status(), estimator, prefilter, reply)
+            self.seed_from(&status(), estimator, prefilter, &mut body)
         } else {
             let resonance = matches!(
                 cmd,
@@ -491,20 +535,25 @@ impl Controller {
             )
             .then(|| estimated_resonance(&status()))
             .flatten();
-            self.try_execute(cmd, resonance, reply)
+            self.try_execute(cmd, resonance, &mut body)
         };
-        match result {
+        let change = match result {
             Ok(change) => {
                 // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
                 self.tuning_due |=
                     self.recording && change.as_ref().is_some_and(|c| c.tuning.is_some() || c.record.is_some());
-                (change, Rest::none())
+                change
             }
             Err(e) => {
-                let _ = writeln!(reply, "error: {e}");
-                (None, Rest::none())
+                if body.truncated() {
+                    body.clear();
+                }
+                let _ = writeln!(body, "error: {e}");
+                None
             }
-        }
+        };
+        let _ = fit_reply(body.as_str(), reply);
+        (change, Rest::none())
     }
 
     // Not inlined into `execute`: inlined, its callees were inlined differently, for 1.9 KiB more flash.
@@ -1013,5 +1062,45 @@ impl fmt::Display for Rec {
             (false, _, false) => "off",
         };
         write!(f, "{state} recorded={} buffered={}", r.recorded, r.buffered)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{fit_reply, REPLY_BYTES};
+    use crate::text::TextBuf;
+
+    fn fitted(body: &str) -> String {
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        fit_reply(body, &mut reply).unwrap();
+        assert!(!reply.truncated());
+        reply.as_str().to_string()
+    }
+
+    /// A reply that fits goes out as it is; one that does not loses its last notes, whole lines, and says how many,
+    /// and keeps every other line and its verdict last.
+    #[test]
+    fn a_reply_too_long_for_the_buffer_loses_its_last_notes_not_its_verdict() {
+        let short = "note: one\nok done\n";
+        assert_eq!(fitted(short), short);
+        let note = |c: char| format!("note: {}\n", c.to_string().repeat(194)); // 201 bytes
+        let header = "# a protocol line, not a note\n";
+        let body = format!("{}{header}{}{}ok excite\n", note('a'), note('b'), note('c'));
+        assert!(body.len() > REPLY_BYTES);
+        let reply = fitted(&body);
+        assert_eq!(
+            reply,
+            format!(
+                "{}{header}{}note: 1 more note left out (the reply's buffer is full)\nok excite\n",
+                note('a'),
+                note('b')
+            )
+        );
+        let body = format!("{}{}{}{}error: no\n", note('a'), note('b'), note('c'), note('d'));
+        assert!(fitted(&body)
+            .ends_with(&format!("{}note: 2 more notes left out (the reply's buffer is full)\nerror: no\n", note('b'))));
+        // Exactly full: whole.
+        let full = format!("{}{}", "x".repeat(REPLY_BYTES - 8), "ok full\n");
+        assert_eq!(fitted(&full), full);
     }
 }

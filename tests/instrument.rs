@@ -240,12 +240,12 @@ fn every_command_is_answered_and_does_what_it_says() {
          pole too fast for that step (amplified 2.3 times a sample): lower f_lc, f_p or zeta_p"
     );
     assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
-    // Nor one too close to 0 Hz for the replicas' match there (the lag replica came out NaN: every estimator reset on
-    // every sample).
+    // Nor one too close to 0 Hz (for the replicas' match there the lag replica came out NaN, and every estimator
+    // reset on every sample, before the pre-filter's slowest pole was bounded: `PrefilterDesign::MAX_TIME_CONSTANT_S`).
     assert_eq!(
         verdict(&lab.send("tune prefilter 100 1e-6 0.1\n")),
-        "error: lag replica: no stable filter with finite coefficients at these frequencies (one too close to 0 Hz \
-         for the sample rate)"
+        "error: this pre-filter is too slow: its slowest pole's time constant is 1.59e6 s, over 0.1 s (it rings on, \
+         which the estimators take for excitation); raise f_lc, or zeta_p f_p, to 1.59 Hz or more"
     );
     assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
     assert_eq!(
@@ -342,6 +342,11 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
         "tune initial 1e-20 70 6e6",
         "tune ekf r 1e-45",
         "tune initial 500000 1e38 6e6",
+        // Pre-filters that ring for ever, or for seconds (`PrefilterDesign::MAX_TIME_CONSTANT_S`): an undamped
+        // oscillator on an integrator, a pair with `zeta_p w_p` of 0.3 /s, a high-pass corner at 0.5 Hz.
+        "tune prefilter 1.4e-8 9.9 6e-9",
+        "tune prefilter 100 450 1e-4",
+        "tune prefilter 0.5 450 0.1",
     ];
     for line in bad {
         let r = lab.send(&format!("{line}\n"));
@@ -366,6 +371,11 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     assert_eq!(
         lab.send("tune rls gamma 1e20\n").trim_end(),
         "error: word 4: 1e20: above 0 and at most 10000 /s (the sample rate)"
+    );
+    assert_eq!(
+        lab.send("tune prefilter 100 450 1e-4\n").trim_end(),
+        "error: this pre-filter is too slow: its slowest pole's time constant is 3.54 s, over 0.1 s (it rings on, \
+         which the estimators take for excitation); raise f_lc, or zeta_p f_p, to 1.59 Hz or more"
     );
     assert!(lab.send("status\n").contains(" tuning=prbs "), "no refused value was kept");
     assert_eq!(
@@ -1923,13 +1933,14 @@ const SINE: &str =
 /// samples, now and then with an external command added (steady, following the probe, huge or not finite), and now
 /// and then a probe fault. What must hold throughout: every line gets exactly one final `ok` or `error:`; every DAC
 /// code is within the DAC's swing (codes 249 to 3847, whatever the limits) and every command finite within -8.78 to
-/// 8.78 V; every estimate finite; after `stop` (without an
+/// 8.78 V, and within the slew limit of the last (`SlewWatch`); every estimate finite; after `stop` (without an
 /// external command, which `stop` does not stop) or a fault the output is at its safe value within 0.1 s; once a
 /// change has had 0.2 s to ramp in, the output is inside the clamp in force. Found so far: a slew
 /// limit of 1e-30 V/s accepted (the output then never went safe), and, 22 000 lines into a longer run, the continuous
 /// EKF's `a0 = -inf` from a finite state (its RK4 dispersion correction, applied to an estimate gone wild on a
 /// pre-filter tuned to ring for ever, `tune prefilter 25 0.5 1e-45`). 1.2 million lines over four seeds then held,
-/// and 0.9 million with the probe faults and the external commands, over three.
+/// and 0.9 million with the probe faults and the external commands, over three. At its end the preset's commands
+/// give back a firmware that identifies the stage (see there for what that found).
 #[test]
 fn a_random_session_of_commands_keeps_every_promise() {
     let mut lab = Lab::new();
@@ -1988,6 +1999,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
         "reset $",
     ];
     let lsb = 20.0 / 4096.0;
+    let mut slew = SlewWatch::new(&lab);
     let (mut since_change, mut lines, mut accepted) = (0usize, 0usize, 0usize);
     // The session so far, for a failure's message: each line with the samples run after it.
     let mut session: Vec<String> = Vec::new();
@@ -1998,6 +2010,11 @@ fn a_random_session_of_commands_keeps_every_promise() {
         for word in template.split(' ') {
             let r = next() as usize;
             let w = match word {
+                // A third of the numbers with every digit, from 1e-12 to 1e12 either side of 0 (notes quote them).
+                "#" if r % 3 == 0 => {
+                    let unit = (next() >> 11) as f64 / (1u64 << 53) as f64;
+                    format!("{}{}", ["", "-"][r / 3 % 2], 10f64.powf(24.0 * unit - 12.0))
+                }
                 "#" => nums[r % nums.len()].to_string(),
                 "-#" => format!("-{}", nums[r % nums.len()]),
                 "@" => keys[r % keys.len()].to_string(),
@@ -2007,16 +2024,19 @@ fn a_random_session_of_commands_keeps_every_promise() {
             line.push_str(&w);
             line.push(' ');
         }
-        // Now and then the verb alone, a word cut short, or a control byte.
+        // Now and then the verb alone, a word cut short, a control byte, every word in capitals, or a line too long.
         match next() % 16 {
             0 => line.truncate(line.find(' ').unwrap_or(0)),
             1 => line.truncate(line.len() / 2),
             2 => line.push('\u{1}'),
+            3 => line.make_ascii_uppercase(),
+            4 if next() % 4 == 0 => line.push_str(&" ".repeat(nanopos_id::control::MAX_LINE)),
             _ => {}
         }
-        let line = line.trim_end();
+        let line = if line.len() > nanopos_id::control::MAX_LINE { line.as_str() } else { line.trim_end() };
         let reply = lab.send(&format!("{line}\n"));
         lines += 1;
+        slew.check(&lab, || format!("{line:?}\n{}", recent(&session)));
         let finals = reply.lines().filter(|l| l.starts_with("ok") || l.starts_with("error: ")).count();
         let last = verdict(&reply);
         assert!(
@@ -2047,6 +2067,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
                 Some(_) => lab.isr.sample_adding(&mut lab.board, |_| f32::INFINITY),
                 None => lab.sample(),
             };
+            slew.check(&lab, || format!("{external:?}\n{}", recent(&session)));
             since_change += 1;
             assert!(
                 (249..=3847).contains(&o.dac_code) && o.u_v.is_finite() && o.u_v.abs() <= 8.7842,
@@ -2071,7 +2092,10 @@ fn a_random_session_of_commands_keeps_every_promise() {
         // excitation, limits and estimators; the next `start` (above) clears it.
         if next() % 50 == 0 {
             lab.board.forced_probe_code = Some(0);
-            lab.run(1002);
+            for _ in 0..1002 {
+                lab.sample();
+                slew.check(&lab, || format!("probe over range\n{}", recent(&session)));
+            }
             lab.board.forced_probe_code = None;
             let st = lab.isr.status();
             assert!(st.faults.contains(Faults::PROBE_OVER_RANGE), "{:?}\n{}", st.faults, recent(&session));
@@ -2086,6 +2110,58 @@ fn a_random_session_of_commands_keeps_every_promise() {
     // The session exercised the commands, not only their refusals.
     println!("{accepted} of {lines} lines accepted");
     assert!(accepted > lines / 5, "{accepted} of {lines}");
+
+    // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
+    // the preset's commands (`nanopos-sim commands --tuning prbs`), `start`; 5 s later both EKFs within 1 % of the
+    // truth's `a0` and `b0`, and nothing latched. A session of the same kind found (and these checks, the slew's
+    // and the long numbers came with it): a pre-filter that rang for ever (`tune prefilter 1.4e-8 9.9 6e-9`, taken
+    // before `PrefilterDesign::MAX_TIME_CONSTANT_S`) left a state from which the paper's pre-filter sent the
+    // restarted continuous EKF to `b0` = -4e5; and a reply whose notes overflowed the console's buffer
+    // (`a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command`). 60 seeds of this session then held.
+    let preset = hal_sim::cmd::commands::run(&Tuning::preset("prbs").unwrap().into()).unwrap().lines;
+    let defaults = ["stop", "record off", "limits -10 10 25000", "excite prbs 1", "select all", "adapt all"];
+    for line in defaults.iter().map(|l| l.to_string()).chain(preset).chain(["start".to_string()]) {
+        let reply = lab.send(&format!("{line}\n"));
+        assert!(verdict(&reply).starts_with("ok "), "{line}: {reply}\n{}", recent(&session));
+    }
+    lab.run(50_000);
+    let truth = lab.board.plant().params();
+    let status = lab.status_reply();
+    assert!(status.contains(" faults=none "), "{status}");
+    for i in [1, 2] {
+        let p = lab.params(i);
+        let (a0, b0) = (p.a0 as f64 / truth.a0 - 1.0, p.b0 as f64 / truth.b0 - 1.0);
+        println!("after the session and 5 s: {} a0 {a0:+.2e} b0 {b0:+.2e}", ESTIMATOR_NAMES[i]);
+        assert!(a0.abs() < 0.01 && b0.abs() < 0.01, "{}: {p:?} against {truth:?}\n{status}", ESTIMATOR_NAMES[i]);
+    }
+}
+
+/// The output's move from one sample to the next, checked: at most the slew limit in force before or after it
+/// (a change of `limits` takes effect between the two) and the DAC's rounding at both ends, whatever the
+/// excitation, the limits, a fault's ramp to the safe value, or an external command. Read from the board (the
+/// amplifier's input over the sample just simulated), so that the sample applying a change is checked too.
+struct SlewWatch {
+    last_v: f64,
+    step_v: f64,
+}
+
+impl SlewWatch {
+    fn new(lab: &Lab) -> Self {
+        SlewWatch { last_v: lab.board.last_u_v(), step_v: lab.isr.config().max_step_v as f64 }
+    }
+
+    fn check(&mut self, lab: &Lab, context: impl Fn() -> String) {
+        let cfg = lab.isr.config();
+        let (u, step) = (lab.board.last_u_v(), cfg.max_step_v as f64);
+        let bound = self.step_v.max(step) + 2.0 * cfg.command_lsb_v + 1e-9;
+        assert!(
+            (u - self.last_v).abs() <= bound,
+            "output {} -> {u} V, slew step {bound} V\n{}",
+            self.last_v,
+            context()
+        );
+        (self.last_v, self.step_v) = (u, step);
+    }
 }
 
 /// The piezo's gain drifts with temperature (SPEC section 1): every estimator follows a steady drift of `b0`, each
@@ -2464,4 +2540,25 @@ fn a_command_written_too_late_is_not_taken_for_the_one_in_effect() {
     assert_eq!([u(21), u(22)], [codes[19], codes[21]]);
     assert_eq!([u(31), u(32), u(33)], [codes[29], codes[30], codes[32]]);
     assert!(lab.send("status\n").contains(" deadline_misses=3 "));
+}
+
+/// A reply whose notes do not fit the console's buffer (`REPLY_BYTES`) loses its last notes, whole, and says so;
+/// its verdict ends it, and the command is carried out. Found by the random session: `excite sine` of 29 uV about
+/// -9.77 V (within a step of the DAC, beyond the clamp, a sine) had three notes and its verdict, 600 bytes; the
+/// third note was cut at the buffer's end, the verdict lost with it, and the command refused (its reply's write
+/// failed) after the console had taken its excitation: the interrupt ran the old one, the console the new.
+#[test]
+fn a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command() {
+    let mut lab = Lab::new();
+    lab.run(100);
+    let r = lab.send("excite sine 2.884753544431569E-5 1.1969678585509862E-9 -9.770093206781224\n");
+    let lines: Vec<&str> = r.lines().collect();
+    assert!(r.len() <= REPLY_BYTES, "{r}");
+    assert_eq!(lines.len(), 4, "{r}");
+    assert!(lines[0].starts_with("note: the excitation spans 5.76951e-5 V, less than one step of the DAC"), "{r}");
+    assert!(lines[1].starts_with("note: the excitation spans -9.77012 V to -9.77006 V, beyond the clamp's"), "{r}");
+    assert_eq!(lines[2], "note: 1 more note left out (the reply's buffer is full)");
+    assert_eq!(lines[3], "ok excite sine 2.88475e-5 V 1.19697e-9 Hz offset -9.77009 V (running)");
+    assert!(lab.send("status\n").contains(" excitation=sine 2.88475e-5 V 1.19697e-9 Hz offset -9.77009 V running "));
+    assert_eq!(lab.isr.config().excitation, lab.ctl.config::<f32>().excitation, "the interrupt runs the console's");
 }

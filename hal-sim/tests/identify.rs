@@ -803,7 +803,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         ),
         // Each value in range; `q_b0 / b0^2` is not a number in f64.
         (&["identify", "--input", "ok.csv", "--tuning", "tiny.toml"], "tiny.toml: at the sample period of ok.csv"),
-        (&["identify", "--input", "ok.csv", "--tuning", "near_dc.toml"], "lag replica: no stable filter"),
+        (&["identify", "--input", "ok.csv", "--tuning", "near_dc.toml"], "this pre-filter is too slow"),
         (
             &["identify", "--input", "ok.csv", "--tuning", "fast_rls.toml"],
             "fast_rls.toml: [rls] gamma = 15000: above 0 and at most 10000 /s",

@@ -17,6 +17,7 @@ pub mod tuning;
 pub use tuning::{Expected, Refused, TuningKey};
 
 use crate::estimator::{Adaptation, Health, PeLevel};
+use crate::filters::prefilter::PrefilterDesign;
 use crate::{Real, Scalar, StageParams};
 
 /// The paper's three estimators: continuous-time RLS, continuous EKF, hybrid EKF.
@@ -76,13 +77,16 @@ impl Tuning {
     /// [`Tuning::design`], or why the estimators could not run it although each value is in its range (they would
     /// reset over and over): a constant out of `T`'s range once normalised ([`TuningConfig::fits`]), or a
     /// pre-filter the continuous-time RLS cannot integrate by RK4 at the sample period
-    /// ([`PrefilterDesign::rk4_amplification`] above 1; the pipeline's own pre-filter is exact at any pole).
-    ///
-    /// [`PrefilterDesign::rk4_amplification`]: crate::filters::prefilter::PrefilterDesign::rk4_amplification
+    /// ([`PrefilterDesign::rk4_amplification`] above 1; the pipeline's own pre-filter is exact at any pole), or a
+    /// pre-filter that rings for longer than [`PrefilterDesign::MAX_TIME_CONSTANT_S`].
     pub fn runnable<T: Real>(&self) -> Result<TuningConfig<T>, Unrunnable> {
         let growth = self.rls.prefilter.rk4_amplification(self.rls.sample_period_s);
         if growth.is_nan() || growth > 1.0 {
             return Err(Unrunnable::PrefilterRk4 { growth });
+        }
+        let tau_s = self.rls.prefilter.slowest_time_constant_s();
+        if tau_s.is_nan() || tau_s > PrefilterDesign::MAX_TIME_CONSTANT_S {
+            return Err(Unrunnable::PrefilterSlow { tau_s });
         }
         let designed = self.design::<T>();
         if designed.fits() {
@@ -103,6 +107,12 @@ pub enum Unrunnable {
         /// `|R(lambda T)|`, above 1.
         growth: f64,
     },
+    /// The pre-filter's slowest pole has the time constant `tau_s` (or none: NaN), beyond
+    /// [`PrefilterDesign::MAX_TIME_CONSTANT_S`].
+    PrefilterSlow {
+        /// [`PrefilterDesign::slowest_time_constant_s`], s.
+        tau_s: f64,
+    },
 }
 
 impl core::fmt::Display for Unrunnable {
@@ -117,6 +127,14 @@ impl core::fmt::Display for Unrunnable {
                 "the continuous-time RLS steps its pre-filter by RK4 at the sample period, and this pre-filter has a \
                  pole too fast for that step (amplified {} times a sample): lower f_lc, f_p or zeta_p",
                 crate::text::Num(*growth, 3)
+            ),
+            Unrunnable::PrefilterSlow { tau_s } => write!(
+                f,
+                "this pre-filter is too slow: its slowest pole's time constant is {} s, over {} s (it rings on, \
+                 which the estimators take for excitation); raise f_lc, or zeta_p f_p, to {} Hz or more",
+                crate::text::Num(*tau_s, 3),
+                crate::text::Num(PrefilterDesign::MAX_TIME_CONSTANT_S, 3),
+                crate::text::Num(1.0 / (2.0 * core::f64::consts::PI * PrefilterDesign::MAX_TIME_CONSTANT_S), 3)
             ),
         }
     }

@@ -92,6 +92,30 @@ impl PrefilterDesign {
         libm::sqrt(worst)
     }
 
+    /// The time constant of the slowest pole of `W_p`, s: `1 / min(w_lc, zeta_p w_p)` for a lightly damped pair,
+    /// the pair's slower real pole `w_p (zeta_p - sqrt(zeta_p^2 - 1))` in its place from `zeta_p = 1` on (NaN for a
+    /// non-finite design). How long the filter rings after its input stops, and how far its state (the controllable
+    /// form's, whose first state integrates the input over the high-pass corner's time constant) can grow.
+    pub fn slowest_time_constant_s(&self) -> f64 {
+        let two_pi = 2.0 * core::f64::consts::PI;
+        let (wc, wp, z) = (two_pi * self.f_lc_hz, two_pi * self.f_p_hz, self.zeta_p);
+        // `z - sqrt(z^2 - 1)` as `1 / (z + sqrt(z^2 - 1))`, which does not cancel for a large `z`.
+        let pair = if z < 1.0 { z * wp } else { wp / (z + libm::sqrt(z * z - 1.0)) };
+        if wc.is_nan() || pair.is_nan() {
+            return f64::NAN;
+        }
+        1.0 / if wc < pair { wc } else { pair }
+    }
+
+    /// The longest [`Self::slowest_time_constant_s`] the estimators take, s: the default pre-filter's is 3.5 ms (its
+    /// pair, `zeta_p w_p`), one with `zeta_p = 0.01` at 450 Hz 35 ms. A pre-filter slower than this rings on after
+    /// the excitation stops, where the excitation monitor takes its ringing for excitation and the estimators go on
+    /// adapting to it, and its state grows with it: a later pre-filter, which starts from that state, then feeds
+    /// the restarted estimators a transient that can leave an EKF on a wrong solution (`tune prefilter 1.4e-8 9.9
+    /// 6e-9`, an undamped oscillator at 9.9 Hz on an integrator, was taken before this bound, and after it the
+    /// paper's pre-filter left the continuous EKF with `b0` negative: `tests/instrument.rs`, the random session).
+    pub const MAX_TIME_CONSTANT_S: f64 = 0.1;
+
     /// `f_p / f0` when the centre `f_p` is more than a factor of [`Self::OFF_RESONANCE`] away from a resonance at
     /// `f0_hz` (`None` within it, or for a resonance that is not a positive frequency). The pre-filter weighs the fit
     /// towards its band, and what the stage's model cannot represent (the analog chain, higher modes) then biases the
