@@ -39,35 +39,47 @@ const BODY_BYTES: usize = 3 * REPLY_BYTES;
 /// last `note:` lines left out and a line saying how many, so that the verdict always ends the reply. The notes come
 /// most urgent first ([`Controller::fit_note`]'s before [`Controller::tuning_note`]'s).
 fn fit_reply(body: &str, reply: &mut impl Write) -> fmt::Result {
-    const LEFT_OUT: usize = "note: 99 more notes left out (the reply's buffer is full)\n".len();
-    let notes = || body.split_inclusive('\n').filter(|l| l.starts_with("note: "));
-    let (mut kept_notes, mut len) = (notes().count(), body.len());
-    let mut from_last = notes().rev();
-    while len + if kept_notes < notes().count() { LEFT_OUT } else { 0 } > REPLY_BYTES {
-        match from_last.next() {
-            Some(note) => (kept_notes, len) = (kept_notes - 1, len - note.len()),
-            None => break,
-        }
+    if body.len() <= REPLY_BYTES {
+        return reply.write_str(body);
     }
-    let (mut seen_notes, mut lines) = (0, body.split_inclusive('\n').peekable());
-    while let Some(line) = lines.next() {
-        if lines.peek().is_none() && kept_notes < notes().count() {
-            let n = notes().count() - kept_notes;
+    // The notes kept are the first ones whose length leaves room for the rest and the line that says what is left out.
+    const LEFT_OUT: usize = "note: 99 more notes left out (the reply's buffer is full)\n".len();
+    let is_note = |line: &str| line.starts_with("note: ");
+    let (notes, notes_len) = lines(body).filter(|l| is_note(l)).fold((0, 0), |(n, len), l| (n + 1, len + l.len()));
+    let room = notes_len.saturating_sub(body.len() + LEFT_OUT - REPLY_BYTES);
+    let (mut kept, mut kept_len, mut dropping, mut end) = (0, 0, false, 0);
+    for line in lines(body) {
+        end += line.len();
+        if end == body.len() && kept < notes {
+            let n = notes - kept;
             writeln!(
                 reply,
                 "note: {n} more note{} left out (the reply's buffer is full)",
                 if n == 1 { "" } else { "s" }
             )?;
         }
-        if line.starts_with("note: ") {
-            seen_notes += 1;
-            if seen_notes > kept_notes {
+        if is_note(line) {
+            dropping |= kept_len + line.len() > room;
+            if dropping {
                 continue;
             }
+            (kept, kept_len) = (kept + 1, kept_len + line.len());
         }
         reply.write_str(line)?;
     }
     Ok(())
+}
+
+/// The lines of `text`, each with its `\n` (the last without, if it has none).
+fn lines(text: &str) -> impl Iterator<Item = &str> {
+    let mut rest = text;
+    core::iter::from_fn(move || {
+        let end = rest.bytes().position(|b| b == b'\n').map_or(rest.len(), |i| i + 1);
+        // After a `\n` or at the end: always a character boundary (checked: no panic's formatting in the firmware).
+        let (line, after) = rest.split_at_checked(end)?;
+        rest = after;
+        (!line.is_empty()).then_some(line)
+    })
 }
 
 /// The excitation's amplitude, V, from which a PRBS or a multisine with the paper's `Q2` (made for its PRBS of 1 V)
