@@ -493,7 +493,8 @@ impl Controller {
         }
         change.freeze = self.frozen;
         self.tuning = t;
-        self.tuned = true;
+        // As after `tuning`: tuned while it differs from the preset (the preset's own values back: untuned).
+        self.tuned = t != Tuning::of(self.preset);
         self.prefilter_note(keys[0].0, resonance, reply)?;
         match keys {
             [(key, values)] => write_tune(reply, *key, values)?,

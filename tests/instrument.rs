@@ -394,6 +394,8 @@ fn every_malformed_or_impossible_command_gets_an_error_and_changes_nothing() {
     assert_eq!(lab.ctl.tuning::<f32>(), tuning);
     assert!(lab.send("status\n").contains(" tuning=prbs+tune "));
     lab.send("tuning prbs\ntune initial 5e5 70 6e6\n");
+    // The preset's own values back: `status` names the preset alone, as after `tuning`.
+    assert!(lab.send("status\n").contains(" tuning=prbs "));
     let r = lab.send(&format!("{}\n", "x".repeat(200)));
     assert!(r.starts_with("error: line longer than 96 bytes"), "{r}");
 
@@ -2127,7 +2129,7 @@ fn a_random_session_of_commands_keeps_every_promise() {
     lab.run(50_000);
     let truth = lab.board.plant().params();
     let status = lab.status_reply();
-    assert!(status.contains(" faults=none "), "{status}");
+    assert!(status.contains(" faults=none ") && status.contains(" tuning=prbs "), "{status}");
     for i in [1, 2] {
         let p = lab.params(i);
         let (a0, b0) = (p.a0 as f64 / truth.a0 - 1.0, p.b0 as f64 / truth.b0 - 1.0);
