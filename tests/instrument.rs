@@ -2564,3 +2564,109 @@ fn a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command() {
     assert!(lab.send("status\n").contains(" excitation=sine 2.88475e-5 V 1.19697e-9 Hz offset -9.77009 V running "));
     assert_eq!(lab.isr.config().excitation, lab.ctl.config::<f32>().excitation, "the interrupt runs the console's");
 }
+
+/// A capture damaged in every way a serial link and a user's editor can (a line lost, doubled, swapped, cut short, a
+/// byte changed, garbage inserted, `\r\n` endings, the end line lost, the file cut anywhere), 400 ways: `decode`
+/// never panics; it refuses (one line naming the problem, and no output left where it refuses) or decodes, and what
+/// it writes is the board's samples: every row of every file it writes is the intact capture's row of that time,
+/// to the bit. With `--segments` (`Damage::Skip`) a frame damaged costs that frame (and the next, where the damage
+/// took the line's end) and no more.
+#[test]
+fn a_damaged_capture_is_refused_or_decoded_to_the_boards_samples_never_a_panic() {
+    use hal_sim::cmd::decode::{run, Damage};
+    let mut lab = Lab::new();
+    lab.run(100);
+    let start = lab.link.len();
+    lab.send("record burst 3000\n");
+    let mut capture = lab.link[start..].to_string();
+    for _ in 0..30 {
+        lab.run(100);
+        capture.push_str(&lab.drain_recording());
+    }
+    capture.push_str(&lab.drain_recording());
+    assert!(capture.contains("# nanopos-record end samples=3000 "), "{capture}");
+    let dir = std::env::temp_dir().join(format!("nanopos-damaged-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let rows = |path: &Path| -> Vec<String> {
+        std::fs::read_to_string(path).unwrap().lines().skip(1).map(String::from).collect::<Vec<_>>()
+    };
+    std::fs::write(dir.join("intact.txt"), &capture).unwrap();
+    let (whole, _) = run(&dir.join("intact.txt"), &dir.join("intact.csv"), 1, Damage::Refuse).unwrap();
+    // Each row's `u,y` (a file's time starts at 0 with its segment), by its sample's index since the board started.
+    let values = |row: &str| row.split_once(',').unwrap().1.to_string();
+    let intact: Vec<String> = rows(&dir.join("intact.csv")).iter().map(|r| values(r)).collect();
+    assert_eq!(intact.len(), 3000);
+
+    let mut next = nanopos_id::xorshift64(0xD1B5_4A32_D192_ED03);
+    let lines: Vec<&str> = capture.split_inclusive('\n').collect();
+    let (mut refused, mut decoded, mut kept_rows) = (0, 0, 0usize);
+    for k in 0..400 {
+        let mut below = |n: usize| (next() % n as u64) as usize;
+        let mut damaged: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
+        let at = below(damaged.len());
+        let what = k % 9;
+        match what {
+            0 => drop(damaged.remove(at)),
+            1 => damaged.insert(at, damaged[at].clone()),
+            2 => {
+                let other = below(damaged.len());
+                damaged.swap(at, other);
+            }
+            3 => {
+                let cut = below(damaged[at].len());
+                damaged[at].truncate(cut);
+            }
+            4 => {
+                let mut bytes = damaged[at].clone().into_bytes();
+                let i = below(bytes.len());
+                bytes[i] = b"0aZ+/ #=\x7f"[below(9)];
+                damaged[at] = String::from_utf8_lossy(&bytes).into_owned();
+            }
+            5 => damaged.insert(at, "R00000000zz!! garbage 1234\n".to_string()),
+            6 => damaged.iter_mut().for_each(|l| *l = l.replace('\n', "\r\n")),
+            7 => drop(damaged.pop()),
+            _ => {}
+        }
+        let mut text = damaged.concat();
+        if what == 8 {
+            text.truncate(below(text.len()));
+        }
+        let input = dir.join(format!("damaged-{k}.txt"));
+        std::fs::write(&input, &text).unwrap();
+        for damage in [Damage::Refuse, Damage::Skip] {
+            let out = dir.join(format!("out-{k}-{}.csv", damage == Damage::Skip));
+            let result = std::panic::catch_unwind(|| run(&input, &out, 1, damage));
+            match result.unwrap_or_else(|_| panic!("decode panicked on damage {what} at line {at}")) {
+                Err(e) => {
+                    refused += 1;
+                    assert!(!e.0.is_empty() && !e.0.contains('\n'), "{e:?}");
+                    if damage == Damage::Refuse {
+                        assert!(!out.exists(), "damage {what}: a refused capture left {}", out.display());
+                    }
+                }
+                Ok((rec, files)) => {
+                    decoded += 1;
+                    // A frame cut short or changed: `--segments` keeps every other frame (but the next one, where
+                    // the damage took the line's end and the two lines became one).
+                    if damage == Damage::Skip && [3, 4].contains(&what) && lines[at].starts_with('R') {
+                        let kept: u64 = rec.segments.iter().map(|s| s.len).sum();
+                        assert!(kept >= 3000 - 2 * 48, "damage {what} at line {at}: {kept} samples kept");
+                    }
+                    for (segment, file) in rec.segments.iter().zip(files) {
+                        let Some(file) = file else { continue };
+                        let first = (segment.first_index - whole.first_index()) as usize;
+                        for (j, row) in rows(&file).iter().enumerate() {
+                            let board = intact.get(first + j);
+                            assert_eq!(board, Some(&values(row)), "damage {what} at line {at}: {}", file.display());
+                            kept_rows += 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+    println!("{refused} refusals, {decoded} decodes keeping {kept_rows} rows, every one the board's");
+    assert!(refused > 100 && decoded > 100, "both outcomes seen");
+}
