@@ -522,6 +522,65 @@ mod tests {
         }
     }
 
+    /// 600 damaged files (bytes changed to one of the characters a CSV is made of, or removed, or inserted; a line
+    /// doubled or lost; the file cut anywhere), each read in one piece and in [`TINY`] pieces, with the time checked
+    /// and not: no panic, and both readings the same, the same columns or the same message naming the same line.
+    #[test]
+    fn a_damaged_file_reads_the_same_in_one_piece_and_in_many() {
+        let one_piece = Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 };
+        let good = rows(40);
+        let mut next = nanopos_id::xorshift64(0x2F68_1C3A_99E1_0B47);
+        let mut below = |n: usize| (next() % n.max(1) as u64) as usize;
+        let (mut read, mut refused) = (0, 0);
+        for k in 0..600 {
+            let mut text = good.clone().into_bytes();
+            let alphabet = b",.\n\r-e x\"0123456789+iInNaA\t";
+            for _ in 0..1 + below(3) {
+                if text.is_empty() {
+                    break;
+                }
+                let at = below(text.len());
+                let b = alphabet[below(alphabet.len())];
+                match below(6) {
+                    0 => text[at] = b,
+                    1 => drop(text.remove(at)),
+                    2 => text.insert(at, b),
+                    3 => text.truncate(at),
+                    4 => {
+                        let line: Vec<u8> =
+                            text[at..].iter().copied().take_while(|&c| c != b'\n').chain([b'\n']).collect();
+                        text.splice(at..at, line);
+                    }
+                    _ => {
+                        let end = text[at..].iter().position(|&c| c == b'\n').map_or(text.len(), |i| at + i + 1);
+                        text.drain(at..end);
+                    }
+                }
+            }
+            let path = file(&format!("damaged-{k}.csv"), &String::from_utf8_lossy(&text));
+            for time in [Time::Required, Time::IfPresent] {
+                let read_in = |chunks| {
+                    std::panic::catch_unwind(|| read_columns_in(&path, &["y", "u"], &[], time, chunks))
+                        .unwrap_or_else(|_| panic!("the reader panicked on {:?}", String::from_utf8_lossy(&text)))
+                };
+                match (read_in(one_piece), read_in(TINY)) {
+                    (Ok((a, _)), Ok((b, _))) => {
+                        assert_eq!((a.data, a.sample_period_s), (b.data, b.sample_period_s), "{k}");
+                        read += 1;
+                    }
+                    (Err(a), Err(b)) => {
+                        assert_eq!(a.0, b.0, "{k}");
+                        refused += 1;
+                    }
+                    (a, b) => panic!("{k}: in one piece {:?}, in many {:?}", a.map(|_| ()), b.map(|_| ())),
+                }
+            }
+            std::fs::remove_file(&path).unwrap();
+        }
+        println!("{read} read, {refused} refused, the same in one piece and in many");
+        assert!(read > 100 && refused > 100, "{read} read, {refused} refused");
+    }
+
     #[test]
     fn parallel_pieces_read_exactly_what_one_piece_reads() {
         let path = file("many.csv", &rows(500));
