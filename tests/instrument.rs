@@ -2568,8 +2568,8 @@ fn a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command() {
 /// A capture damaged in every way a serial link and a user's editor can (a line lost, doubled, swapped, cut short, a
 /// byte changed, garbage inserted, `\r\n` endings, the end line lost, the file cut anywhere), 400 ways: `decode`
 /// never panics; it refuses (one line naming the problem, and no output left where it refuses) or decodes, and what
-/// it writes is the board's samples: every row of every file it writes is the intact capture's row of that time,
-/// to the bit. With `--segments` (`Damage::Skip`) a frame damaged costs that frame (and the next, where the damage
+/// it writes is the board's samples: every row of every file it writes has the intact capture's `u` and `y` of that
+/// sample, to the bit (a file's time starts at 0 with its segment). With `--segments` (`Damage::Skip`) a frame damaged costs that frame (and the next, where the damage
 /// took the line's end) and no more.
 #[test]
 fn a_damaged_capture_is_refused_or_decoded_to_the_boards_samples_never_a_panic() {
