@@ -32,7 +32,9 @@ pub const REPLY_BYTES: usize = 512;
 /// The most bytes a command's reply takes before [`Controller::execute`] fits it into [`REPLY_BYTES`] (a scratch
 /// buffer on the stack while the command runs, not in the console's state). Its notes can add up to more than the
 /// reply's buffer: `excite sine 2.9e-5 1.2e-9 -9.77` (within a step of the DAC, beyond the clamp, a sine) has three
-/// and its verdict, 600 bytes. Every note together, about 1 100.
+/// and its verdict, 600 bytes. `excite`, with the most kinds of note, can write five: about 1 100 bytes with the
+/// longest numbers. A debug build checks that no reply outgrows this (the host tests, the random session's 20 000
+/// commands among them).
 const BODY_BYTES: usize = 3 * REPLY_BYTES;
 
 /// `body`, lines each ended by `\n` and the last the verdict, into `reply` within [`REPLY_BYTES`]: whole, or with its
@@ -550,6 +552,7 @@ impl Controller {
             .flatten();
             self.try_execute(cmd, resonance, &mut body)
         };
+        debug_assert!(!body.truncated(), "a reply outgrew BODY_BYTES: {}", body.as_str());
         let change = match result {
             Ok(change) => {
                 // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
