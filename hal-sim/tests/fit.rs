@@ -192,7 +192,26 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
     write(d, "short.csv", "t,u,y\n0,1,2\n0.1,1,3\n0.2,1,4\n");
     write(d, "ragged.csv", "t,u,y\n0,1,2\n0.1,1\n");
     write(d, "empty.csv", "");
+    // A record rich enough for 2,2,1 (a random binary input through a damped resonance), which a weighting that
+    // forgets all but the last row is not.
+    let mut next = nanopos_id::xorshift64(0x0123_4567_89AB_CDEF);
+    let (mut rich, mut y) = (String::from("t,u,y\n"), [0.0f64; 2]);
+    for k in 0..200 {
+        let u = if next() & 1 == 0 { 1.0 } else { -1.0 };
+        rich += &format!("{},{u},{}\n", k as f64 * 0.001, y[0]);
+        y = [1.8 * y[0] - 0.9 * y[1] + 0.1 * u, y[0]];
+    }
+    write(d, "rich.csv", &rich);
+    assert_eq!(
+        nanopos_sim(&["fit", "--input", "rich.csv", "--arx", "2,2,1", "--weight", "1,0.9"], d).status.code(),
+        Some(0)
+    );
     let cases: &[(&[&str], &str)] = &[
+        (
+            &["fit", "--input", "rich.csv", "--arx", "2,2,1", "--weight", "1,1e-300"],
+            "of its norm); --weight 1,1e-300 leaves about 1.0 rows that count ((1 + GAMMA) / (1 - GAMMA)): a GAMMA \
+             nearer 1 keeps more",
+        ),
         (&["fit", "--input", "missing.csv", "--arx", "2,2,1"], "missing.csv: cannot open"),
         (&["fit", "--input", "nocol.csv", "--arx", "2,2,1"], "nocol.csv:1: no column 'y'"),
         (&["fit", "--input", "word.csv", "--arx", "1,1,1"], "word.csv:3: column 'y': 'abc' is not a number"),

@@ -244,13 +244,27 @@ pub fn run(
             } else {
                 format!("is (nearly) a combination of {}", others.join(", "))
             };
+            // Weights `a gamma^(N-k)` leave about `(1 + gamma) / (1 - gamma)` rows that count (their sum squared over
+            // the sum of their squares): too few of those, not the input, can be why.
+            let weighing = (1.0 + gamma) / (1.0 - gamma);
+            let why = if weighing < 3.0 * (n + offset as usize) as f64 {
+                format!(
+                    "--weight {},{} leaves about {weighing:.1} rows that count ((1 + GAMMA) / (1 - GAMMA)): a GAMMA \
+                     nearer 1 keeps more",
+                    super::show(a),
+                    super::show(gamma),
+                )
+            } else {
+                format!(
+                    "the input does not excite this model{}",
+                    if zero_initial { "" } else { " (a step input, for instance, needs --zero-initial)" }
+                )
+            };
             fail(format!(
-                "{}: rank-deficient fit: column {} {what} (independent part {:.1e} of its norm); the input does not \
-                 excite this model{}",
+                "{}: rank-deficient fit: column {} {what} (independent part {:.1e} of its norm); {why}",
                 path.display(),
                 column_name(&orders, r.column),
                 r.independence,
-                if zero_initial { "" } else { " (a step input, for instance, needs --zero-initial)" }
             ))
         }
         Err(LsError::TooFewRows { rows, parameters }) => {
