@@ -72,14 +72,6 @@ fn fit_reply(body: &str, reply: &mut impl Write) -> fmt::Result {
     Ok(())
 }
 
-/// Whether a value of `t` differs from the preset `p`'s (`status`'s `+tune`), key by key: in a loop, and once
-/// (`Tuning`'s derived comparison, field by field in soft double, took 2.2 KiB of flash at a second call).
-#[inline(never)]
-fn differs_from(t: &Tuning, p: TuningPreset) -> bool {
-    let preset = Tuning::of(p);
-    TuningKey::ALL.iter().any(|&key| t.get(key) != preset.get(key))
-}
-
 /// The lines of `text`, each with its `\n` (the last without, if it has none).
 fn lines(text: &str) -> impl Iterator<Item = &str> {
     let mut rest = text;
@@ -90,6 +82,14 @@ fn lines(text: &str) -> impl Iterator<Item = &str> {
         rest = after;
         (!line.is_empty()).then_some(line)
     })
+}
+
+/// Whether a value of `t` differs from the preset `p`'s (`status`'s `+tune`), key by key: in a loop, and once
+/// (`Tuning`'s derived comparison, field by field in soft double, took 2.2 KiB of flash at a second call).
+#[inline(never)]
+fn differs_from(t: &Tuning, p: TuningPreset) -> bool {
+    let preset = Tuning::of(p);
+    TuningKey::ALL.iter().any(|&key| t.get(key) != preset.get(key))
 }
 
 /// The excitation's amplitude, V, from which a PRBS or a multisine with the paper's `Q2` (made for its PRBS of 1 V)
@@ -346,8 +346,9 @@ impl Controller {
     /// After `excite` and `tuning`: a line when the triangle is chosen with the EKFs' `Q` the paper's `Q2`, for the
     /// PRBS, with which they fail on the triangle (`b0` 15 % low in the float64 reference; on the simulated board 24 %
     /// and 46 % low in the last 7.5 s of each half of a 60 s run, within 3.2 % with `Q1`). Not after `excite` of a
-    /// triangle within a step of the DAC (`within_step`, as [`Self::fit_note`] found it), which identifies nothing
-    /// (a reply of that note, the clamp's and this one could overflow [`REPLY_BYTES`]).
+    /// triangle within a step of the DAC (`within_step`, as [`Self::fit_note`] found it), which identifies nothing.
+    /// (These two rules came to keep replies within [`REPLY_BYTES`]; since `fit_reply` leaves out whatever last notes
+    /// do not fit, they only keep a reply to what matters most.)
     ///
     /// Or, unless `quiet`, a line when a PRBS or a multisine of [`Q2_STRONG_AMPLITUDE_V`] or more runs with `Q2`,
     /// with the `tune ekf q` that keeps them as at 1 V: the parameters' entries divided by the amplitude squared (the
