@@ -296,19 +296,30 @@ impl<T: Real> Excitation<T> {
         self.offset + self.amplitude * unit
     }
 
-    /// `sum_m w_m sin((2m + 1) x)` by the three-term recurrence, from `(sin x, cos x)`.
+    /// `sum_m w_m sin((2m + 1) x)` by the three-term recurrence, from `(sin x, cos x)`: two chains of `4x` steps,
+    /// `sin((4j + 1) x)` and `sin((4j + 3) x)`, each `2 cos(4x) s_j - s_(j-1)`, which run side by side (one chain of
+    /// `2x` steps is as long as the harmonics, each step waiting on the last multiply-add).
     #[inline]
     fn odd_sine_series(&self, (s1, c1): (T, T)) -> T {
         let two_cos_2x = T::of(2.0) * (c1 * c1 - s1 * s1);
-        let (mut prev, mut cur) = (-s1, s1); // sin(-x), sin(x)
-        let mut sum = T::zero();
-        for &w in &self.weights[..self.harmonics] {
-            sum += w * cur;
-            let next = two_cos_2x * cur - prev;
-            prev = cur;
-            cur = next;
+        let two_cos_4x = two_cos_2x * two_cos_2x - T::of(2.0);
+        let s3 = s1 * (two_cos_2x + T::one()); // sin(3x)
+                                               // (sin((4j - 3) x), sin((4j + 1) x)) and (sin((4j - 1) x), sin((4j + 3) x)) from j = 0.
+        let (mut a_prev, mut a) = (-s3, s1);
+        let (mut b_prev, mut b) = (-s1, s3);
+        let (mut sum_a, mut sum_b) = (T::zero(), T::zero());
+        let weights = &self.weights[..self.harmonics];
+        let mut pairs = weights.chunks_exact(2);
+        for w in &mut pairs {
+            sum_a += w[0] * a;
+            sum_b += w[1] * b;
+            (a_prev, a) = (a, two_cos_4x * a - a_prev);
+            (b_prev, b) = (b, two_cos_4x * b - b_prev);
         }
-        sum
+        if let [w] = pairs.remainder() {
+            sum_a += *w * a;
+        }
+        sum_a + sum_b
     }
 
     /// `sum_j w_2j sin(psi + j theta) + w_2j+1 cos(psi + j theta)` from `(sin, cos)` of `psi` and `theta`, each
