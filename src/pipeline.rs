@@ -749,12 +749,14 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         let u_v = if cfg.actuation_delay_samples == 0 { written_v } else { self.command_v };
         self.command_v = written_v;
 
-        let sample = self.filter(cfg, u_v, y_um);
-        let estimator_input = if self.faults.is_empty() {
-            self.estimators.update_selected(&sample, cfg.estimators);
-            Some(sample)
-        } else {
+        let estimator_input = if !E::FILTERED {
             None
+        } else {
+            let sample = self.filter(cfg, u_v, y_um);
+            self.faults.is_empty().then(|| {
+                self.estimators.update_selected(&sample, cfg.estimators);
+                sample
+            })
         };
         SampleOutput {
             dac_code,

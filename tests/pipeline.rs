@@ -648,3 +648,35 @@ fn the_estimators_identify_the_stage_under_a_scan_and_under_a_stable_feedback() 
         assert!(rel[2].iter().all(|x| x.abs() < 1e-2), "{case} rls: {rel:?}");
     }
 }
+
+/// `Unfiltered` (what `simulate` and `paper` record with) runs the command path exactly as the filtering pipeline
+/// does: the same commands, readings and faults sample for sample, through a stuck probe and its clearing; it only
+/// feeds nothing, counts no spikes and leaves the excitation monitor at rest.
+#[test]
+fn an_unfiltered_pipeline_records_what_the_filtering_one_does() {
+    use nanopos_id::estimator::Unfiltered;
+    let (mut filtering, mut bare) = (paper_sim(()), paper_sim(Unfiltered));
+    for k in 0..30_000 {
+        // A probe stuck at mid-scale for 2 000 samples from 10 000 (latched), cleared at 20 000.
+        let stuck = (10_000..12_000).contains(&k).then_some(32_768);
+        filtering.board.forced_probe_code = stuck;
+        bare.board.forced_probe_code = stuck;
+        if k == 20_000 {
+            filtering.pipeline.clear_faults();
+            bare.pipeline.clear_faults();
+        }
+        let ((ra, a), (rb, b)) = (filtering.step(), bare.step());
+        assert_eq!(ra, rb, "sample {k}");
+        assert_eq!(
+            (a.dac_code, a.u_v, a.y_um, a.probe_code, a.faults),
+            (b.dac_code, b.u_v, b.y_um, b.probe_code, b.faults)
+        );
+        assert!(b.estimator_input.is_none(), "sample {k}");
+        assert_eq!(a.estimator_input.is_some(), a.faults.is_empty(), "sample {k}");
+    }
+    let (a, b) = (filtering.pipeline.fault_counters(), bare.pipeline.fault_counters());
+    assert!(a.probe_stuck > 0 && a.spikes > 0, "the stuck probe was seen, and its steps taken for spikes: {a:?}");
+    assert_eq!(nanopos_id::pipeline::FaultCounters { spikes: 0, ..a }, b);
+    assert!(filtering.pipeline.excitation_level().power > 0.0);
+    assert_eq!(bare.pipeline.excitation_level().power, 0.0);
+}

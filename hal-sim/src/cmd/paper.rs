@@ -17,6 +17,7 @@ use super::identify::{identify_streamed, summary_json, Identified};
 use super::{fail, CliError, OutputFile};
 use crate::bank::{Tuning, NAMES};
 use crate::sim::{Scenario, Simulation};
+use nanopos_id::estimator::Unfiltered;
 use nanopos_id::Real;
 use std::io::Write;
 use std::path::Path;
@@ -80,7 +81,7 @@ type Block = Arc<(Vec<Vec<f64>>, u64)>;
 /// time, on a thread of its own, each block to both identifications.
 fn identify_input(scenario: Scenario, input: &str, duration_s: f64) -> Result<(Identified, Identified), CliError> {
     let (board, settings) = scenario.settings(duration_s, scenario.default_seed());
-    let mut sim = Simulation::new(board, &settings, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+    let mut sim = Simulation::new(board, &settings, Unfiltered).map_err(|e| CliError(format!("settings: {e}")))?;
     let n = (duration_s * 1e4).round() as usize;
     // The last row's time as the simulation stamps it, known before the rows (the default windows need it).
     let last_t = n.checked_sub(1).map(|k| k as f64 * sim.config.sample_period_s);
@@ -128,7 +129,7 @@ pub(crate) struct Simulated {
 
 /// `n` samples of `sim`, recorded.
 #[cfg(test)]
-pub(crate) fn record(sim: &mut Simulation<()>, n: usize) -> Simulated {
+pub(crate) fn record(sim: &mut Simulation<Unfiltered>, n: usize) -> Simulated {
     let mut c = block(sim, n).into_iter();
     let mut next = || c.next().expect("six columns");
     let (u, y, t) = (next(), next(), next());
@@ -136,7 +137,7 @@ pub(crate) fn record(sim: &mut Simulation<()>, n: usize) -> Simulated {
 }
 
 /// The next `n` samples of `sim` as the columns `identify` reads: `u`, `y`, `t`, and the truth's `a0`, `a1`, `b0`.
-fn block(sim: &mut Simulation<()>, n: usize) -> Vec<Vec<f64>> {
+fn block(sim: &mut Simulation<Unfiltered>, n: usize) -> Vec<Vec<f64>> {
     let mut c: Vec<Vec<f64>> = (0..6).map(|_| Vec::with_capacity(n)).collect();
     for _ in 0..n {
         let (r, _) = sim.step();

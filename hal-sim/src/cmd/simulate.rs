@@ -13,6 +13,7 @@
 
 use super::{fail, show, CliError, OutputFile, Progress};
 use crate::sim::{Scenario, Simulation};
+use nanopos_id::estimator::Unfiltered;
 use std::io::Write;
 use std::path::Path;
 
@@ -82,7 +83,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
     }
-    let mut sim = Simulation::new(board, &pipeline, ()).map_err(|e| CliError(format!("settings: {e}")))?;
+    let mut sim = Simulation::new(board, &pipeline, Unfiltered).map_err(|e| CliError(format!("settings: {e}")))?;
     let time = TimeColumn::new(sim.config.sample_period_s);
 
     let mut out = OutputFile::create(args.out)?;
