@@ -155,6 +155,36 @@ pub struct SimBoard {
     pub forced_probe_code: Option<u32>,
     /// Board faults to report for the next sample (fault injection; taken once).
     pub inject_faults: Option<BoardFaults>,
+    /// The settings' per-sample constants, worked out once (a sample took eight divisions and a square root).
+    scales: Scales,
+}
+
+/// Constants of [`SimBoard`]'s samples, each the same expression of the settings as it would be per sample, so that
+/// the samples are the same to the bit.
+#[derive(Clone, Copy, Debug)]
+struct Scales {
+    adc: ConverterFormat,
+    adc_volts_per_code: f64,
+    adc_v_per_um: f64,
+    /// The averaged conversion noise, V RMS.
+    adc_noise_v: f64,
+    dac: ConverterFormat,
+    dac_volts_per_code: f64,
+}
+
+impl Scales {
+    fn of(settings: &BoardSettings) -> Self {
+        let (adc, dac) = (&settings.adc, settings.dac.format());
+        let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
+        Scales {
+            adc: adc.format(),
+            adc_volts_per_code: adc.format().volts_per_code(),
+            adc_v_per_um: settings.probe.adc_v_per_sensor_v / settings.probe.um_per_v,
+            adc_noise_v: adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt(),
+            dac,
+            dac_volts_per_code: dac.volts_per_code(),
+        }
+    }
 }
 
 impl SimBoard {
@@ -172,6 +202,7 @@ impl SimBoard {
             written_code: None,
             forced_probe_code: None,
             inject_faults: None,
+            scales: Scales::of(&settings),
             settings,
         }
     }
@@ -193,7 +224,7 @@ impl SimBoard {
 
     /// ADC volts per micrometre of displacement.
     fn adc_v_per_um(&self) -> f64 {
-        self.settings.probe.adc_v_per_sensor_v / self.settings.probe.um_per_v
+        self.scales.adc_v_per_um
     }
 
     /// The RMS noise of a reading at rest, um, from the models above (probe noise, averaged conversion noise,
@@ -235,18 +266,15 @@ impl StageBoard for SimBoard {
         for tone in self.settings.hum.iter().filter(|t| t.amplitude_um != 0.0) {
             y_um += tone.amplitude_um * (2.0 * std::f64::consts::PI * tone.freq_hz * t_s).sin();
         }
-        let adc = &self.settings.adc;
-        let format = adc.format();
-        let v = self.settings.probe.adc_offset_v + self.adc_v_per_um() * y_um;
-        let native_lsb_v = adc.vref_v / (1u64 << adc.native_bits) as f64;
-        let noise_v = adc.conversion_noise_lsb * native_lsb_v / (adc.oversampling as f64).sqrt();
-        let v = v + noise_v * self.adc_noise.next_normal();
-        let code = (v / format.volts_per_code()).round().clamp(0.0, format.max_code as f64) as u32;
+        let c = &self.scales;
+        let v = self.settings.probe.adc_offset_v + c.adc_v_per_um * y_um;
+        let v = v + c.adc_noise_v * self.adc_noise.next_normal();
+        let code = (v / c.adc_volts_per_code).round().clamp(0.0, c.adc.max_code as f64) as u32;
         self.forced_probe_code.unwrap_or(code)
     }
 
     fn write_amplifier(&mut self, code: u32) {
-        let dac = self.settings.dac.format();
+        let dac = self.scales.dac;
         // An injected deadline miss: this code comes after the next instant, which loads the code written before it
         // (as on the board); it is loaded at the instant after only if the next sample's write misses too.
         let late = self.inject_faults.is_some_and(|f| f.deadline_missed);
@@ -260,7 +288,7 @@ impl StageBoard for SimBoard {
         };
         let code = code.min(dac.max_code);
         let [low, high] = self.settings.dac.swing_v;
-        let v_dac = (code as f64 * dac.volts_per_code()).max(low).min(high);
+        let v_dac = (code as f64 * self.scales.dac_volts_per_code).max(low).min(high);
         self.last_u_v = self.settings.amplifier.command_v(v_dac);
         self.plant.advance(self.last_u_v);
     }
