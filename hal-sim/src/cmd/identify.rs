@@ -1477,7 +1477,7 @@ mod tests {
     fn prbs_without_change_20_s() -> crate::cmd::paper::Simulated {
         let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
         board.plant.change_at_sample = u64::MAX;
-        let mut sim = Simulation::new(board, &settings, ()).unwrap();
+        let mut sim = Simulation::new(board, &settings, nanopos_id::estimator::Unfiltered).unwrap();
         crate::cmd::paper::record(&mut sim, 200_000)
     }
 
