@@ -303,8 +303,8 @@ impl<T: Real> Excitation<T> {
     fn odd_sine_series(&self, (s1, c1): (T, T)) -> T {
         let two_cos_2x = T::of(2.0) * (c1 * c1 - s1 * s1);
         let two_cos_4x = two_cos_2x * two_cos_2x - T::of(2.0);
-        let s3 = s1 * (two_cos_2x + T::one()); // sin(3x)
-                                               // (sin((4j - 3) x), sin((4j + 1) x)) and (sin((4j - 1) x), sin((4j + 3) x)) from j = 0.
+        // sin(3x); the chains' (sin((4j - 3) x), sin((4j + 1) x)) and (sin((4j - 1) x), sin((4j + 3) x)) from j = 0.
+        let s3 = s1 * (two_cos_2x + T::one());
         let (mut a_prev, mut a) = (-s3, s1);
         let (mut b_prev, mut b) = (-s1, s3);
         let (mut sum_a, mut sum_b) = (T::zero(), T::zero());
@@ -390,6 +390,33 @@ mod tests {
         }
         // Truncation at 50 odd harmonics rounds the corners: the peak is 1 - 8/pi^2 sum_{n > 99} 1/n^2 ~ 0.996.
         assert!(max > 0.99 && max < 1.0, "{max}");
+    }
+
+    /// Every count of harmonics, odd ones (the last harmonic outside the two chains' pairs) too, is its series.
+    #[test]
+    fn a_triangle_of_any_count_of_harmonics_is_its_fourier_series() {
+        let (fs, freq, pi) = (10_000.0, 10.0, core::f64::consts::PI);
+        for count in 1..=MAX_HARMONICS {
+            let design = ExcitationDesign {
+                waveform: Waveform::Triangle { freq_hz: freq, max_hz: freq * (2 * count - 1) as f64 },
+                ..ExcitationDesign::PAPER_TRIANGLE
+            };
+            let gen = design.design::<f64>(fs);
+            assert_eq!(gen.harmonics, count);
+            let mut s = ExcitationState::default();
+            for k in 0..300 {
+                let t = k as f64 / fs;
+                let direct: f64 = (0..count)
+                    .map(|m| {
+                        let n = (2 * m + 1) as f64;
+                        let sign = if m % 2 == 0 { 1.0 } else { -1.0 };
+                        8.0 / (pi * pi) * sign * libm::sin(2.0 * pi * n * freq * t) / (n * n)
+                    })
+                    .sum();
+                let u = gen.next(&mut s);
+                assert!((u - direct).abs() < 1e-12, "{count} harmonics, k = {k}: {u} vs {direct}");
+            }
+        }
     }
 
     #[test]
