@@ -203,6 +203,13 @@ impl<T: Real> SampleFilter<T> {
         self.pe.level()
     }
 
+    /// The pre-filter `from` changed to `to` between two samples: both states taken over at the new filter's scale
+    /// ([`Prefilter::retarget`]).
+    pub fn retarget(&mut self, from: &Prefilter<T>, to: &Prefilter<T>) {
+        from.retarget(&mut self.u, to);
+        from.retarget(&mut self.y, to);
+    }
+
     /// One sample of `u'` and `y'` through `prefilter`.
     #[inline(always)]
     pub fn sample(&mut self, prefilter: &Prefilter<T>, u: T, y: T) -> FilteredSample<T> {

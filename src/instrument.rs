@@ -231,6 +231,7 @@ impl<T: Real> Instrument<T> {
         let Some(c) = &self.pending else { return };
         self.changed_at = self.pipeline.samples();
         if let Some(cfg) = &c.config {
+            self.pipeline.retarget(&self.config, cfg);
             self.config = *cfg;
         }
         let bank = &mut self.pipeline.estimators;

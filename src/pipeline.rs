@@ -809,6 +809,13 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
         sample
     }
 
+    /// The configuration `from` is replaced by `to` from the next sample on: the pre-filter's state taken over at
+    /// the new filter's scale ([`crate::estimator::SampleFilter::retarget`]; the replicas' direct-form state needs
+    /// nothing). Unchanged, it stays as it is.
+    pub fn retarget(&mut self, from: &PipelineConfig<T>, to: &PipelineConfig<T>) {
+        self.sample_filter.retarget(&from.prefilter, &to.prefilter);
+    }
+
     /// Count the board's faults of a sample. They do not latch: a late sample is reported, not a reason to stop.
     pub fn count_board_faults(&mut self, f: BoardFaults) {
         self.counters.deadline_misses = self.counters.deadline_misses.saturating_add(f.deadline_missed as u32);
