@@ -233,11 +233,6 @@ impl<T: Real> Prefilter<T> {
         crate::estimators::all_finite(&[self.phi.as_flattened(), &self.gam, &self.accel, &[self.half_feedthrough]])
     }
 
-    /// `-2 w_lc`, from the realisation's constants (`-d0 / (w_p^2 / 2)`): what the first state's level scales with.
-    fn high_pass_rate(&self) -> T {
-        self.accel[0] / self.half_feedthrough
-    }
-
     /// The state `s` of the filter `self`, taken over by the filter `to` (a pre-filter changed while the signals
     /// run). The second and third states are the filtered signal and its rate, which carry over as they are; the
     /// first is their integral, `in / w_lc` for an input at rest, so it is rescaled by the ratio of the two `w_lc`:
@@ -248,7 +243,9 @@ impl<T: Real> Prefilter<T> {
     /// old filter still rang with; but it breaks the filtered signals' history, the same for `u` and `y` only
     /// at rest, and with the PRBS running the restarted EKFs came within 1 % after 1.3 s instead of 0.1 s.
     pub fn retarget(&self, s: &mut PrefilterState<T>, to: &Prefilter<T>) {
-        s.xi[0] *= self.high_pass_rate() / to.high_pass_rate();
+        // w_lc = d0 / w_p^2 from the realisation's constants (`accel[0] = -d0`, `half_feedthrough = w_p^2 / 2`), the
+        // ratio in one division; the same filter's is 1 exactly.
+        s.xi[0] *= (self.accel[0] * to.half_feedthrough) / (self.half_feedthrough * to.accel[0]);
     }
 
     /// One sample: the outputs at this sample, then the state advanced to the next.
