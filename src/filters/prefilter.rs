@@ -237,7 +237,7 @@ impl<T: Real> Prefilter<T> {
     /// run). The second and third states are the filtered signal and its rate, which carry over as they are; the
     /// first is their integral, `in / w_lc` for an input at rest, so it is rescaled by the ratio of the two `w_lc`:
     /// taken over as it was it stood for another level of the input, `w_lc'` / `w_lc` times the one it had, and the
-    /// filtered signal jumped by the difference (the reading 20 um off zero, `f_lc` halved: 20 um in a filtered
+    /// filtered signal jumped by the difference (the reading 20 um off zero, `f_lc` halved: 16 um in a filtered
     /// reading whose PRBS peaks at 6 um; `tests/instrument.rs`). The same filter: the state stays as it is, to the bit.
     /// Tried instead: the new filter at rest at the last input (`xi = [in / w_lc, 0, 0]`), which also drops what an
     /// old filter still rang with; but it breaks the filtered signals' history, the same for `u` and `y` only
