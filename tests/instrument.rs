@@ -675,11 +675,14 @@ fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
 
 /// A limit, kept measured: the continuous EKF takes one RK4 step of its Riccati equation per sample (SPEC 6.4), whose
 /// measurement term `P H' H P / R` grows stiff as `R` shrinks. With `R` a million times below the paper's it resets
-/// over and over on the board's PRBS, where the hybrid filter (four substeps, the update in Joseph form) does not.
-/// A tuning that fits but diverges is the health logic's to report. At 1e-2 of the paper's the continuous filter's
-/// start-up transient throws its innovation RMS beyond a metre (`INNOVATION_CEILING_UM`) in the first milliseconds:
-/// it resets 3 times and converges (before, its state stayed finite and it was not reset, and its innovation RMS read
-/// NaN for good), its innovation RMS at the noise 10 s after the start.
+/// over and over on the board's PRBS, where the hybrid filter (four substeps, the update in Joseph form) resets once:
+/// its states taken from the first sample ([`nanopos_id::estimators::ekf::Ekf`]), whose rate is within 0.5 % of a
+/// converged filter's `x2` (3 nm over a sample where this `R` expects 1e-3 nm), it moves its parameters far, and its
+/// relock test resets it 5 s after the restart; it then converges. (Started at zero, it had taken the start for a
+/// change and was never reset.) A tuning that fits but diverges is the health logic's to report. At 1e-2 of the
+/// paper's both converge without a reset, their innovation RMS at the noise 10 s after the start. (Started at zero,
+/// the continuous filter's start-up transient threw its innovation RMS beyond a metre, `INNOVATION_CEILING_UM`, and it
+/// reset 3 times; before that ceiling, its state stayed finite and its innovation RMS read NaN for good.)
 #[test]
 fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     let run = |r: &str| {
@@ -703,9 +706,9 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     assert_eq!(resets("1.5e-6"), (0, 0), "the paper's R");
     let st = run("1.5e-8");
     let (cekf, hekf) = (st.estimates[1].1.numeric_resets, st.estimates[2].1.numeric_resets);
-    assert!((1..=10).contains(&cekf) && hekf == 0, "{cekf} {hekf}");
+    assert!(cekf == 0 && hekf == 0, "{cekf} {hekf}");
     // Its innovation RMS is of the last second: at the noise, as the hybrid filter's (measured 5.3 and 5.5 nm). As an
-    // exponential average of the squares it still read 589 um here, the start-up's resets in it.
+    // exponential average of the squares it had read 589 um here, with the start-up's resets in it.
     let (ci, hi) = (st.estimates[1].1.innovation_rms_um, st.estimates[2].1.innovation_rms_um);
     assert!(ci < 1.5 * hi && hi < 0.01, "{ci} {hi}");
     for (p, _) in &st.estimates[1..3] {
@@ -715,7 +718,7 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     }
     let (cekf, hekf) = resets("1.5e-12");
     println!("R = 1.5e-12 um^2 over 10 s: the continuous EKF reset {cekf} times, the hybrid {hekf}");
-    assert!(cekf > 1000 && hekf == 0, "{cekf} {hekf}");
+    assert!(cekf > 1000 && hekf == 1, "{cekf} {hekf}");
 }
 
 /// A large excitation after a long pause: two minutes without excitation (the payload coming off meanwhile), then a
@@ -1925,24 +1928,24 @@ fn how_small_a_prbs_identifies_the_stage() {
     assert!(tiny_s.iter().all(|&t| t > 29.0) && tiny_starved > 0, "{tiny_s:?}, starved {tiny_starved}");
 }
 
-/// A pre-filter change keeps the filtered signals continuous. The pre-filter's first state is the integral of its
-/// output, `in / w_lc` for an input at rest: taken over as it was by a filter of another `f_lc` it stood for another
-/// level, and the filtered signal jumped by the input's level times the change. A stage probed away from its zero
-/// (here the reading 20 um off, where the PRBS moves it by 0.3 um), halving `f_lc` put 16 um into the filtered
-/// reading (the PRBS's own peak there 6 um) for the restarted estimators, which on this input still relocked within
-/// 0.1 s. Found by a longer random session (seed 1100, 100 000 lines), which ended at the preset's `tune prefilter
-/// 100 450 0.1` from a slower pre-filter: 366 um in the filtered reading (the reading within 0.1 um), and the hybrid
-/// EKF was still 2.1 % off `b0` after the 5 s it is given (1.093e6 against 1.07e6), the continuous one 0.2 %. With the
-/// state carried over at the new filter's scale ([`nanopos_id::filters::Prefilter::retarget`]): 52 um there (what the
-/// slow filter still rang with), both EKFs 0.2 % off. What the old filter still rings with is not the stage's, and
-/// stays: at seed 1031 it was 19 um, and both EKFs settled on `b0` below zero until their relock test reset them 5 s
-/// later (within 0.1 % by 5.0 s after the change; `status` said meanwhile that they disagree with the ARX). Tried,
-/// not kept: the estimators not fed until the new filter settled (ten of its time constants, 35 ms), which then
-/// started the restarted EKFs from position 0 while the signals moved, and on the plain PRBS above put the hybrid
-/// EKF's `b0` below zero for a second (1.3 s to 1 % instead of 0.09 s); and a restart starting at the last reading
-/// rather than at 0 (0.18 s instead of 0.09 s, and 1.07 s after `tune prefilter 200 600 0.2`).
+/// A pre-filter change carries the filter's state over at the new filter's scale, and holds the estimators until
+/// the new filter has settled. The pre-filter's first state is the integral of its output, `in / w_lc` for an input
+/// at rest: taken over as it was by a filter of another `f_lc` it stood for another level, and the filtered signal
+/// jumped by the input's level times the change. A stage probed away from its zero (here the reading 20 um off, where
+/// the PRBS moves it by 0.3 um), halving `f_lc` put 16 um into the filtered reading (the PRBS's own peak there 6 um).
+/// Found by a longer random session (seed 1100, 100 000 lines), which ended at the preset's `tune prefilter 100 450
+/// 0.1` from a slower pre-filter: 366 um in the filtered reading, and the hybrid EKF was still 2.1 % off `b0` after
+/// the 5 s it is given. Carried over at scale ([`nanopos_id::filters::Prefilter::retarget`]), the state is still
+/// the old filter's and not the new one's response to the signals: the estimators are not fed for ten of the new
+/// filter's slowest time constants (`PipelineConfig::prefilter_settle_samples`, 35 ms here), and the restarted EKFs
+/// take their states from the first sample they are fed. Measured, the time from the change until both EKFs stay
+/// within 1 % of `a0` and `b0`: with the wait 0.10 s after both changes below; without it (the states taken from the
+/// first sample) 0.10 s and 1.16 s; with the wait but the states at zero, 1.29 s after the first; before either (the EKFs started at zero, fed at once) 0.10 s and 0.10 s here,
+/// but at the end of the random session of seed 1031 (100 000 lines), and in
+/// `estimators_restarted_after_a_fault_start_from_the_settled_filter`, both EKFs settled on `b0` below zero until
+/// their relock test reset them 5 s later.
 #[test]
-fn a_pre_filter_change_keeps_the_filtered_signals_continuous() {
+fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
     for (dc_um, change) in [(20.0, "tune prefilter 50 450 0.1"), (-15.0, "tune prefilter 200 600 0.2")] {
         let (mut board, settings) = Lab::settings(None);
         // The board's probe reads `dc_um` off the pipeline's zero: a stage held away from its probe's zero.
@@ -1955,7 +1958,12 @@ fn a_pre_filter_change_keeps_the_filtered_signals_continuous() {
         };
         let before = peak(&lab.run(30_000)[20_000..]);
         assert!(verdict(&lab.send(&format!("{change}\n"))).starts_with("ok tune prefilter"), "{change}");
-        let after = peak(&lab.run(1_000));
+        let run = lab.run(1_000);
+        // Not fed while the new filter settles (from the sample that applied the change, in `send`), then fed again.
+        let settle = lab.isr.config().prefilter_settle_samples as usize;
+        let unfed = run.iter().take_while(|o| o.estimator_input.is_none()).count();
+        assert_eq!(unfed + 1, settle, "{change}");
+        let after = peak(&run[unfed..]);
         println!("{change}, the reading {dc_um} um off: peak u_f, y_f {before:?} before, {after:?} over 0.1 s after");
         // The new filter's own response to the same signals differs in size: within twice the peak before.
         assert!(after[0] < 2.0 * before[0] && after[1] < 2.0 * before[1], "{change}: {before:?} -> {after:?}");
@@ -1973,7 +1981,59 @@ fn a_pre_filter_change_keeps_the_filtered_signals_continuous() {
             }
         }
         println!("  EKFs within 1 % from {relock_s:.2} s on; at 3 s {:.1e}, {:.1e}", off(&lab, 1), off(&lab, 2));
-        assert!(relock_s < 1.0, "{change}: EKFs relocked after {relock_s} s");
+        assert!(relock_s < 0.5, "{change}: EKFs relocked after {relock_s} s");
+    }
+}
+
+/// The estimators restarted right after a fault start from the settled pre-filter. The filters run on every reading,
+/// a fault's too: after 0.1 s of the probe over range (its end of range, about 50 um off the stage) the pre-filter
+/// still rings with it when the probe is back. `tuning prbs` (a restart) and `start` (the fault cleared) at once, as
+/// the random session of seed 1031 ended: measured before the wait and the states from the first sample, the
+/// filtered reading was 34.5 um at the restart with the reading within 0.1 um, and neither EKF came within 1 % of
+/// `a0` and `b0` in the first second (160 % off); with the states from the first sample but no wait, 0.80 s and
+/// 0.97 s (100-140 % off meanwhile); with the wait but the states at zero, 0.62 s and 0.56 s (18-20 % off); with both,
+/// 0.074 s after the wait, at most 0.3 % off from 0.1 s on. At `zeta_p` 0.02 the filter rings five times as long,
+/// and the wait is five times as long (177 ms): 0.022 s after it, at most 0.7 % off.
+#[test]
+fn estimators_restarted_after_a_fault_start_from_the_settled_filter() {
+    for (zeta, wait) in [("0.1", 354), ("0.02", 1769)] {
+        let mut lab = Lab::new();
+        assert!(verdict(&lab.send(&format!("tune prefilter 100 450 {zeta}\n"))).starts_with("ok tune prefilter"));
+        lab.run(10_000);
+        lab.board.forced_probe_code = Some(0);
+        lab.run(1_000);
+        lab.board.forced_probe_code = None;
+        lab.run(5);
+        assert!(verdict(&lab.send("tuning prbs\n")).starts_with("ok tuning prbs"));
+        assert!(verdict(&lab.send("start\n")).starts_with("ok start"));
+        // Not fed from the fault's end (the sample that cleared it, in `send`) until ten of the pre-filter's slowest
+        // time constants have passed: `1 / (zeta_p w_p)`, 3.5 ms for the preset's.
+        let settle = lab.isr.config().prefilter_settle_samples as usize;
+        assert_eq!(settle, wait);
+        let run = lab.run(settle - 1);
+        assert!(run.iter().all(|o| o.faults.is_empty() && o.estimator_input.is_none()));
+        let truth = lab.board.plant().params();
+        let mut worst = [0.0f64; 2];
+        let mut relock_s = [0.0f64; 2];
+        for k in 1..=1_000 {
+            assert!(lab.run(10).iter().all(|o| o.estimator_input.is_some()));
+            for e in 0..2 {
+                let p = lab.params(e + 1);
+                let off = (p.a0 as f64 / truth.a0 - 1.0).abs().max((p.b0 as f64 / truth.b0 - 1.0).abs());
+                if off > 0.01 {
+                    relock_s[e] = k as f64 * 1e-3;
+                }
+                if k >= 100 {
+                    worst[e] = worst[e].max(off);
+                }
+            }
+        }
+        println!(
+            "zeta_p {zeta}: after the wait, the EKFs within 1 % from {:.3} s, {:.3} s on; worst from 0.1 to 1 s \
+             {:.1e}, {:.1e}",
+            relock_s[0], relock_s[1], worst[0], worst[1]
+        );
+        assert!(relock_s.iter().all(|&t| t < 0.5) && worst.iter().all(|&w| w < 0.01), "{relock_s:?} {worst:?}");
     }
 }
 

@@ -593,15 +593,16 @@ fn a_strong_input_with_the_papers_q_is_noted_with_the_q_for_it() {
 }
 
 /// A reading a million times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre
-/// and the hybrid one's means make a model that runs away in the validation. Its note said "NaN times worse ...
-/// (validation RMSE NaN nm ...)"; now that the validation is not finite.
+/// and the hybrid one's means make a model that runs away in the validation (in the second window; in the first
+/// until the EKFs took their states from their first sample). Its note said "NaN times worse ... (validation RMSE NaN
+/// nm ...)"; now that the validation is not finite.
 #[test]
 fn a_validation_that_runs_away_is_named_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let stderr = notes_with_y(d, "pm.csv", |y| format!("{:?}", y.parse::<f64>().unwrap() * 1e6));
     assert!(
-        stderr.contains("note: hekf's model does not fit window 3:4 at all: its validation is not finite"),
+        stderr.contains("note: hekf's model does not fit window 7:8 at all: its validation is not finite"),
         "{stderr}"
     );
     assert!(!stderr.contains("NaN"), "{stderr}");

@@ -46,7 +46,9 @@
 //! state decorrelated, its variance floored; a parameter variance is floored anyway), and a non-finite value resets
 //! the estimator (counted), as does an innovation RMS beyond a metre ([`INNOVATION_CEILING_UM`]: a filter thrown off
 //! by a glitch could otherwise run on for good, its state finite and its prediction astray), and a filter that has not
-//! relocked 5 s after a start or a change ([`RELOCK_NIS_RATIO`]: the same, in a wrong optimum). Cost per update:
+//! relocked 5 s after a start or a change ([`RELOCK_NIS_RATIO`]: the same, in a wrong optimum). After a start or a
+//! reset the first sample sets the states, the filtered reading and its rate, and the filter steps from the next
+//! (`Ekf::prime`): the console restarts the estimators wherever the signals are. Cost per update:
 //! hybrid, about 560 flops for the prediction and 120 for the update; continuous, 4 derivatives of about 110 flops,
 //! 120 of stage arguments and 120 of the RK4 sum: about 680.
 
@@ -521,6 +523,9 @@ pub struct Ekf<T, K> {
     u_prev: T,
     y_prev: T,
     adapting: bool,
+    /// Whether the states hold a sample's filtered reading: false from a start or a reset until the next sample
+    /// (`Ekf::prime`).
+    primed: bool,
     health: Health,
     /// Long-run mean of the normalised innovation (the gate's reference).
     nis_mean: T,
@@ -545,13 +550,15 @@ pub type Hekf<T> = Ekf<T, Hybrid>;
 pub type Cekf<T> = Ekf<T, Continuous>;
 
 impl<T: Real, K: EkfKind> Ekf<T, K> {
-    /// At the initial parameters, zero states, `P0`.
+    /// At the initial parameters and `P0`, its states taken from the first sample (the filtered reading and its
+    /// rate: see the module's doc).
     pub fn new(cfg: EkfConfig<T>) -> Self {
         let mut s = Ekf {
             core: EkfCore { cfg, z: [T::zero(); 5], p: [T::zero(); 15] },
             u_prev: T::zero(),
             y_prev: T::zero(),
             adapting: true,
+            primed: false,
             health: Health::new(),
             nis_mean: T::one(),
             gated_run: 0,
@@ -599,9 +606,7 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         for i in 0..5 {
             c.p[idx(i, i)] = c.cfg.p0[i];
         }
-        // The previous sample is kept: it is data, not state, and the continuous filter interpolates from it. The
-        // position restarts at it rather than at 0, so a reset in the middle of a run does not start with a jump.
-        self.core.z[0] = self.y_prev;
+        self.primed = false;
         self.nis_mean = T::one();
         self.gated_run = 0;
         self.holdoff = 0;
@@ -611,6 +616,25 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         // A blow-up's innovation would otherwise stay in the health report's RMS (and, beyond the ceiling, reset the
         // filter again).
         self.innovation = InnovationLevel::new();
+    }
+
+    /// The first sample after a start or a reset: the states are the filtered reading and its rate, and the filter
+    /// steps from the next sample on. `P0` (`10 Q` in the paper) trusts the states as it would at rest: the paper
+    /// starts with the pre-filter at rest and the state at zero, which is the same thing there. Started at zero in
+    /// the middle of a run instead (a `tune` restarts the estimators wherever the signals are), the filter met a
+    /// filtered reading of several um, or of 19 um where the pre-filter still rang on a fault's readings, with
+    /// state variances of 1e-11 um^2: it moved its parameters to explain it, and where it rang both EKFs settled on
+    /// `b0` below zero until their relock test reset them 5 s later (`tests/instrument.rs`). The rate, `s W_p y'`, is
+    /// the pre-filter's own derivative; it is within about 0.5 % of the converged filters' `x2` on the paper's PRBS.
+    #[cold]
+    #[inline(never)]
+    fn prime(&mut self, s: &FilteredSample<T>) {
+        let rate = s.y_f.d1 / self.core.cfg.w;
+        self.core.z[0] = s.y_f.value;
+        self.core.z[1] = if rate.is_finite() { rate } else { T::zero() };
+        self.u_prev = s.u_f.value;
+        self.y_prev = s.y_f.value;
+        self.primed = true;
     }
 
     /// The state in the paper's units `[x1, x2, a0, a1, b0]`.
@@ -994,6 +1018,10 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
         if !(u.is_finite() && s.y_f.value.is_finite()) {
             // Caught at the door: nothing non-finite reaches the state or the stored previous sample.
             self.reset_counted(None);
+            return;
+        }
+        if !self.primed {
+            self.prime(s);
             return;
         }
         let adapt = self.core.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
