@@ -346,6 +346,17 @@ pub struct PipelineConfig<T> {
     pub estimators: u8,
 }
 
+/// `x` rounded up, as a count (`as u32` saturates: 0 for NaN and below 0). Not libm's `ceil`: 200 B of flash for one
+/// use in the designs.
+fn ceil_u32(x: f64) -> u32 {
+    let n = x as u32;
+    if (n as f64) < x && n < u32::MAX {
+        n + 1
+    } else {
+        n
+    }
+}
+
 impl PipelineSettings {
     /// These settings with the identification pre-filter `p`, and the three filter replicas matched to the analog
     /// chain at its centre `f_p` (the bilinear replicas pre-warped there, the lag replica exact there): where the
@@ -502,7 +513,7 @@ impl PipelineSettings {
             actuation_delay_samples: board.actuation_delay_samples,
             sample_period_s: 1.0 / fs,
             command_lsb_v: vpc_out / libm::fabs(a.dac_v_per_command_v),
-            prefilter_settle_samples: libm::ceil(10.0 * self.prefilter.slowest_time_constant_s() * fs) as u32,
+            prefilter_settle_samples: ceil_u32(10.0 * self.prefilter.slowest_time_constant_s() * fs),
             estimators: self.estimators,
         })
     }
@@ -900,4 +911,21 @@ fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
         num_traits::cast::<T, u32>(raw).unwrap_or(cfg.dac_max_code).min(cfg.dac_max_code)
     };
     (code, cfg.command_of_code(code))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ceil_u32;
+
+    #[test]
+    fn a_count_is_rounded_up_and_saturates() {
+        assert_eq!(ceil_u32(353.7), 354);
+        assert_eq!(ceil_u32(354.0), 354);
+        assert_eq!(ceil_u32(0.2), 1);
+        assert_eq!(ceil_u32(0.0), 0);
+        assert_eq!(ceil_u32(-3.0), 0);
+        assert_eq!(ceil_u32(f64::NAN), 0);
+        assert_eq!(ceil_u32(1e30), u32::MAX);
+        assert_eq!(ceil_u32(f64::INFINITY), u32::MAX);
+    }
 }

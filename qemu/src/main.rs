@@ -458,27 +458,34 @@ fn main() -> ! {
     // 4. The firmware's interrupt body, `Instrument::sample`, over the whole run: every estimator (rls, ekf, hekf,
     //    arx) selected and recording on (drained outside the timing, as the console task does). Then, in the same
     //    loop, each change the commands above made, applied before a sample: the sample that pays for a command
-    //    (`isr_body_applying_change`). One call site, as in the firmware's interrupt: a second one changed how the
-    //    compiler inlined it, and the run's counts by 12 instructions. The last change starts the multisine, the
+    //    (`isr_body_applying_change`). The changes come 400 samples apart (those between are not counted): after a
+    //    pre-filter change the estimators wait for the new filter to settle (354 samples), and a change applied then
+    //    would be counted without them. A restart's sample is cheap (the EKFs take their states from it instead of
+    //    stepping); the costly ones are the changes of a configuration that the estimators step through. One call
+    //    site, as in the firmware's interrupt: a second one changed how the compiler inlined it, and the run's counts
+    //    by 12 instructions. The last change starts the multisine, the
     //    costliest excitation, and the loop runs 900 samples more with it (`isr_body_multisine_f32`; the probe's code
     //    then stands still, and 1 000 such samples would latch a stuck probe). The interrupt's worst case is the
     //    largest of the maxima, less the lock and the cycle statistics around it.
     //    Then, with the multisine running, `tune prefilter 100 500 0.1` (a new tuning and a new pipeline
     //    configuration, the costliest change to apply: `isr_body_applying_change_multisine`), and the heaviest
     //    configuration the console accepts: `tune ekf substeps 64` and `tune prefilter 100 600 0.1` on the next two
-    //    samples (`isr_body_heaviest_applying`), and 900 samples more (`isr_body_heaviest_f32`) on which the
+    //    samples, and `limits -5 5 1000` (the limits in force, a new pipeline configuration) 500 samples later, once
+    //    the estimators step again (`isr_body_heaviest_applying`: these four samples), and 900 samples in all after
+    //    the first three (`isr_body_heaviest_f32`; the first 266 without the estimators) on which the
     //    probe replays the run's last 900 codes backwards: they move (a probe standing still for 1 000 samples would
     //    latch a fault), and they do not follow the command, so the EKFs' gates reject samples, the continuous filter
     //    taking its step again without the measurement (checked below): the costliest branch of a sample, with the
     //    largest substep count. Their change detection does not fire here (logged); its reopening of a covariance
     //    sets a few entries.
-    let mut heavy: [Option<Change<f32>>; 3] = Default::default();
-    let lines = ["tune prefilter 100 500 0.1", "tune ekf substeps 64", "tune prefilter 100 600 0.1"];
+    let mut heavy: [Option<Change<f32>>; 4] = Default::default();
+    let lines =
+        ["tune prefilter 100 500 0.1", "tune ekf substeps 64", "tune prefilter 100 600 0.1", "limits -5 5 1000"];
     for (i, (slot, line)) in heavy.iter_mut().zip(lines).enumerate() {
         let cmd = parse(line.as_bytes()).unwrap_or_else(|_| fail("a console command did not parse"));
         let mut reply = TextBuf::<REPLY_BYTES>::default();
         *slot = ctl.execute::<f32>(cmd, || snapshot, &mut reply).0;
-        // Each a change; the pre-filter's with a new pipeline configuration.
+        // Each a change; the pre-filter's and the limits' with a new pipeline configuration.
         if slot.as_ref().is_none_or(|c| c.config.is_some() != (i != 1)) {
             defmt::error!("{=str}: {=str}", line, reply.as_str());
             fail("a console command was not answered as expected");
@@ -490,8 +497,12 @@ fn main() -> ! {
     }
     let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board, heavy: false };
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
-    let mut pending = changes.iter_mut().filter_map(Option::take);
+    let mut pending = changes.iter_mut().filter_map(Option::take).peekable();
+    // Samples left before the next of phase 1's changes.
+    let mut spacing = 0;
+    let [heavy @ .., late] = &mut heavy;
     let mut heavy = heavy.iter_mut().filter_map(Option::take);
+    let mut late = late.take();
     let [mut applying, mut multisine, mut applying_multisine, mut heaviest_applying, mut heaviest] =
         [Stats::default(); 5];
     // What the firmware's tasks do under the lock besides the status snapshot: post a change, drain a frame.
@@ -509,6 +520,8 @@ fn main() -> ! {
     table.kernel("isr_body_all_f32", |c, s| {
         for k in 0.. {
             let mut changing = false;
+            // A sample between two of phase 1's changes: not counted.
+            let mut between = false;
             if k >= n {
                 ended.get_or_insert_with(|| (isr.estimates().map(|(p, _)| p), isr.record_status().recorded));
                 if after_changes == 900 && at_multisine_end.is_none() {
@@ -516,8 +529,14 @@ fn main() -> ! {
                     at_multisine_end = Some((insns, status.faults, isr.estimates().map(|(_, h)| h)));
                 }
                 let change = match after_changes {
+                    0 if spacing > 0 => {
+                        spacing -= 1;
+                        between = true;
+                        None
+                    }
                     0 => pending.next(),
                     900 => heavy.next(),
+                    1400 => late.take(),
                     _ => None,
                 };
                 if let Some(change) = change {
@@ -528,15 +547,27 @@ fn main() -> ! {
                         fail("the mailbox was full");
                     }
                     changing = true;
-                    board.heavy = after_changes == 900;
+                    board.heavy = after_changes >= 900;
                     heavy_applied += usize::from(board.heavy);
+                    if after_changes == 0 && pending.peek().is_some() {
+                        spacing = 400;
+                    }
+                } else if between {
                 } else if after_changes == 1800 {
                     break;
                 } else {
                     after_changes += 1;
                 }
             }
-            board.k = if board.heavy && !changing { n - 1 - (after_changes - 900) } else { k.min(n - 1) };
+            // Between phase 1's changes the probe's code moves by the run's last two (standing still for 1 000
+            // samples, with the excitation on, would latch a stuck probe).
+            board.k = if board.heavy {
+                n - 1 - (after_changes - 900)
+            } else if between {
+                n - 1 - (spacing & 1)
+            } else {
+                k.min(n - 1)
+            };
             #[cfg(not(feature = "command-latency"))]
             let insns = c.count(|| isr.sample(&mut board)).1;
             #[cfg(feature = "command-latency")]
@@ -546,6 +577,7 @@ fn main() -> ! {
                 all
             };
             match (k < n, changing, heavy_applied) {
+                _ if between => {}
                 (true, _, _) => s.add(insns),
                 (false, true, 0) => applying.add(insns),
                 (false, false, 0) => multisine.add(insns),
