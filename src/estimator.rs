@@ -325,6 +325,10 @@ pub trait Estimator<T: Real> {
     fn param_covariance(&self) -> [[T; 3]; 3];
     /// Back to the initial parameters and covariance.
     fn reset(&mut self);
+    /// The samples stopped for a while (a latched fault, a pre-filter settling: [`crate::pipeline::Pipeline`]) and
+    /// come back now: what the estimator holds of the signals themselves is stale, its parameters are not. By
+    /// default it holds nothing of them.
+    fn resume(&mut self) {}
     /// Enable or freeze adaptation.
     fn set_adapting(&mut self, on: bool);
     /// Health report.
@@ -351,6 +355,8 @@ pub trait EstimatorBank<T: Real> {
     fn update_selected(&mut self, sample: &FilteredSample<T>, mask: u8);
     /// Reset each.
     fn reset(&mut self);
+    /// [`Estimator::resume`] each.
+    fn resume(&mut self);
 }
 
 /// No estimators: the pipeline only excites and filters (recording, commissioning).
@@ -358,6 +364,7 @@ impl<T: Real> EstimatorBank<T> for () {
     const LEN: usize = 0;
     fn update_selected(&mut self, _: &FilteredSample<T>, _: u8) {}
     fn reset(&mut self) {}
+    fn resume(&mut self) {}
 }
 
 /// No estimators and no filters: the pipeline only excites, limits and checks, the command path alone. For a
@@ -374,6 +381,7 @@ impl<T: Real> EstimatorBank<T> for Unfiltered {
     const FILTERED: bool = false;
     fn update_selected(&mut self, _: &FilteredSample<T>, _: u8) {}
     fn reset(&mut self) {}
+    fn resume(&mut self) {}
 }
 
 macro_rules! bank_for_tuple {
@@ -388,6 +396,9 @@ macro_rules! bank_for_tuple {
             }
             fn reset(&mut self) {
                 $(self.$idx.reset();)+
+            }
+            fn resume(&mut self) {
+                $(self.$idx.resume();)+
             }
         }
     };

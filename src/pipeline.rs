@@ -781,6 +781,10 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
                 None
             } else if self.settle_left > 0 {
                 self.settle_left -= 1;
+                if self.settle_left == 0 {
+                    // Fed again from the next sample: what the estimators hold of the signals is from before.
+                    self.estimators.resume();
+                }
                 None
             } else {
                 self.estimators.update_selected(&sample, cfg.estimators);

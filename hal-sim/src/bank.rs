@@ -78,4 +78,10 @@ impl<T: Real> EstimatorBank<T> for Bank<T> {
         self.hekf.as_mut().map(Estimator::reset);
         self.arx.as_mut().map(Estimator::reset);
     }
+    fn resume(&mut self) {
+        self.rls.as_mut().map(Estimator::resume);
+        self.ekf.as_mut().map(Estimator::resume);
+        self.hekf.as_mut().map(Estimator::resume);
+        self.arx.as_mut().map(Estimator::resume);
+    }
 }

@@ -198,6 +198,9 @@ pub struct ArxEstimator<T: Copy> {
     cfg: ArxConfig<T>,
     core: ArxRls<T>,
     adapting: bool,
+    /// Samples of the history `[y(k-1), y(k-2), u(k-1), u(k-2)]` taken since a start, a reset or a resume: it
+    /// adapts from 2 on.
+    fresh: u8,
     health: Health,
     last_valid: Cell<StageParams<T>>,
 }
@@ -216,6 +219,7 @@ impl<T: Real> ArxEstimator<T> {
         ArxEstimator {
             core: ArxRls::new(&cfg),
             adapting: true,
+            fresh: 0,
             health: Health::new(),
             last_valid: Cell::new(cfg.initial),
             cfg,
@@ -259,7 +263,11 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        let adapt = self.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health);
+        // A history of zeros (a start: the signals at rest) or of samples from before a gap is not this sample's:
+        // it is only shifted in.
+        let fresh = self.fresh >= 2;
+        self.fresh = self.fresh.saturating_add(1);
+        let adapt = self.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health) && fresh;
         let e = self.core.update(&self.cfg, s.u_f.value, s.y_f.value, adapt);
         let rls = self.core.rls();
         let ok = e.a_priori.is_finite()
@@ -314,7 +322,12 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     fn reset(&mut self) {
         self.core = ArxRls::new(&self.cfg);
+        self.fresh = 0;
         self.last_valid.set(self.cfg.initial);
+    }
+
+    fn resume(&mut self) {
+        self.fresh = 0;
     }
 
     fn set_adapting(&mut self, on: bool) {

@@ -48,7 +48,8 @@
 //! by a glitch could otherwise run on for good, its state finite and its prediction astray), and a filter that has not
 //! relocked 5 s after a start or a change ([`RELOCK_NIS_RATIO`]: the same, in a wrong optimum). After a start or a
 //! reset the first sample sets the states, the filtered reading and its rate, and the filter steps from the next
-//! (`Ekf::prime`): the console restarts the estimators wherever the signals are. Cost per update:
+//! (`Ekf::prime`): the console restarts the estimators wherever the signals are. So does the first sample after a
+//! gap in the samples (a fault: [`crate::estimator::Estimator::resume`]), the parameters kept. Cost per update:
 //! hybrid, about 560 flops for the prediction and 120 for the update; continuous, 4 derivatives of about 110 flops,
 //! 120 of stage arguments and 120 of the RK4 sum: about 680.
 
@@ -1109,6 +1110,11 @@ impl<T: Real, K: EkfKind> Estimator<T> for Ekf<T, K> {
 
     fn reset(&mut self) {
         self.reset_state();
+    }
+
+    /// The states taken again from the next sample; the parameters and the covariance kept.
+    fn resume(&mut self) {
+        self.primed = false;
     }
 
     fn set_adapting(&mut self, on: bool) {
