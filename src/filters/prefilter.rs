@@ -241,7 +241,9 @@ impl<T: Real> Prefilter<T> {
     /// reading whose PRBS peaks at 6 um; `tests/instrument.rs`). The same filter: the state stays as it is, to the bit.
     /// Tried instead: the new filter at rest at the last input (`xi = [in / w_lc, 0, 0]`), which also drops what an
     /// old filter still rang with; but it breaks the filtered signals' history, the same for `u` and `y` only
-    /// at rest, and with the PRBS running the restarted EKFs came within 1 % after 1.3 s instead of 0.1 s.
+    /// at rest, and with the PRBS running the restarted EKFs came within 1 % after 1.3 s instead of 0.1 s. What the
+    /// old state still holds the estimators do not see: the pipeline feeds them again once the new filter has
+    /// settled ([`crate::pipeline::Pipeline::retarget`]); the excitation monitor, which runs on every sample, does.
     pub fn retarget(&self, s: &mut PrefilterState<T>, to: &Prefilter<T>) {
         // w_lc = d0 / w_p^2 from the realisation's constants (`accel[0] = -d0`, `half_feedthrough = w_p^2 / 2`), the
         // ratio in one division; the same filter's is 1 exactly.
