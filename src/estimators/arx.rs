@@ -263,8 +263,9 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 
     #[inline]
     fn update(&mut self, s: &FilteredSample<T>) {
-        // A history of zeros (a start: the signals at rest) or of samples from before a gap is not this sample's:
-        // it is only shifted in.
+        // The history after a start or a reset (zeros: the signals' only if they were at rest, not after a restart
+        // in the middle of a run) or after a gap (samples from before it) is not this sample's: until two samples
+        // have refilled it, they are only shifted in.
         let fresh = self.fresh >= 2;
         self.fresh = self.fresh.saturating_add(1);
         let adapt = self.cfg.pe.adapt(&s.pe, self.adapting, &mut self.health) && fresh;
@@ -352,6 +353,40 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// After a start, a reset or a resume the ARX shifts two samples into its history before it adapts: the
+    /// regression of the third is the first whose history is the signals'.
+    #[test]
+    fn the_arx_refills_its_history_before_it_adapts() {
+        use crate::estimator::PeLevel;
+        use crate::filters::prefilter::Prefiltered;
+        let at = |k: u32| {
+            let (u, y) = ([0.3, -0.2, 0.5, 0.1, -0.4][k as usize % 5], 0.01 * k as f64);
+            let f = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
+            FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: 1.0, single: false } }
+        };
+        let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
+        let theta = |a: &ArxEstimator<f64>| *a.rls().theta();
+        let start = theta(&arx);
+        for round in 0..2 {
+            arx.update(&at(1));
+            arx.update(&at(2));
+            assert_eq!(theta(&arx), start, "round {round}: adapted on a history that is not the signals'");
+            arx.update(&at(3));
+            assert_ne!(theta(&arx), start, "round {round}");
+            arx.reset();
+        }
+        for k in 4..10 {
+            arx.update(&at(k));
+        }
+        let before = theta(&arx);
+        arx.resume();
+        arx.update(&at(10));
+        arx.update(&at(11));
+        assert_eq!(theta(&arx), before);
+        arx.update(&at(12));
+        assert_ne!(theta(&arx), before);
+    }
 
     #[test]
     fn zoh_arx_round_trips_to_the_stage() {

@@ -1138,6 +1138,39 @@ mod tests {
     use crate::estimator::PeLevel;
     use crate::filters::prefilter::Prefiltered;
 
+    /// The first sample after a start, a reset or a resume sets the states, the filtered reading and its rate, and
+    /// steps nothing; a reset also takes the parameters back to the initial ones, a resume keeps them.
+    #[test]
+    fn the_first_sample_after_a_start_a_reset_or_a_resume_sets_the_states() {
+        let pe = PeLevel { power: 1.0, single: false };
+        let at = |value, d1| FilteredSample {
+            u: 0.3,
+            y: value,
+            u_f: Prefiltered { value: 0.3, d1: 0.0, d2: 0.0 },
+            y_f: Prefiltered { value, d1, d2: 0.0 },
+            pe,
+        };
+        let sets = |state: [f64; 5], value: f64, rate: f64| state[0] == value && (state[1] / rate - 1.0).abs() < 1e-12;
+        let design = EkfDesign::default().design();
+        let mut started = Cekf::<f64>::new(design);
+        started.update(&at(2.5, 4000.0));
+        assert!(sets(started.state(), 2.5, 4000.0), "{:?}", started.state());
+        assert_eq!(started.params(), Cekf::<f64>::new(design).params());
+        let mut f = converged_hybrid(1.0);
+        let converged = f.params();
+        f.resume();
+        f.update(&at(-1.5, -300.0));
+        assert!(sets(f.state(), -1.5, -300.0), "{:?}", f.state());
+        assert_eq!(f.params(), converged);
+        // The next sample steps from there.
+        f.update(&at(-1.5, -300.0));
+        assert!(f.state()[0] != -1.5);
+        f.reset();
+        f.update(&at(0.7, 50.0));
+        assert!(sets(f.state(), 0.7, 50.0), "{:?}", f.state());
+        assert_eq!(f.params(), Hekf::<f64>::new(design).params());
+    }
+
     /// The hybrid filter after `seconds` of a pseudo-random +-1 V input on the exact model (1) at the payload's
     /// parameters, sampled at 10 kHz with the input held (what the filter assumes), no noise.
     fn converged_hybrid(seconds: f64) -> Hekf<f64> {
