@@ -1928,6 +1928,11 @@ fn how_small_a_prbs_identifies_the_stage() {
     assert!(tiny_s.iter().all(|&t| t > 29.0) && tiny_starved > 0, "{tiny_s:?}, starved {tiny_starved}");
 }
 
+/// The larger of the relative distances of `p`'s `a0` and `b0` from `a0` and `b0`.
+fn a0_b0_off(p: StageParams<f32>, a0: f64, b0: f64) -> f64 {
+    (p.a0 as f64 / a0 - 1.0).abs().max((p.b0 as f64 / b0 - 1.0).abs())
+}
+
 /// A pre-filter change carries the filter's state over at the new filter's scale, and holds the estimators until
 /// the new filter has settled. The pre-filter's first state is the integral of its output, `in / w_lc` for an input
 /// at rest: taken over as it was by a filter of another `f_lc` it stood for another level, and the filtered signal
@@ -1969,10 +1974,7 @@ fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
         assert!(after[0] < 2.0 * before[0] && after[1] < 2.0 * before[1], "{change}: {before:?} -> {after:?}");
         // The restarted EKFs: the last time either is beyond 1 % of `a0` or `b0`, in 3 s.
         let truth = lab.board.plant().params();
-        let off = |lab: &Lab, i: usize| {
-            let p = lab.params(i);
-            (p.a0 as f64 / truth.a0 - 1.0).abs().max((p.b0 as f64 / truth.b0 - 1.0).abs())
-        };
+        let off = |lab: &Lab, i: usize| a0_b0_off(lab.params(i), truth.a0, truth.b0);
         let mut relock_s = 0.1;
         for k in 1..=290 {
             lab.run(100);
@@ -2018,8 +2020,7 @@ fn estimators_restarted_after_a_fault_start_from_the_settled_filter() {
         for k in 1..=1_000 {
             assert!(lab.run(10).iter().all(|o| o.estimator_input.is_some()));
             for e in 0..2 {
-                let p = lab.params(e + 1);
-                let off = (p.a0 as f64 / truth.a0 - 1.0).abs().max((p.b0 as f64 / truth.b0 - 1.0).abs());
+                let off = a0_b0_off(lab.params(e + 1), truth.a0, truth.b0);
                 if off > 0.01 {
                     relock_s[e] = k as f64 * 1e-3;
                 }
@@ -2064,9 +2065,8 @@ fn a_fault_leaves_the_estimates_where_they_were() {
     for _ in 0..2_000 {
         assert!(lab.run(10).iter().all(|o| o.estimator_input.is_some()));
         for (e, w) in worst.iter_mut().enumerate() {
-            let (p, b) = (lab.params(e), before[e]);
-            let off = (p.a0 as f64 / b.a0 as f64 - 1.0).abs().max((p.b0 as f64 / b.b0 as f64 - 1.0).abs());
-            *w = w.max(off);
+            let b = before[e];
+            *w = w.max(a0_b0_off(lab.params(e), b.a0 as f64, b.b0 as f64));
         }
     }
     let [rls, ekf, hekf, arx] = worst;
