@@ -339,29 +339,32 @@ fn drift_detection_stays_quiet_on_an_unchanging_plant() {
 }
 
 /// The continuous filter integrates the Riccati equation in one RK4 step per sample, and a state variance can
-/// overshoot below zero: on the board's triangle, adapting from the first sample (the excitation monitor off), its
-/// `x2` variance did 30 ms after the start. It is repaired in place (`bound_covariance`: the state decorrelated, its
-/// variance floored), counted, and the filter carries on without a reset. With the monitor on, which holds the
-/// filter for the first 4.5 ms while its averages build up, the same start needs no repair (the test above).
+/// overshoot below zero. With the paper's PRBS tuning (`Q2`) on the smoothed triangle, the misfit of the next test,
+/// its `x2` variance does so about 14 times a second on every noise seed (first 0.7-1.3 s after the start, seeds
+/// 1-6). Each time it is repaired in place (`bound_covariance`: the state decorrelated, its variance floored),
+/// counted, and the filter carries on without a reset. (With the right tuning, `Q1`, the same start needs no repair:
+/// the test above. Until the EKFs took their states from the first sample, with the variance of one measurement,
+/// `Q1` with the excitation monitor off needed one, 30 ms after the start: that was this test's case.)
 #[test]
 fn a_negative_state_variance_is_repaired_and_counted() {
     use hal_sim::sim::{Scenario, Simulation};
     let (mut board, settings) = Scenario::settings(Scenario::Triangle, 100.0, Scenario::Triangle.default_seed());
     board.plant.change_at_sample = u64::MAX;
-    let mut d = EkfDesign::paper(EkfDesign::Q1);
-    d.health.pe_floor_v2 = 0.0;
+    let d = EkfDesign::paper(EkfDesign::Q2);
     let mut sim = Simulation::new(board, &settings, (Cekf::<f64>::new(d.design()),)).unwrap();
     let mut first = None;
-    for k in 0..10_000 {
+    for k in 0..20_000 {
         sim.step();
         if first.is_none() && sim.pipeline.estimators.0.health().covariance_repairs > 0 {
             first = Some(k);
         }
     }
-    let h = sim.pipeline.estimators.0.health();
-    eprintln!("first repair at sample {first:?}; after 1 s: {h:?}");
-    assert!(first.is_some_and(|k| k < 1_000), "{first:?}");
-    assert_eq!((h.covariance_repairs, h.numeric_resets), (1, 0));
+    let (h, p) = (sim.pipeline.estimators.0.health(), sim.pipeline.estimators.0.params());
+    eprintln!("first repair at sample {first:?}; after 2 s: {h:?}, {p:?}");
+    assert!(first.is_some_and(|k| k < 15_000), "{first:?}");
+    assert!(h.covariance_repairs >= 2, "{h:?}");
+    assert_eq!(h.numeric_resets, 0, "{h:?}");
+    assert!(p.a0.is_finite() && p.a1.is_finite() && p.b0.is_finite(), "{p:?}");
     assert!(h.innovation_rms_um < 0.01, "{h:?}");
 }
 

@@ -47,11 +47,12 @@
 //! the estimator (counted), as does an innovation RMS beyond a metre ([`INNOVATION_CEILING_UM`]: a filter thrown off
 //! by a glitch could otherwise run on for good, its state finite and its prediction astray), and a filter that has not
 //! relocked 5 s after a start or a change ([`RELOCK_NIS_RATIO`]: the same, in a wrong optimum). After a start or a
-//! reset the first sample sets the states, the filtered reading and its rate, and the filter steps from the next
-//! (`Ekf::prime`): the console restarts the estimators wherever the signals are. So does the first sample after a
-//! gap in the samples (a fault: [`crate::estimator::Estimator::resume`]), the parameters kept. Cost per update:
-//! hybrid, about 560 flops for the prediction and 120 for the update; continuous, 4 derivatives of about 110 flops,
-//! 120 of stage arguments and 120 of the RK4 sum: about 680.
+//! reset the first sample sets the states, the filtered reading and its rate, with the variance of one
+//! measurement, and the filter steps from the next (`Ekf::prime`): the console restarts the estimators wherever the
+//! signals are. So does the first sample after a gap in the samples (a fault:
+//! [`crate::estimator::Estimator::resume`]), the parameters kept. Cost per update: hybrid, about 560 flops for the
+//! prediction and 120 for the update; continuous, 4 derivatives of about 110 flops, 120 of stage arguments and 120 of
+//! the RK4 sum: about 680.
 
 #![allow(clippy::needless_range_loop)] // packed-symmetric loops read best with the indices of the algebra
 
@@ -620,8 +621,12 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
     }
 
     /// The first sample after a start or a reset: the states are the filtered reading and its rate, and the filter
-    /// steps from the next sample on. `P0` (`10 Q` in the paper) trusts the states as it would at rest: the paper
-    /// starts with the pre-filter at rest and the state at zero, which is the same thing there. Started at zero in
+    /// steps from the next sample on. Their variances are those of one measurement (`R_d`, as after a change:
+    /// `EkfCore::reopen_states`), not `P0`'s (`10 Q` in the paper, 1e-11 um^2 for the position), which trusts them
+    /// as a filter at rest can: the rate is within about 0.5 % of a converged filter's `x2`, 85 um/s on a 6 um
+    /// oscillation, where `P0` allows 0.003 um/s, and the continuous EKF, restarted in the middle of a run, rejected
+    /// its first samples, took a jump and settled on `b0` 10 % high for more than 5 s (a random session's end, seed
+    /// 1329). The paper starts with the pre-filter at rest and the state at zero. Started at zero in
     /// the middle of a run instead (a `tune` restarts the estimators wherever the signals are), the filter met a
     /// filtered reading of several um, or of 19 um where the pre-filter still rang on a fault's readings, with
     /// state variances of 1e-11 um^2: it moved its parameters to explain it, and where it rang both EKFs settled on
@@ -633,6 +638,7 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
         let rate = s.y_f.d1 / self.core.cfg.w;
         self.core.z[0] = s.y_f.value;
         self.core.z[1] = if rate.is_finite() { rate } else { T::zero() };
+        self.core.reopen_states();
         self.u_prev = s.u_f.value;
         self.y_prev = s.y_f.value;
         self.primed = true;
