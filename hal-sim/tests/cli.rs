@@ -652,7 +652,17 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     damaged[3] = damaged[3].replacen('A', "B", 1);
     // A frame lost in the capture.
     let gap: Vec<&str> = lines.iter().enumerate().filter(|(i, _)| *i != 4).map(|(_, l)| *l).collect();
-    let cases: [(String, &[&str], &str); 11] = [
+    // Every frame changed in one character (its index's last digit): with `--segments` nothing is left.
+    let every_frame_damaged: Vec<String> = lines
+        .iter()
+        .map(|l| match l.strip_prefix('R') {
+            Some(rest) => format!("R{}{}", if rest.starts_with('0') { '1' } else { '0' }, &rest[1..]),
+            None => l.to_string(),
+        })
+        .collect();
+    // The capture without the recording's frames, its end line kept.
+    let no_frames: Vec<&str> = lines.iter().filter(|l| !l.starts_with('R')).copied().collect();
+    let cases: [(String, &[&str], &str); 16] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
@@ -681,6 +691,18 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
             "cap.txt: the end line counts 200 samples recorded, the frames span 192 (board samples 0 to 192): frames \
              lost at the recording's start or end",
         ),
+        // No frame at all: the capture stopped after the header, the recording stopped before its first sample, the
+        // frames lost, or all damaged; and one sample, no run to write.
+        (lines[..3].join("\n"), &[], "cap.txt: recording 1 has no frame: the capture ends at line 3, before its first"),
+        (capture(0, 0), &[], "cap.txt: recording 1 is empty: its end line counts 0 samples"),
+        (no_frames.join("\n"), &[], "cap.txt: recording 1 has no frame before its end line"),
+        (
+            every_frame_damaged.join("\n"),
+            &["--segments"],
+            "cap.txt: recording 1 has no intact frame: 5 lines of it damaged in transfer, the first: cap.txt:4: \
+             checksum mismatch",
+        ),
+        (capture(1, 0), &[], "cap.txt: recording 1 holds no run of 2 or more samples"),
     ];
     for (text, extra, msg) in cases {
         let dir = tempfile::tempdir().unwrap();

@@ -144,6 +144,32 @@ impl Recording {
     }
 }
 
+/// Why recording `which` (`r`, with the end line's count `end_samples`; the capture `lines` long) gave no run of
+/// [`MIN_SAMPLES`] or more samples to write: no frame came (the capture ended first, or the recording was stopped
+/// before its first sample), every frame was damaged (with `--segments`, which skips them), or the runs between the
+/// gaps are single samples.
+fn no_run(name: &str, which: usize, r: &Recording, end_samples: Option<u64>, lines: usize) -> String {
+    if !r.segments.is_empty() {
+        return format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples");
+    }
+    match (r.ended, end_samples, r.damage.len()) {
+        (Some(_), Some(0), _) => format!(
+            "{name}: recording {which} is empty: its end line counts 0 samples (stopped before its first sample)"
+        ),
+        (_, _, 0) if r.ended.is_none() => format!(
+            "{name}: recording {which} has no frame: the capture ends at line {lines}, before its first (stopped \
+             before the recording's frames came?)"
+        ),
+        (_, _, 0) => {
+            format!("{name}: recording {which} has no frame before its end line (its frames lost in the capture)")
+        }
+        (_, _, n) => format!(
+            "{name}: recording {which} has no intact frame: {n} lines of it damaged in transfer, the first: {}",
+            r.damage[0]
+        ),
+    }
+}
+
 /// Where segment `k` (1-based) of a decode into `out` goes: `run.csv` -> `run-2.csv`.
 pub fn segment_path(out: &Path, k: usize) -> std::path::PathBuf {
     let stem = out.file_stem().map_or_else(String::new, |s| s.to_string_lossy().into_owned());
@@ -203,11 +229,14 @@ pub fn run(
     let (mut inside, mut orphan) = (false, None);
     // Past the chosen recording: the rest of the capture is only searched for the recordings after it.
     let mut done = false;
+    // The capture's lines read, for the message of a capture that ends before the chosen recording's frames.
+    let mut lines = 0;
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
             break;
         }
+        lines = line_no;
         // Captures can hold noise from before the link settled: decode what is text, the frames carry their
         // checksums.
         let text = String::from_utf8_lossy(&bytes);
@@ -344,7 +373,7 @@ pub fn run(
     }
     let (mut rec, sink) = match chosen {
         Some((r, s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
-        Some(_) => return fail(format!("{name}: recording {which} holds no run of {MIN_SAMPLES} or more samples")),
+        Some((r, _)) => return fail(no_run(&name, which, &r, end_samples, lines)),
         None if found == 0 => {
             return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line){}", {
                 orphan.map_or(String::new(), |l| format!("; frames from line {l} on: {ORPHANS}"))
