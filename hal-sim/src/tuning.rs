@@ -129,8 +129,14 @@ pub fn resolve(arg: &str) -> Result<TuningArg, CliError> {
     if !path.exists() && !arg.ends_with(".toml") {
         return fail(format!("--tuning: '{arg}' is neither a preset (prbs, triangle) nor a file"));
     }
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| CliError(format!("{arg}: cannot read: {}", crate::cmd::io_reason(&e))))?;
+    let bytes =
+        std::fs::read(path).map_err(|e| CliError(format!("{arg}: cannot read: {}", crate::cmd::io_reason(&e))))?;
+    let text = String::from_utf8(bytes).map_err(|e| {
+        let bytes = e.as_bytes();
+        let at = e.utf8_error().valid_up_to();
+        let line = 1 + bytes[..at].iter().filter(|&&b| b == b'\n').count();
+        CliError(format!("{arg}:{line}: not UTF-8 text (byte {:#04x}): is it a tuning file?", bytes[at]))
+    })?;
     Ok(TuningArg { file: Some(path.to_path_buf()), ..parse(arg, &text)? })
 }
 

@@ -778,6 +778,12 @@ fn commands_writes_the_console_lines_of_a_tuning_or_says_why_not() {
         std::fs::write(d.join(file), text).unwrap();
         assert_clean_failure(&nanopos_sim(&["commands", "--tuning", file], d), says);
     }
+    // Not text (it said "cannot read: stream did not contain valid UTF-8", as if the file could not be read).
+    std::fs::write(d.join("bin.toml"), b"[ekf]\nr = 1.5e-6\nq = [1e-12\xff]\n").unwrap();
+    assert_clean_failure(
+        &nanopos_sim(&["commands", "--tuning", "bin.toml"], d),
+        "bin.toml:3: not UTF-8 text (byte 0xff)",
+    );
 }
 
 /// `text` with one to four random edits, as a noisy link or a hand edit leaves a file: a byte removed, changed, a run
@@ -819,12 +825,13 @@ fn succeeds_or_fails_cleanly(args: &[&str], input: (&str, &[u8])) -> bool {
     out.status.success()
 }
 
-/// Records and captures with random damage (100 of each): `identify` and `decode` either take them or refuse them
-/// with one line and no file; none panics, none leaves a partial output. (None did, over 300 of each; reading their
-/// refusals found one that did not say what was wrong: a capture cut after its header was "holds no run of 2 or more
-/// samples"; now it says that the capture ends before the recording's first frame.)
+/// Records, captures and tuning files with random damage (100 of each): `identify` and `decode` either take them or
+/// refuse them with one line and no file; none panics, none leaves a partial output. (None did, over 300 of each;
+/// reading their refusals found two that did not say what was wrong: a capture cut after its header was "holds no
+/// run of 2 or more samples", now "the capture ends at line 3, before its first" frame; a tuning file with a byte
+/// that is not UTF-8 was "cannot read: stream did not contain valid UTF-8", now "not UTF-8 text" with its line.)
 #[test]
-fn damaged_records_and_captures_are_taken_or_refused_in_one_line() {
+fn damaged_records_captures_and_tuning_files_are_taken_or_refused_in_one_line() {
     let dir = tempfile::tempdir().unwrap();
     let out = nanopos_sim(&["simulate", "--scenario", "prbs", "--duration", "0.6", "--out", "run.csv"], dir.path());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -833,12 +840,23 @@ fn damaged_records_and_captures_are_taken_or_refused_in_one_line() {
     let mut next = nanopos_id::xorshift64(0x2545_F491_4F6C_DD1D);
     let identify = ["identify", "--input", "in.csv", "--summary", "s.json", "--out", "e.csv", "--window", "0.2:0.6"];
     let decode = ["decode", "--input", "cap.txt", "--out", "run.csv"];
-    let (mut taken, mut decoded) = (0, 0);
+    // A tuning file with every key, and the record it is for (`--tuning` is read before the record).
+    let tuning = "initial = [500000, 70, 6e6]\nprefilter = [100, 450, 0.1]\nspike_ratio = 32\n\n[rls]\ngamma = 0.25\n\
+                  p0 = [1e6, 10, 1e7]\nr0 = 1e9\npe_floor_v2 = 1e-6\n\n[ekf]\nq = [1e-12, 1e-6, 1.5e9, 0.25, 5e8]\n\
+                  r = 1.5e-6\nsubsteps = 4\ngate_sigma = 5\ndrift_ratio = 4\npe_floor_v2 = 1e-6\n\n[arx]\n\
+                  lambda = 0.9999\nmax_trace = 1e6\npe_floor_v2 = 1e-6\n";
+    let record = dir.path().join("run.csv");
+    let replay = ["identify", "--input", record.to_str().unwrap(), "--tuning", "t.toml", "--window", "0.2:0.6"];
+    let (mut taken, mut decoded, mut tuned) = (0, 0, 0);
     for _ in 0..100 {
         taken += succeeds_or_fails_cleanly(&identify, ("in.csv", &mutated(&run, &mut next))) as usize;
         decoded += succeeds_or_fails_cleanly(&decode, ("cap.txt", &mutated(&cap, &mut next))) as usize;
+        tuned += succeeds_or_fails_cleanly(&replay, ("t.toml", &mutated(tuning, &mut next))) as usize;
     }
-    println!("identify took {taken} of 100 damaged records, decode {decoded} of 100 damaged captures");
+    println!(
+        "identify took {taken} of 100 damaged records, decode {decoded} of 100 damaged captures, identify {tuned} of \
+         100 damaged tuning files"
+    );
     // Both kinds of outcome were exercised.
-    assert!((1..100).contains(&taken) && (1..100).contains(&decoded), "{taken} {decoded}");
+    assert!([taken, decoded, tuned].iter().all(|n| (1..100).contains(n)), "{taken} {decoded} {tuned}");
 }
