@@ -494,7 +494,8 @@ impl Controller {
         reply: &mut impl Write,
         from: &'static str,
     ) -> Result<Change<T>, Refusal> {
-        let mut change = Change { tuning: Some(t.runnable()?), ..Change::default() };
+        let restart = self.tuning.restarted_by(&t);
+        let mut change = Change { tuning: Some(t.runnable()?), restart, ..Change::default() };
         // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
         // together, in one sample; the spike gate's ratio with them.
         if t.rls.prefilter != self.settings.prefilter || t.spike_ratio != self.settings.faults.spike_ratio {
@@ -519,8 +520,8 @@ impl Controller {
             }
         }
         match from {
-            "" => writeln!(reply, " (estimators restarted)")?,
-            name => writeln!(reply, " ({name}'s estimate; estimators restarted)")?,
+            "" => writeln!(reply, " ({})", Restarted(restart))?,
+            name => writeln!(reply, " ({name}'s estimate; {})", Restarted(restart))?,
         }
         Ok(change)
     }
@@ -650,13 +651,14 @@ impl Controller {
                 // The preset for the input; the stage's initial parameters and pre-filter stay.
                 let t = Tuning::of(p).with_stage_of(&self.tuning);
                 change.tuning = Some(t.runnable()?);
-                // The estimators restart with the new tuning; frozen ones stay frozen.
+                // The estimators whose tuning changes restart with the new one; frozen ones stay frozen.
+                change.restart = self.tuning.restarted_by(&t);
                 change.freeze = self.frozen;
                 self.preset = p;
                 self.tuned = differs_from(&t, p);
                 self.tuning = t;
                 self.tuning_note(false, false, reply)?;
-                writeln!(reply, "ok tuning {} (estimators restarted)", tuning_name(p))?;
+                writeln!(reply, "ok tuning {} ({})", tuning_name(p), Restarted(change.restart))?;
             }
             Command::Tune { key, values: None } => {
                 write_tune(reply, key, &self.tuning.get(key)[..key.len()])?;
@@ -1004,6 +1006,19 @@ struct Names(EstimatorSet);
 impl fmt::Display for Names {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         list(f, ESTIMATOR_NAMES.iter().enumerate().filter(|(i, _)| self.0.contains(*i)).map(|(_, n)| *n))
+    }
+}
+
+/// What a new tuning did to the estimators (the set it restarted, [`Tuning::restarted_by`]), for its reply.
+struct Restarted(EstimatorSet);
+
+impl fmt::Display for Restarted {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
+            EstimatorSet::ALL => f.write_str("estimators restarted"),
+            EstimatorSet(0) => f.write_str("estimators kept: their tuning is unchanged"),
+            s => write!(f, "{} restarted; {} kept", Names(s), Names(EstimatorSet(EstimatorSet::ALL.0 & !s.0))),
+        }
     }
 }
 

@@ -43,8 +43,11 @@ fn ring_slot(i: usize) -> usize {
 pub struct Change<T> {
     /// A new pipeline configuration (excitation, limits, selection, scaling).
     pub config: Option<PipelineConfig<T>>,
-    /// New tuning: the estimators restart with it (from their initial parameters and `P0`).
+    /// New tuning: the estimators of `restart` restart with it (from their initial parameters and `P0`).
     pub tuning: Option<TuningConfig<T>>,
+    /// The estimators the new `tuning` restarts: those whose tuning it changes
+    /// ([`crate::estimators::Tuning::restarted_by`]). The others' is the same, and they run on.
+    pub restart: EstimatorSet,
     /// Estimators to reset to their initial state (applied after `tuning`).
     pub reset: EstimatorSet,
     /// Estimators to freeze.
@@ -236,7 +239,7 @@ impl<T: Real> Instrument<T> {
         }
         let bank = &mut self.pipeline.estimators;
         if let Some(t) = &c.tuning {
-            restart_bank(bank, t);
+            restart_bank(bank, t, c.restart);
         }
         control(bank, c.reset, Op::Reset);
         control(bank, c.freeze, Op::Freeze);

@@ -7,7 +7,7 @@ use hal_sim::sim::Scenario;
 use nanopos_id::console::REPLY_BYTES;
 use nanopos_id::control::{EstimatorSet, ESTIMATOR_NAMES};
 use nanopos_id::estimator::{Adaptation, Estimator};
-use nanopos_id::estimators::{full_bank, restart_bank, Tuning};
+use nanopos_id::estimators::{full_bank, restart_bank, Tuning, TuningKey};
 use nanopos_id::hal::{BoardFaults, StageBoard};
 use nanopos_id::instrument::{
     compare_ekfs, disagreement, response_ratio, trusted_ekf_estimate, weak_response, Change, EventWatch, Instrument,
@@ -60,6 +60,11 @@ fn notes(reply: &str) -> Vec<String> {
     reply.lines().filter(|l| l.starts_with("note: ")).map(String::from).collect()
 }
 
+/// The end of the reply to a tuning that changes the EKFs' only.
+const EKFS_RESTARTED: &str = "ekf,hekf restarted; rls,arx kept";
+/// The end of the reply to a tuning that changes no estimator's.
+const KEPT: &str = "estimators kept: their tuning is unchanged";
+
 #[test]
 fn the_interrupt_body_is_the_pipeline_the_host_tests() {
     // With nothing posted, `Instrument::sample` is exactly `run_sample` on a pipeline with every estimator.
@@ -108,8 +113,43 @@ fn a_new_tuning_restarts_every_estimator_as_if_built_afresh() {
     }
     let fresh = full_bank(&triangle);
     assert_ne!(format!("{:?}", run.estimators), format!("{fresh:?}"));
-    restart_bank(&mut run.estimators, &triangle);
+    restart_bank(&mut run.estimators, &triangle, EstimatorSet::ALL);
     assert_eq!(format!("{:?}", run.estimators), format!("{fresh:?}"));
+}
+
+/// A new tuning restarts the estimators whose tuning it changes, and only those: the others run on with theirs, which
+/// is the same. The initial parameters are every estimator's; the pre-filter is the continuous-time RLS's own (the
+/// others read the pipeline's); the spike gate's ratio is none's.
+#[test]
+fn a_new_tuning_restarts_the_estimators_whose_tuning_it_changes() {
+    let prbs = Tuning::preset("prbs").unwrap();
+    let changed = |key: TuningKey, values: &[f64]| {
+        let mut t = prbs;
+        t.set(key, values).unwrap();
+        prbs.restarted_by(&t)
+    };
+    assert_eq!(prbs.restarted_by(&prbs), EstimatorSet(0));
+    assert_eq!(prbs.restarted_by(&Tuning::preset("triangle").unwrap()), EstimatorSet(0b0110));
+    assert_eq!(changed(TuningKey::Initial, &[6e5, 70.0, 6e6]), EstimatorSet::ALL);
+    assert_eq!(changed(TuningKey::Prefilter, &[100.0, 500.0, 0.1]), EstimatorSet(0b0001));
+    assert_eq!(changed(TuningKey::SpikeRatio, &[8.0]), EstimatorSet(0));
+    assert_eq!(changed(TuningKey::RlsGamma, &[0.5]), EstimatorSet(0b0001));
+    assert_eq!(changed(TuningKey::EkfR, &[2e-6]), EstimatorSet(0b0110));
+    assert_eq!(changed(TuningKey::ArxLambda, &[0.999]), EstimatorSet(0b1000));
+    // In place, as the interrupt does: the EKFs restarted as if built afresh, the RLS and the ARX untouched.
+    let (board_settings, _) = Scenario::Prbs.settings(200.0, 1);
+    let mut board = SimBoard::new(board_settings);
+    let cfg = Lab::new().ctl.config::<f32>();
+    let mut run = Pipeline::new(&cfg, full_bank(&prbs.design::<f32>()));
+    for _ in 0..5_000 {
+        nanopos_id::hal::run_sample(&mut board, &mut run, &cfg);
+    }
+    let triangle = Tuning::preset("triangle").unwrap().design::<f32>();
+    let before = format!("{:?}", (&run.estimators.0, &run.estimators.3));
+    restart_bank(&mut run.estimators, &triangle, EstimatorSet(0b0110));
+    let fresh = full_bank(&triangle);
+    assert_eq!(format!("{:?}", (&run.estimators.0, &run.estimators.3)), before);
+    assert_eq!(format!("{:?}", (&run.estimators.1, &run.estimators.2)), format!("{:?}", (&fresh.1, &fresh.2)));
 }
 
 #[test]
@@ -188,9 +228,18 @@ fn every_command_is_answered_and_does_what_it_says() {
     let p = lab.params(2);
     assert!((p.a0 / initial.a0 - 1.0).abs() < 1e-3, "{p:?}");
 
-    // Tuning: the estimators restart, frozen ones stay frozen.
+    // Tuning: the estimators whose tuning changes restart (the triangle's preset differs from the PRBS's in the EKFs'
+    // `Q`), the others run on; frozen ones stay frozen.
     lab.send("freeze rls\n");
-    assert_eq!(verdict(&lab.send("tuning triangle\n")), "ok tuning triangle (estimators restarted)");
+    lab.run(2_000);
+    let (rls, arx) = (lab.params(0), lab.params(3));
+    assert_eq!(verdict(&lab.send("tuning triangle\n")), "ok tuning triangle (ekf,hekf restarted; rls,arx kept)");
+    assert_eq!(lab.params(0), rls, "frozen and kept");
+    assert!(a0_b0_off(lab.params(3), arx.a0 as f64, arx.b0 as f64) < 1e-4, "the ARX ran on: {arx:?}");
+    for i in [1, 2] {
+        let p = lab.params(i);
+        assert!((p.a0 / initial.a0 - 1.0).abs() < 1e-3, "restarted from the initial parameters: {p:?}");
+    }
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen);
     // The pipeline measures the input's excitation, not the estimator: a restarted estimator adapts from the first
     // sample after the change (the one `send` ran), with no wait for evidence that the input is rich.
@@ -207,24 +256,28 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert!((p.a0 / 3.9e7 - 1.0).abs() < 1e-3 && (p.b0 / 1e6 - 1.0).abs() < 1e-3, "{p:?}");
     assert_eq!(lab.isr.estimates()[0].1.adaptation, Adaptation::Frozen, "frozen ones stay frozen");
     assert!(lab.send("status\n").contains("tuning=triangle+tune "));
-    assert_eq!(verdict(&lab.send("tune ekf drift_ratio 0\n")), "ok tune [ekf] drift_ratio = 0 (estimators restarted)");
+    assert_eq!(
+        verdict(&lab.send("tune ekf drift_ratio 0\n")),
+        format!("ok tune [ekf] drift_ratio = 0 ({EKFS_RESTARTED})")
+    );
     // The spike gate's ratio, in the configuration the interrupt runs from the sample that applied it; 0: off.
     assert_eq!(lab.isr.config().spike.ratio, 32.0);
-    assert_eq!(verdict(&lab.send("tune spike_ratio 16\n")), "ok tune spike_ratio = 16 (estimators restarted)");
+    assert_eq!(verdict(&lab.send("tune spike_ratio 16\n")), format!("ok tune spike_ratio = 16 ({KEPT})"));
     assert_eq!(lab.isr.config().spike.ratio, 16.0);
     // A preset replaces every value but the stage's (initial parameters, pre-filter, spike ratio).
     lab.send("tuning triangle\n");
     assert_eq!(verdict(&lab.send("tune ekf drift_ratio\n")), "ok tune [ekf] drift_ratio = 4");
     assert_eq!(verdict(&lab.send("tune initial\n")), "ok tune initial = 1e6 90 3.9e7");
     assert_eq!(verdict(&lab.send("tune spike_ratio\n")), "ok tune spike_ratio = 16");
-    assert_eq!(verdict(&lab.send("tune spike_ratio 0\n")), "ok tune spike_ratio = 0 (estimators restarted)");
+    assert_eq!(verdict(&lab.send("tune spike_ratio 0\n")), format!("ok tune spike_ratio = 0 ({KEPT})"));
     assert_eq!(lab.isr.config().spike.ratio, f32::INFINITY);
     assert!(lab.send("status\n").contains("tuning=triangle+tune "));
-    // The stage's pre-filter: the pipeline's and the continuous-time RLS's own change together.
+    // The stage's pre-filter: the pipeline's and the continuous-time RLS's own change together. The RLS restarts; the
+    // others identify the same stage through the pipeline's new filter, and run on once it has settled.
     let before = *lab.isr.config();
     assert_eq!(
         verdict(&lab.send("tune prefilter 100 600 0.1\n")),
-        "ok tune prefilter = 100 600 0.1 (estimators restarted)"
+        "ok tune prefilter = 100 600 0.1 (rls restarted; ekf,hekf,arx kept)"
     );
     assert_ne!(lab.isr.config().prefilter, before.prefilter);
     assert_eq!(lab.ctl.settings().prefilter.f_p_hz, 600.0);
@@ -250,7 +303,7 @@ fn every_command_is_answered_and_does_what_it_says() {
     assert_eq!(verdict(&lab.send("tune prefilter\n")), "ok tune prefilter = 100 600 0.1");
     assert_eq!(
         verdict(&lab.send("tune prefilter 100 450 4\n")),
-        "ok tune prefilter = 100 450 4 (estimators restarted)"
+        "ok tune prefilter = 100 450 4 (rls restarted; ekf,hekf,arx kept)"
     );
     lab.send("tune prefilter 100 450 0.1\n");
     lab.send("tune initial 5e5 70 6e6\n");
@@ -549,7 +602,8 @@ fn a_probe_glitch_is_replaced_and_moves_no_estimate() {
         let mut lab = Lab::on_board(board, settings);
         if spike_ratio != settings.faults.spike_ratio {
             let reply = lab.send(&format!("tune spike_ratio {spike_ratio}\n"));
-            assert_eq!(reply, format!("ok tune spike_ratio = {spike_ratio} (estimators restarted)\n"));
+            // The gate's ratio is no estimator's tuning: they run on.
+            assert_eq!(reply, format!("ok tune spike_ratio = {spike_ratio} ({KEPT})\n"));
             assert_eq!(lab.send("tune spike_ratio\n"), format!("ok tune spike_ratio = {spike_ratio}\n"));
         }
         let mut watch = EventWatch::new(1e4);
@@ -688,10 +742,9 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
     let run = |r: &str| {
         let mut lab = Lab::new();
         lab.run(2000);
-        assert_eq!(
-            verdict(&lab.send(&format!("tune ekf r {r}\n"))),
-            format!("ok tune [ekf] r = {r} (estimators restarted)")
-        );
+        // The paper's R is the preset's: nothing to restart.
+        let what = if r == "1.5e-6" { "estimators kept: their tuning is unchanged" } else { EKFS_RESTARTED };
+        assert_eq!(verdict(&lab.send(&format!("tune ekf r {r}\n"))), format!("ok tune [ekf] r = {r} ({what})"));
         lab.run(100_000);
         let st = lab.isr.status();
         for (_, h) in &st.estimates[1..3] {
@@ -1133,7 +1186,8 @@ fn tune_stage_takes_the_initial_parameters_and_the_prefilter_from_an_estimate() 
     let f0 = Num(StageParams { b0: initial[0], a1: initial[1], a0: initial[2] }.f0_hz(), 6);
     assert_eq!(command, format!("tune prefilter 100 {f0} 0.1"), "{r}");
     let r = lab.send(&format!("{command}\n"));
-    assert_eq!(verdict(&r), format!("ok tune prefilter = 100 {f0} 0.1 (estimators restarted)"));
+    // The EKFs, restarted from the ARX's estimate just before, run on through the pre-filter's change.
+    assert_eq!(verdict(&r), format!("ok tune prefilter = 100 {f0} 0.1 (rls restarted; ekf,hekf,arx kept)"));
     lab.run(50_000);
     ekfs_near_the_khz_stage(&lab, "tune initial arx, then the refusal's tune prefilter");
 }
@@ -1573,16 +1627,16 @@ fn worst_relative(row: &[StageParams<f64>], board: &[StageParams<f32>]) -> f64 {
 #[test]
 fn a_recording_carries_the_boards_tuning_and_a_replay_with_it_is_the_boards() {
     let mut lab = Lab::new();
-    for command in [
-        "tune initial 6.5e5 72.5 6.3e6\n",
-        "tune rls gamma 0.7\n",
-        "tune ekf q 1e-12 1e-6 3e9 0.3 1e9\n",
-        "tune ekf r 2.2e-6\n",
-        "tune ekf substeps 3\n",
-        "tune arx lambda 0.9995\n",
-        "tune spike_ratio 4\n",
+    for (command, restarted) in [
+        ("tune initial 6.5e5 72.5 6.3e6\n", "estimators restarted"),
+        ("tune rls gamma 0.7\n", "rls restarted; ekf,hekf,arx kept"),
+        ("tune ekf q 1e-12 1e-6 3e9 0.3 1e9\n", EKFS_RESTARTED),
+        ("tune ekf r 2.2e-6\n", EKFS_RESTARTED),
+        ("tune ekf substeps 3\n", EKFS_RESTARTED),
+        ("tune arx lambda 0.9995\n", "arx restarted; rls,ekf,hekf kept"),
+        ("tune spike_ratio 4\n", KEPT),
     ] {
-        assert!(lab.send(command).contains("(estimators restarted)"), "{command}");
+        assert!(lab.send(command).contains(&format!("({restarted})")), "{command}");
     }
     // A board started with this tuning (a replay starts from rest).
     lab.board = Lab::new().board;
@@ -1942,16 +1996,19 @@ fn a0_b0_off(p: StageParams<f32>, a0: f64, b0: f64) -> f64 {
 /// 0.1` from a slower pre-filter: 366 um in the filtered reading, and the hybrid EKF was still 2.1 % off `b0` after
 /// the 5 s it is given. Carried over at scale ([`nanopos_id::filters::Prefilter::retarget`]), the state is still
 /// the old filter's and not the new one's response to the signals: the estimators are not fed for ten of the new
-/// filter's slowest time constants (`PipelineConfig::prefilter_settle_samples`, 35 ms here), and the restarted EKFs
-/// take their states from the first sample they are fed. Measured, the time from the change until both EKFs stay
-/// within 1 % of `a0` and `b0`: with the wait 0.10 s after both changes below; without it (the states taken from the
-/// first sample) 0.10 s and 1.16 s; with the wait but the states at zero, 1.29 s after the first; before either (the EKFs started at zero, fed at once) 0.10 s and 0.10 s here,
-/// but at the end of the random session of seed 1031 (100 000 lines), and in
-/// `estimators_restarted_after_a_fault_start_from_the_settled_filter`, both EKFs settled on `b0` below zero until
-/// their relock test reset them 5 s later.
+/// filter's slowest time constants (`PipelineConfig::prefilter_settle_samples`, 35 ms here). The EKFs, whose tuning
+/// a pre-filter change does not touch, then run on, their states taken again from the first sample; restarted as
+/// well (`reset`, or `tune stage`, which changes the initial parameters too), they start from it. Measured, the time
+/// from the change until both EKFs stay within 1 % of `a0` and `b0`: kept, they never leave it (at most 0.30 % and
+/// 0.55 % off, the second the bias of a pre-filter centred at 600 Hz, off the 423 Hz resonance); restarted, 0.08 s
+/// and 0.10 s. Restarted, without the wait (the states taken from the first sample) 0.10 s and 1.16 s; with the wait but the states at zero, 1.29 s after the first; before
+/// either (the EKFs started at zero, fed at once) 0.10 s and 0.10 s here, but at the end of the random session of
+/// seed 1031 (100 000 lines), and in `estimators_restarted_after_a_fault_start_from_the_settled_filter`, both EKFs
+/// settled on `b0` below zero until their relock test reset them 5 s later.
 #[test]
 fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
-    for (dc_um, change) in [(20.0, "tune prefilter 50 450 0.1"), (-15.0, "tune prefilter 200 600 0.2")] {
+    let changes = [(20.0, "tune prefilter 50 450 0.1"), (-15.0, "tune prefilter 200 600 0.2")];
+    for ((dc_um, change), restart) in changes.into_iter().flat_map(|c| [(c, false), (c, true)]) {
         let (mut board, settings) = Lab::settings(None);
         // The board's probe reads `dc_um` off the pipeline's zero: a stage held away from its probe's zero.
         board.probe.adc_offset_v += dc_um * board.probe.adc_v_per_sensor_v / board.probe.um_per_v;
@@ -1962,40 +2019,56 @@ fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
                 .fold([0.0f32; 2], |m, f| [m[0].max(f.u_f.value.abs()), m[1].max(f.y_f.value.abs())])
         };
         let before = peak(&lab.run(30_000)[20_000..]);
-        assert!(verdict(&lab.send(&format!("{change}\n"))).starts_with("ok tune prefilter"), "{change}");
-        let run = lab.run(1_000);
+        let reply = lab.send(&format!("{change}\n"));
+        let values = change.strip_prefix("tune prefilter ").unwrap();
+        assert_eq!(verdict(&reply), format!("ok tune prefilter = {values} (rls restarted; ekf,hekf,arx kept)"));
+        if restart {
+            assert_eq!(verdict(&lab.send("reset ekf,hekf\n")), "ok reset ekf,hekf");
+        }
+        // The EKFs every 10 ms for 3 s from the change: the last look at which either is beyond 1 % of `a0` or
+        // `b0` (0: none), and the most either is off.
+        let truth = lab.board.plant().params();
+        let off =
+            |lab: &Lab| a0_b0_off(lab.params(1), truth.a0, truth.b0).max(a0_b0_off(lab.params(2), truth.a0, truth.b0));
+        let (mut run, mut relock_s, mut worst) = (Vec::new(), 0.0, 0.0f64);
+        for k in 1..=300 {
+            let out = lab.run(100);
+            if k <= 10 {
+                run.extend(out);
+            }
+            worst = worst.max(off(&lab));
+            if off(&lab) > 0.01 {
+                relock_s = k as f64 * 0.01;
+            }
+        }
         // Not fed while the new filter settles (from the sample that applied the change, in `send`), then fed again.
         let settle = lab.isr.config().prefilter_settle_samples as usize;
         let unfed = run.iter().take_while(|o| o.estimator_input.is_none()).count();
-        assert_eq!(unfed + 1, settle, "{change}");
+        assert_eq!(unfed + 1 + restart as usize, settle, "{change}");
         let after = peak(&run[unfed..]);
         println!("{change}, the reading {dc_um} um off: peak u_f, y_f {before:?} before, {after:?} over 0.1 s after");
         // The new filter's own response to the same signals differs in size: within twice the peak before.
         assert!(after[0] < 2.0 * before[0] && after[1] < 2.0 * before[1], "{change}: {before:?} -> {after:?}");
-        // The restarted EKFs: the last time either is beyond 1 % of `a0` or `b0`, in 3 s.
-        let truth = lab.board.plant().params();
-        let off = |lab: &Lab, i: usize| a0_b0_off(lab.params(i), truth.a0, truth.b0);
-        let mut relock_s = 0.1;
-        for k in 1..=290 {
-            lab.run(100);
-            if off(&lab, 1) > 0.01 || off(&lab, 2) > 0.01 {
-                relock_s = 0.1 + k as f64 * 0.01;
-            }
+        let how = if restart { "restarted" } else { "kept" };
+        println!("  EKFs {how}: within 1 % of a0 and b0 from {relock_s:.2} s on, at most {worst:.1e} off");
+        if restart {
+            assert!(relock_s < 0.5, "{change}: EKFs relocked after {relock_s} s");
+        } else {
+            assert!(worst < 0.01, "{change}: the EKFs kept left 1 %: {worst:.1e}");
         }
-        println!("  EKFs within 1 % from {relock_s:.2} s on; at 3 s {:.1e}, {:.1e}", off(&lab, 1), off(&lab, 2));
-        assert!(relock_s < 0.5, "{change}: EKFs relocked after {relock_s} s");
     }
 }
 
 /// The estimators restarted right after a fault start from the settled pre-filter. The filters run on every reading,
 /// a fault's too: after 0.1 s of the probe over range (its end of range, about 50 um off the stage) the pre-filter
-/// still rings with it when the probe is back. `tuning prbs` (a restart) and `start` (the fault cleared) at once, as
-/// the random session of seed 1031 ended: measured before the wait and the states from the first sample, the
-/// filtered reading was 34.5 um at the restart with the reading within 0.1 um, and neither EKF came within 1 % of
-/// `a0` and `b0` in the first second (160 % off); with the states from the first sample but no wait, 0.80 s and
-/// 0.97 s (100-140 % off meanwhile); with the wait but the states at zero, 0.62 s and 0.56 s (18-20 % off); with both,
-/// 0.074 s after the wait, at most 0.3 % off from 0.1 s on. At `zeta_p` 0.02 the filter rings five times as long,
-/// and the wait is five times as long (177 ms): 0.022 s after it, at most 0.7 % off.
+/// still rings with it when the probe is back. `reset all` (a restart: the random session of seed 1031 ended with
+/// `tuning prbs` from another tuning) and `start` (the fault cleared) at once: measured before the wait and the
+/// states from the first sample, the filtered reading was 34.5 um at the restart with the reading within 0.1 um, and
+/// neither EKF came within 1 % of `a0` and `b0` in the first second (160 % off); with the states from the first
+/// sample but no wait, 0.80 s and 0.97 s (100-140 % off meanwhile); with the wait but the states at zero, 0.62 s and
+/// 0.56 s (18-20 % off); with both, 0.063 s after the wait, at most 0.3 % off from 0.1 s on (0.074 s with the states' variances `P0`'s). At `zeta_p`
+/// 0.02 the filter rings five times as long, and the wait is five times as long (177 ms): 0.046 s after it, at most
+/// 0.7 % off (0.022 s with `P0`'s).
 #[test]
 fn estimators_restarted_after_a_fault_start_from_the_settled_filter() {
     for (zeta, wait) in [("0.1", 354), ("0.02", 1769)] {
@@ -2006,7 +2079,7 @@ fn estimators_restarted_after_a_fault_start_from_the_settled_filter() {
         lab.run(1_000);
         lab.board.forced_probe_code = None;
         lab.run(5);
-        assert!(verdict(&lab.send("tuning prbs\n")).starts_with("ok tuning prbs"));
+        assert_eq!(verdict(&lab.send("reset all\n")), "ok reset rls,ekf,hekf,arx");
         assert!(verdict(&lab.send("start\n")).starts_with("ok start"));
         // Not fed from the fault's end (the sample that cleared it, in `send`) until ten of the pre-filter's slowest
         // time constants have passed: `1 / (zeta_p w_p)`, 3.5 ms for the preset's.
@@ -2101,16 +2174,6 @@ const SINE: &str =
 fn a_random_session_of_commands_keeps_every_promise() {
     let from_env = |name: &str| std::env::var(name).ok().map(|v| v.parse().unwrap_or_else(|_| panic!("{name}={v}")));
     random_session(from_env("SOAK_SEED").unwrap_or(0x9E37_79B9_7F4A_7C15), from_env("SOAK_LINES").unwrap_or(20_000));
-}
-
-/// The session of seed 1329 and 100 000 lines (while the random session's commands are what they are: a change to
-/// them makes it another session). At its end, the EKFs restarted by the preset's `tuning prbs` were primed with
-/// the stage ringing on the PRBS after the wait of a fault; the continuous EKF, its states' variances `P0`'s
-/// (1e-11 um^2), rejected its first samples, took a jump and stood at `b0` 10 % high 5 s later. Primed with the
-/// variance of one measurement (`Ekf::prime`), it is within 1 %.
-#[test]
-fn the_random_session_of_seed_1329_ends_with_the_ekfs_relocked() {
-    random_session(1329, 100_000);
 }
 
 /// [`a_random_session_of_commands_keeps_every_promise`] for the session of `seed`, `length` lines long.
@@ -2284,7 +2347,7 @@ fn random_session(seed: u64, length: u64) {
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
     // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
-    // the preset's commands (`nanopos-sim commands --tuning prbs`), `start`; 5 s later both EKFs within 1 % of the
+    // the preset's commands (`nanopos-sim commands --tuning prbs`), every estimator reset, `start`; 5 s later both EKFs within 1 % of the
     // truth's `a0` and `b0`, and nothing latched. A session of the same kind found (and these checks, the slew's
     // and the long numbers came with it): a pre-filter that rang for ever (`tune prefilter 1.4e-8 9.9 6e-9`, taken
     // before `PrefilterDesign::MAX_TIME_CONSTANT_S`) left a state from which the paper's pre-filter sent the
@@ -2292,7 +2355,9 @@ fn random_session(seed: u64, length: u64) {
     // (`a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command`). 60 seeds of this session then held.
     let preset = hal_sim::cmd::commands::run(&Tuning::preset("prbs").unwrap().into()).unwrap().lines;
     let defaults = ["stop", "record off", "limits -10 10 25000", "excite prbs 1", "select all", "adapt all"];
-    for line in defaults.iter().map(|l| l.to_string()).chain(preset).chain(["start".to_string()]) {
+    // `reset all`: the preset's commands restart only the estimators whose tuning they change.
+    let last = ["reset all", "start"].map(String::from);
+    for line in defaults.iter().map(|l| l.to_string()).chain(preset).chain(last) {
         let reply = lab.send(&format!("{line}\n"));
         assert!(verdict(&reply).starts_with("ok "), "{line}: {reply}\n{}", recent(&session));
     }
@@ -2870,5 +2935,47 @@ fn from_the_slowest_pre_filter_taken_the_paper_s_brings_the_ekfs_back() {
             println!("{slow}: {} a0 {a0:+.2e} b0 {b0:+.2e}", ESTIMATOR_NAMES[i]);
             assert!(a0.abs() < 0.01 && b0.abs() < 0.01, "{slow}: {}: {p:?}", ESTIMATOR_NAMES[i]);
         }
+    }
+}
+
+/// EKFs restarted (`reset ekf,hekf`) in the middle of a run, 300 times 3.7 ms further apart each, on the paper's PRBS
+/// after the payload came off (483 Hz; the initial parameters at 390 Hz): the time until both stay within 1 % of `a0`
+/// and `b0`, looked at every 10 ms for 2 s. A limit, kept measured: measured, the continuous EKF's median 0.33 s,
+/// 17 of 300 over 1 s, some not within 2 s; the hybrid's median 0.18 s, 40 of 300 over 1 s (most 1.65 s). With the
+/// states primed with `P0`'s variances instead of a measurement's: 0.36 s, 14; 0.18 s, 51 (most over 2 s). (That
+/// change came from the end of a random session, seed 1329 as the session was then, where the continuous EKF, primed
+/// on a 6 um ring with variances of 1e-11 um^2, stood at `b0` +9.6 % 5 s later.)
+#[test]
+fn ekfs_reset_in_the_middle_of_a_run_relock() {
+    let mut lab = Lab::with_stage(Some(StageParams::NO_PAYLOAD));
+    let truth = lab.board.plant().params();
+    lab.run(10_000);
+    let mut relock = [Vec::new(), Vec::new()];
+    for r in 0..300 {
+        lab.run(37 * r);
+        assert_eq!(verdict(&lab.send("reset ekf,hekf\n")), "ok reset ekf,hekf");
+        let mut last = [0usize; 2];
+        for k in 1..=200 {
+            lab.run(100);
+            for (e, l) in last.iter_mut().enumerate() {
+                if a0_b0_off(lab.params(e + 1), truth.a0, truth.b0) > 0.01 {
+                    *l = k;
+                }
+            }
+        }
+        for e in 0..2 {
+            relock[e].push(last[e] as f64 * 0.01);
+        }
+    }
+    for (e, times) in relock.iter_mut().enumerate() {
+        times.sort_by(f64::total_cmp);
+        let (n, over) = (times.len(), times.iter().filter(|&&t| t > 1.0).count());
+        let (median, name) = (times[n / 2], ["ekf", "hekf"][e]);
+        println!(
+            "{name}: median {median:.2} s, 90 % {:.2} s, over 1 s {over} of {n}, most {:.2} s",
+            times[n * 9 / 10],
+            times[n - 1]
+        );
+        assert!(median < 0.5 && over < n / 5, "{name}: median {median} s, {over} of {n} over 1 s");
     }
 }

@@ -16,6 +16,7 @@ pub mod tuning;
 
 pub use tuning::{Expected, Refused, TuningKey};
 
+use crate::control::EstimatorSet;
 use crate::estimator::{Adaptation, Health, PeLevel};
 use crate::filters::prefilter::PrefilterDesign;
 use crate::{Real, Scalar, StageParams};
@@ -66,6 +67,15 @@ impl Tuning {
             arx: arx::ArxDesign::default(),
             spike_ratio: crate::pipeline::FaultSettings::default().spike_ratio,
         }
+    }
+
+    /// The estimators (in [`crate::control::ESTIMATOR_NAMES`]' order) whose tuning differs between `self` and `to`:
+    /// those a change from one to the other restarts. Both EKFs have one tuning; the initial parameters are every
+    /// estimator's, the pre-filter the continuous-time RLS's own (the others read the pipeline's, which they identify
+    /// the same stage through), and the spike gate's ratio none's.
+    pub fn restarted_by(&self, to: &Tuning) -> EstimatorSet {
+        let (rls, ekf, arx) = (self.rls != to.rls, self.ekf != to.ekf, self.arx != to.arx);
+        EstimatorSet(rls as u8 | (ekf as u8) << 1 | (ekf as u8) << 2 | (arx as u8) << 3)
     }
 
     /// Design every estimator's configuration in the working scalar.
@@ -174,14 +184,24 @@ pub fn full_bank<T: Real>(cfg: &TuningConfig<T>) -> FullBank<T> {
     (crls::Crls::new(cfg.rls), ekf::Cekf::new(cfg.ekf), ekf::Hekf::new(cfg.ekf), arx::ArxEstimator::new(cfg.arx))
 }
 
-/// [`full_bank`]'s result written over `bank` in place, estimator by estimator: how the interrupt applies a new
-/// tuning. Building the bank and then moving it in copied its 1.3 KiB twice, much of it byte by byte (the fields
-/// after the flags are not word-aligned in the copies' ranges): 1 400 instructions of a sample's worst case.
-pub fn restart_bank<T: Real>(bank: &mut FullBank<T>, cfg: &TuningConfig<T>) {
-    bank.0.restart(&cfg.rls);
-    bank.1.restart(&cfg.ekf);
-    bank.2.restart(&cfg.ekf);
-    bank.3.restart(&cfg.arx);
+/// [`full_bank`]'s result written over the estimators `which` of `bank` in place, estimator by estimator: how the
+/// interrupt applies a new tuning to the estimators whose tuning it changes ([`Tuning::restarted_by`]; the others'
+/// is the same, and they run on). Building the bank and then moving it in copied its 1.3 KiB twice, much of it byte
+/// by byte (the fields after the flags are not word-aligned in the copies' ranges): 1 400 instructions of a sample's
+/// worst case.
+pub fn restart_bank<T: Real>(bank: &mut FullBank<T>, cfg: &TuningConfig<T>, which: EstimatorSet) {
+    if which.contains(0) {
+        bank.0.restart(&cfg.rls);
+    }
+    if which.contains(1) {
+        bank.1.restart(&cfg.ekf);
+    }
+    if which.contains(2) {
+        bank.2.restart(&cfg.ekf);
+    }
+    if which.contains(3) {
+        bank.3.restart(&cfg.arx);
+    }
 }
 
 /// Model (1)'s parameters from an estimator that integrates its continuous equations by one RK4 step of `step` a

@@ -20,7 +20,7 @@
 //! --tuning` reads: a replay then runs the estimators as the board ran them. Their damage refuses nothing (the
 //! samples are whole without them): the file is not written, and a note says why; so for a capture without them
 //! (a firmware before them), and for a tuning changed while the recording ran (the file holds the tuning at its
-//! start; the board's estimators restarted at the change, which a replay does not).
+//! start; the board's estimators whose tuning changed restarted there, which a replay does not).
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
 use nanopos_id::estimators::TuningKey;
@@ -455,8 +455,8 @@ impl TuningLines {
         let (first, end) = (rec.first_index(), rec.segments.last().map_or(0, |s| s.first_index + s.len));
         if let Some(at) = self.lines.iter().map(|l| l.at).filter(|&at| at > first && at < end).min() {
             rec.notes.push(format!(
-                "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording, its \
-                 estimators restarted there): the tuning file holds the tuning at the recording's start, and a \
+                "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording, the \
+                 estimators whose tuning it changed restarted there): the tuning file holds the tuning at the recording's start, and a \
                  replay of the samples from there on is not the board's",
                 show((at - first) as f64 / rec.header.rate_hz)
             ));
