@@ -123,10 +123,20 @@ fn a_new_tuning_restarts_every_estimator_as_if_built_afresh() {
 #[test]
 fn a_new_tuning_restarts_the_estimators_whose_tuning_it_changes() {
     let prbs = Tuning::preset("prbs").unwrap();
+    // The set compared key by key, bit by bit, is the set of designs that differ.
+    let designs_differ = |a: &Tuning, b: &Tuning| {
+        let (rls, ekf, arx) = (a.rls != b.rls, a.ekf != b.ekf, a.arx != b.arx);
+        EstimatorSet(rls as u8 | (ekf as u8) << 1 | (ekf as u8) << 2 | (arx as u8) << 3)
+    };
     let changed = |key: TuningKey, values: &[f64]| {
         let mut t = prbs;
         t.set(key, values).unwrap();
-        prbs.restarted_by(&t)
+        let set = prbs.restarted_by(&t);
+        // The spike gate's ratio is in no design.
+        if key != TuningKey::SpikeRatio {
+            assert_eq!(set, designs_differ(&prbs, &t), "{key:?}");
+        }
+        set
     };
     assert_eq!(prbs.restarted_by(&prbs), EstimatorSet(0));
     assert_eq!(prbs.restarted_by(&Tuning::preset("triangle").unwrap()), EstimatorSet(0b0110));
@@ -136,6 +146,17 @@ fn a_new_tuning_restarts_the_estimators_whose_tuning_it_changes() {
     assert_eq!(changed(TuningKey::RlsGamma, &[0.5]), EstimatorSet(0b0001));
     assert_eq!(changed(TuningKey::EkfR, &[2e-6]), EstimatorSet(0b0110));
     assert_eq!(changed(TuningKey::ArxLambda, &[0.999]), EstimatorSet(0b1000));
+    for key in TuningKey::ALL {
+        // Every key: the preset's values moved a little (whole numbers by one, `lambda` towards 1).
+        let moved = |v: f64| match key {
+            TuningKey::ArxLambda => v.sqrt(),
+            TuningKey::EkfReopen => v / 2.0, // the preset's is the ceiling's
+            _ if v.fract() == 0.0 => v + 1.0,
+            _ => 1.25 * v,
+        };
+        let values = prbs.get(key).map(moved);
+        assert_eq!(changed(key, &values[..key.len()]), key.estimators(), "{key:?}");
+    }
     // In place, as the interrupt does: the EKFs restarted as if built afresh, the RLS and the ARX untouched.
     let (board_settings, _) = Scenario::Prbs.settings(200.0, 1);
     let mut board = SimBoard::new(board_settings);

@@ -73,9 +73,13 @@ impl Tuning {
     /// those a change from one to the other restarts. Both EKFs have one tuning; the initial parameters are every
     /// estimator's, the pre-filter the continuous-time RLS's own (the others read the pipeline's, which they identify
     /// the same stage through), and the spike gate's ratio none's.
+    ///
+    /// Compared key by key ([`TuningKey::ALL`], every value a tuning can change; the designs' other fields are the
+    /// same in every tuning) and bit by bit: the designs' own comparison, field by field in software double
+    /// precision, took 1.3 KiB of the firmware's flash.
     pub fn restarted_by(&self, to: &Tuning) -> EstimatorSet {
-        let (rls, ekf, arx) = (self.rls != to.rls, self.ekf != to.ekf, self.arx != to.arx);
-        EstimatorSet(rls as u8 | (ekf as u8) << 1 | (ekf as u8) << 2 | (arx as u8) << 3)
+        let differs = |key: TuningKey| self.get(key).map(f64::to_bits) != to.get(key).map(f64::to_bits);
+        EstimatorSet(TuningKey::ALL.into_iter().filter(|&k| differs(k)).fold(0, |set, k| set | k.estimators().0))
     }
 
     /// Design every estimator's configuration in the working scalar.

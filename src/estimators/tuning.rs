@@ -24,6 +24,7 @@
 //! | `arx pe_floor_v2` | pre-filtered input power below which the estimate is held, V^2 | 0 or more |
 
 use super::Tuning;
+use crate::control::EstimatorSet;
 use crate::filters::prefilter::PrefilterDesign;
 use crate::StageParams;
 use core::fmt;
@@ -118,6 +119,19 @@ impl TuningKey {
             TuningKey::ArxLambda => ("arx", "lambda"),
             TuningKey::ArxMaxTrace => ("arx", "max_trace"),
             TuningKey::ArxPeFloor => ("arx", "pe_floor_v2"),
+        }
+    }
+
+    /// The estimators whose tuning this key is part of (bit `i`: [`crate::control::ESTIMATOR_NAMES`]`[i]`): the
+    /// initial parameters every estimator's, the pre-filter the continuous-time RLS's own (the others read the
+    /// pipeline's), the spike gate's ratio none's, a section's keys its estimators' (both EKFs share one).
+    pub const fn estimators(self) -> EstimatorSet {
+        match (self, self.path().0.as_bytes()) {
+            (TuningKey::Initial, _) => EstimatorSet::ALL,
+            (TuningKey::Prefilter, _) | (_, b"rls") => EstimatorSet(0b0001),
+            (_, b"ekf") => EstimatorSet(0b0110),
+            (_, b"arx") => EstimatorSet(0b1000),
+            _ => EstimatorSet(0),
         }
     }
 
