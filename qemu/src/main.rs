@@ -32,7 +32,7 @@ use cortex_m::peripheral::SYST;
 use cortex_m_rt::{entry, exception, ExceptionFrame};
 use defmt_semihosting as _;
 use nanopos_id::console::{Controller, REPLY_BYTES};
-use nanopos_id::control::parse;
+use nanopos_id::control::{parse, EstimatorSet};
 use nanopos_id::estimator::{Estimator, FilteredSample, Health};
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
 use nanopos_id::filters::{BiquadState, PrefilterState};
@@ -467,8 +467,9 @@ fn main() -> ! {
     //    costliest excitation, and the loop runs 900 samples more with it (`isr_body_multisine_f32`; the probe's code
     //    then stands still, and 1 000 such samples would latch a stuck probe). The interrupt's worst case is the
     //    largest of the maxima, less the lock and the cycle statistics around it.
-    //    Then, with the multisine running, `tune prefilter 100 500 0.1` (a new tuning and a new pipeline
-    //    configuration, the costliest change to apply: `isr_body_applying_change_multisine`), and the heaviest
+    //    Then, with the multisine running, `tune prefilter 100 500 0.1` with every estimator restarted (a new tuning
+    //    and a new pipeline configuration, as `tune stage` posts them: the costliest change to apply,
+    //    `isr_body_applying_change_multisine`), and the heaviest
     //    configuration the console accepts: `tune ekf substeps 64` and `tune prefilter 100 600 0.1` on the next two
     //    samples, and `limits -5 5 1000` (the limits in force, a new pipeline configuration) 500 samples later, once
     //    the estimators step again (`isr_body_heaviest_applying`: these four samples), and 900 samples in all after
@@ -490,6 +491,12 @@ fn main() -> ! {
             defmt::error!("{=str}: {=str}", line, reply.as_str());
             fail("a console command was not answered as expected");
         }
+    }
+    //    The first applied as `tune stage` posts its change: a new pipeline configuration and every estimator
+    //    restarted (`tune prefilter` restarts only the continuous-time RLS, whose own pre-filter it is; `tune stage`
+    //    itself takes a running estimator's estimate, which this controller has not got).
+    if let Some(c) = &mut heavy[0] {
+        c.restart = EstimatorSet::ALL;
     }
     let mut isr = Instrument::new(start.cfg, &prbs);
     if isr.post(Change { record: Some(None), ..Change::default() }).is_err() {
