@@ -750,11 +750,12 @@ fn the_widest_status_reply_fits_the_consoles_buffer_line_by_line() {
 
 /// A limit, kept measured: the continuous EKF takes one RK4 step of its Riccati equation per sample (SPEC 6.4), whose
 /// measurement term `P H' H P / R` grows stiff as `R` shrinks. With `R` a million times below the paper's it resets
-/// over and over on the board's PRBS, where the hybrid filter (four substeps, the update in Joseph form) resets once:
-/// its states taken from the first sample ([`nanopos_id::estimators::ekf::Ekf`]), whose rate is within 0.5 % of a
-/// converged filter's `x2` (3 nm over a sample where this `R` expects 1e-3 nm), it moves its parameters far, and its
-/// relock test resets it 5 s after the restart; it then converges. (Started at zero, it had taken the start for a
-/// change and was never reset.) A tuning that fits but diverges is the health logic's to report. At 1e-2 of the
+/// over and over on the board's PRBS, where the hybrid filter (four substeps, the update in Joseph form) converges
+/// without a reset (10 s after the restart: `a0` -0.04 %, `a1` +0.7 %, `b0` +0.8 %). Until the EKFs took every sample
+/// for the first 0.5 s after a restart, it reset once: its states taken from the first sample, whose rate is within
+/// 0.5 % of a converged filter's `x2` (3 nm over a sample where this `R` expects 1e-3 nm), it moved its parameters far,
+/// gated most samples, and its relock test reset it 5 s after the restart. (Started at zero, it had taken the start
+/// for a change and was never reset.) A tuning that fits but diverges is the health logic's to report. At 1e-2 of the
 /// paper's both converge without a reset, their innovation RMS at the noise 10 s after the start. (Started at zero,
 /// the continuous filter's start-up transient threw its innovation RMS beyond a metre, `INNOVATION_CEILING_UM`, and it
 /// reset 3 times; before that ceiling, its state stayed finite and its innovation RMS read NaN for good.)
@@ -790,9 +791,14 @@ fn a_far_smaller_r_breaks_the_continuous_ekf_and_not_the_hybrid() {
         let e = [p.a0 as f64 / t.a0, p.a1 as f64 / t.a1, p.b0 as f64 / t.b0].map(|x| (x - 1.0).abs());
         assert!(e.iter().all(|&e| e < 5e-3), "{p:?}");
     }
-    let (cekf, hekf) = resets("1.5e-12");
-    println!("R = 1.5e-12 um^2 over 10 s: the continuous EKF reset {cekf} times, the hybrid {hekf}");
-    assert!(cekf > 1000 && hekf == 1, "{cekf} {hekf}");
+    let st = run("1.5e-12");
+    let (cekf, hekf) = (st.estimates[1].1.numeric_resets, st.estimates[2].1.numeric_resets);
+    let (p, t) = (st.estimates[2].0, StageParams::PAYLOAD);
+    let off = [p.a0 as f64 / t.a0, p.a1 as f64 / t.a1, p.b0 as f64 / t.b0].map(|x| x - 1.0);
+    let [a0, a1, b0] = off;
+    println!("R = 1.5e-12 um^2 over 10 s: the continuous EKF reset {cekf} times, the hybrid {hekf} (a0 {a0:+.1e} a1 {a1:+.1e} b0 {b0:+.1e})");
+    assert!(cekf > 1000 && hekf == 0, "{cekf} {hekf}");
+    assert!(off.iter().all(|e| e.abs() < 0.01), "the hybrid converged: {p:?}");
 }
 
 /// A large excitation after a long pause: two minutes without excitation (the payload coming off meanwhile), then a
@@ -2961,11 +2967,13 @@ fn from_the_slowest_pre_filter_taken_the_paper_s_brings_the_ekfs_back() {
 
 /// EKFs restarted (`reset ekf,hekf`) in the middle of a run, 300 times 3.7 ms further apart each, on the paper's PRBS
 /// after the payload came off (483 Hz; the initial parameters at 390 Hz): the time until both stay within 1 % of `a0`
-/// and `b0`, looked at every 10 ms for 2 s. A limit, kept measured: measured, the continuous EKF's median 0.33 s,
-/// 17 of 300 over 1 s, some not within 2 s; the hybrid's median 0.18 s, 40 of 300 over 1 s (most 1.65 s). With the
-/// states primed with `P0`'s variances instead of a measurement's: 0.36 s, 14; 0.18 s, 51 (most over 2 s). (That
-/// change came from the end of a random session, seed 1329 as the session was then, where the continuous EKF, primed
-/// on a 6 um ring with variances of 1e-11 um^2, stood at `b0` +9.6 % 5 s later.)
+/// and `b0`, looked at every 10 ms for 2 s. Measured: both EKFs' median 0.07 s, 90 % within 0.14 s, one of 300 over
+/// 1 s (1.02 s). Until the gate was paused for the first 0.5 s after a start or a reset (`EkfHealthDesign`), the
+/// restarted filters met innovations hundreds of times their `S` and gated half their samples, learning from those
+/// their wrong model fitted: the continuous EKF's median 0.33 s, 17 of 300 over 1 s, some not within 2 s; the
+/// hybrid's 0.18 s, 40 over 1 s. (With the states primed with `P0`'s variances instead of a measurement's, then:
+/// 0.36 s, 14; 0.18 s, 51; that change came from the end of a random session, seed 1329 as the session was then,
+/// where the continuous EKF, primed on a 6 um ring with variances of 1e-11 um^2, stood at `b0` +9.6 % 5 s later.)
 #[test]
 fn ekfs_reset_in_the_middle_of_a_run_relock() {
     let mut lab = Lab::with_stage(Some(StageParams::NO_PAYLOAD));
@@ -2997,6 +3005,6 @@ fn ekfs_reset_in_the_middle_of_a_run_relock() {
             times[n * 9 / 10],
             times[n - 1]
         );
-        assert!(median < 0.5 && over < n / 5, "{name}: median {median} s, {over} of {n} over 1 s");
+        assert!(median < 0.15 && over < n / 50, "{name}: median {median} s, {over} of {n} over 1 s");
     }
 }
