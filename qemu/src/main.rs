@@ -472,13 +472,17 @@ fn main() -> ! {
     //    `isr_body_applying_change_multisine`), and the heaviest
     //    configuration the console accepts: `tune ekf substeps 64` and `tune prefilter 100 600 0.1` on the next two
     //    samples, and `limits -5 5 1000` (the limits in force, a new pipeline configuration) 500 samples later, once
-    //    the estimators step again (`isr_body_heaviest_applying`: these four samples), and 900 samples in all after
-    //    the first three (`isr_body_heaviest_f32`; the first 266 without the estimators) on which the
-    //    probe replays the run's last 900 codes backwards: they move (a probe standing still for 1 000 samples would
-    //    latch a fault), and they do not follow the command, so the EKFs' gates reject samples, the continuous filter
-    //    taking its step again without the measurement (checked below): the costliest branch of a sample, with the
-    //    largest substep count. Their change detection does not fire here (logged); its reopening of a covariance
-    //    sets a few entries.
+    //    the estimators step again (`isr_body_heaviest_applying`: these four samples), and `HEAVIEST` samples in all
+    //    after the first three (`isr_body_heaviest_f32`; the first 266 without the estimators) on which the probe
+    //    replays the run's last codes backwards: they move (a probe standing still for 1 000 samples would latch a
+    //    fault), and they do not follow the command, so the EKFs' gates reject samples, the continuous filter taking
+    //    its step again without the measurement (checked below): the costliest branch of a sample, with the largest
+    //    substep count. The EKFs, restarted by these changes, take every sample for their first 0.5 s
+    //    (`EkfHealthDesign::holdoff_s`), and their gates' level follows the misfit meanwhile: the phase runs 900
+    //    samples beyond that, over which the reading is stepped by 20 000 codes, whose transient the gates reject.
+    //    Their change detection may fire (logged); its reopening of a covariance sets a few entries.
+    // The pre-filter's wait (266 samples), the EKFs' 0.5 s without a gate after their restart, then 900 samples.
+    const HEAVIEST: usize = 266 + 5_000 + 900;
     let mut heavy: [Option<Change<f32>>; 4] = Default::default();
     let lines =
         ["tune prefilter 100 500 0.1", "tune ekf substeps 64", "tune prefilter 100 600 0.1", "limits -5 5 1000"];
@@ -502,7 +506,7 @@ fn main() -> ! {
     if isr.post(Change { record: Some(None), ..Change::default() }).is_err() {
         fail("the mailbox of a new instrument is full");
     }
-    let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board, heavy: false };
+    let mut board = VectorBoard { vectors: &vectors, k: 0, description: vectors.board, heavy: false, offset: 0 };
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
     let mut pending = changes.iter_mut().filter_map(Option::take).peekable();
     // Samples left before the next of phase 1's changes.
@@ -517,7 +521,7 @@ fn main() -> ! {
     let mut ended = None;
     // At the multisine's phase's end: the status snapshot's count, its faults, the estimators' health.
     let mut at_multisine_end = None;
-    // Samples since the last change: the multisine's phase ends at 900, the heaviest configuration's at 1 800.
+    // Samples since the last change: the multisine's phase ends at 900, the heaviest configuration's `HEAVIEST` later.
     let mut after_changes = 0;
     // The changes of the last phase applied so far.
     let mut heavy_applied = 0usize;
@@ -560,7 +564,7 @@ fn main() -> ! {
                         spacing = 400;
                     }
                 } else if between {
-                } else if after_changes == 1800 {
+                } else if after_changes == 900 + HEAVIEST {
                     break;
                 } else {
                     after_changes += 1;
@@ -568,6 +572,10 @@ fn main() -> ! {
             }
             // Between phase 1's changes the probe's code moves by the run's last two (standing still for 1 000
             // samples, with the excitation on, would latch a stuck probe).
+            // The last 900 of the heaviest phase with the reading stepped by 20 000 codes (30.5 um, within the
+            // probe's range): the EKFs' gates, whose level the samples before set, reject its transient (40 samples;
+            // 13 for a step of 3 000 codes, none without a step).
+            board.offset = if after_changes >= 900 + HEAVIEST - 900 { 20_000 } else { 0 };
             board.k = if board.heavy {
                 n - 1 - (after_changes - 900)
             } else if between {
@@ -682,6 +690,8 @@ struct VectorBoard<'a> {
     description: BoardDescription,
     /// In the last phase (the probe's codes replayed backwards once its changes are applied).
     heavy: bool,
+    /// Added to the probe's code: a step in the reading, late in the last phase.
+    offset: u32,
 }
 
 impl StageBoard for VectorBoard<'_> {
@@ -692,7 +702,7 @@ impl StageBoard for VectorBoard<'_> {
         self.description
     }
     fn read_probe(&mut self) -> u32 {
-        self.vectors.sample(self.k).0
+        self.vectors.sample(self.k).0 + self.offset
     }
     fn write_amplifier(&mut self, _code: u32) {
         #[cfg(feature = "command-latency")]
