@@ -23,6 +23,7 @@
 //! start; the board's estimators whose tuning changed restarted there, which a replay does not).
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
+use nanopos_id::control::ESTIMATOR_NAMES;
 use nanopos_id::estimators::TuningKey;
 use nanopos_id::record::{
     checked_body, decode_frame, read_tuning_line, RawSample, RecordHeader, TuningLine, TuningLineError, END_TAG,
@@ -442,6 +443,25 @@ impl TuningLines {
         }
     }
 
+    /// Which estimators the change of the tuning at board sample `at` restarted, as the board's console decides it
+    /// ([`TuningKey::estimators`] of each key whose values at `at` differ from those before), in words.
+    fn restarted_at(&self, at: u64) -> String {
+        let last = |key: TuningKey, when: &dyn Fn(u64) -> bool| {
+            self.lines.iter().rev().find(|l| l.key == key && when(l.at)).map(|l| l.values.map(f64::to_bits))
+        };
+        let set = TuningKey::ALL
+            .into_iter()
+            .filter(|&key| matches!((last(key, &|t| t == at), last(key, &|t| t < at)), (Some(a), Some(b)) if a != b))
+            .fold(0, |set, key| set | key.estimators().0);
+        let names: Vec<&str> =
+            ESTIMATOR_NAMES.iter().enumerate().filter(|&(i, _)| set & (1 << i) != 0).map(|(_, n)| *n).collect();
+        match names.len() {
+            0 => "no estimator's tuning changed".to_string(),
+            4 => "every estimator restarted there".to_string(),
+            _ => format!("{} restarted there", names.join(",")),
+        }
+    }
+
     /// The tuning file of `rec` decoded into `out`, to commit with the samples' files, when the recording carried
     /// every key intact: each key's last line in effect at the recording's first decoded sample. Else a note in
     /// `rec` says why there is none; and a change of the tuning inside the recording is noted with its sample.
@@ -455,10 +475,11 @@ impl TuningLines {
         let (first, end) = (rec.first_index(), rec.segments.last().map_or(0, |s| s.first_index + s.len));
         if let Some(at) = self.lines.iter().map(|l| l.at).filter(|&at| at > first && at < end).min() {
             rec.notes.push(format!(
-                "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording, the \
-                 estimators whose tuning it changed restarted there): the tuning file holds the tuning at the recording's start, and a \
-                 replay of the samples from there on is not the board's",
-                show((at - first) as f64 / rec.header.rate_hz)
+                "the board's tuning changed at board sample {at} (t = {} s; a `tune` or `tuning` while recording: {}): \
+                 the tuning file holds the tuning at the recording's start, and a replay of the samples from there on \
+                 is not the board's",
+                show((at - first) as f64 / rec.header.rate_hz),
+                self.restarted_at(at)
             ));
         }
         let keys: Vec<(TuningKey, [f64; 5])> = TuningKey::ALL
@@ -736,9 +757,26 @@ mod tests {
             let mut changed = good.clone();
             changed.insert(place, r_at(at));
             let (written, notes) = decode(&changed);
-            let note = format!("the board's tuning changed at board sample {at} (t = {} s;", (at - 1000) as f64 / 1e4);
+            let t = (at - 1000) as f64 / 1e4;
+            let note = format!(
+                "the board's tuning changed at board sample {at} (t = {t} s; a `tune` or `tuning` while \
+                 recording: ekf,hekf restarted there)"
+            );
             assert!(written && notes.contains(&note) == (at < 1500), "{at}: {notes}");
             assert!(std::fs::read_to_string(tuning_path(&out)).unwrap().contains("\nr = 2.2e-6\n"), "{at}");
+        }
+        // What the change restarted, as the console decides it: by the keys whose values changed.
+        for (key, values, said) in [
+            (TuningKey::SpikeRatio, &[8.0][..], "no estimator's tuning changed"),
+            (TuningKey::Initial, &[6e5, 70.0, 6e6][..], "every estimator restarted there"),
+            (TuningKey::Prefilter, &[100.0, 500.0, 0.1][..], "rls restarted there"),
+        ] {
+            let mut line = nanopos_id::text::TextBuf::<256>::default();
+            nanopos_id::record::write_tuning_line(&mut line, 1096, key, values).unwrap();
+            let mut changed = good.clone();
+            changed.insert(frame + 2, line.as_str().as_bytes().to_vec());
+            let (written, notes) = decode(&changed);
+            assert!(written && notes.contains(&format!("while recording: {said})")), "{key:?}: {notes}");
         }
     }
 
