@@ -1005,7 +1005,7 @@ struct Names(EstimatorSet);
 
 impl fmt::Display for Names {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        list(f, ESTIMATOR_NAMES.iter().enumerate().filter(|(i, _)| self.0.contains(*i)).map(|(_, n)| *n))
+        list(f, self.0.names())
     }
 }
 

@@ -51,6 +51,17 @@ impl EstimatorSet {
     pub fn contains(self, i: usize) -> bool {
         self.0 & (1 << i) != 0
     }
+
+    /// The estimators a change of the tuning values `keys` restarts: the union of their
+    /// [`crate::estimators::TuningKey::estimators`].
+    pub fn restarted_by(keys: impl Iterator<Item = crate::estimators::TuningKey>) -> EstimatorSet {
+        EstimatorSet(keys.fold(0, |set, key| set | key.estimators().0))
+    }
+
+    /// The names of the estimators in the set, in [`ESTIMATOR_NAMES`]' order.
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        ESTIMATOR_NAMES.iter().enumerate().filter(move |&(i, _)| self.contains(i)).map(|(_, n)| *n)
+    }
 }
 
 /// The excitation a command asks for.

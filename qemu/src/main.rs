@@ -575,7 +575,8 @@ fn main() -> ! {
             // The last 900 of the heaviest phase with the reading stepped by 20 000 codes (30.5 um, within the
             // probe's range): the EKFs' gates, whose level the samples before set, reject its transient (40 samples;
             // 13 for a step of 3 000 codes, none without a step).
-            board.offset = if after_changes >= 900 + HEAVIEST - 900 { 20_000 } else { 0 };
+            // (The phase runs from 900 to 900 + `HEAVIEST` samples after the changes.)
+            board.offset = if after_changes >= HEAVIEST { 20_000 } else { 0 };
             board.k = if board.heavy {
                 n - 1 - (after_changes - 900)
             } else if between {

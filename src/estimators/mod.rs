@@ -79,7 +79,7 @@ impl Tuning {
     /// precision, took 1.3 KiB of the firmware's flash.
     pub fn restarted_by(&self, to: &Tuning) -> EstimatorSet {
         let differs = |key: TuningKey| self.get(key).map(f64::to_bits) != to.get(key).map(f64::to_bits);
-        EstimatorSet(TuningKey::ALL.into_iter().filter(|&k| differs(k)).fold(0, |set, k| set | k.estimators().0))
+        EstimatorSet::restarted_by(TuningKey::ALL.into_iter().filter(|&k| differs(k)))
     }
 
     /// Design every estimator's configuration in the working scalar.

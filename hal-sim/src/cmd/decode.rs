@@ -23,7 +23,7 @@
 //! start; the board's estimators whose tuning changed restarted there, which a replay does not).
 
 use super::{clip, fail, io_reason, show, CliError, OutputFile};
-use nanopos_id::control::ESTIMATOR_NAMES;
+use nanopos_id::control::EstimatorSet;
 use nanopos_id::estimators::TuningKey;
 use nanopos_id::record::{
     checked_body, decode_frame, read_tuning_line, RawSample, RecordHeader, TuningLine, TuningLineError, END_TAG,
@@ -449,12 +449,11 @@ impl TuningLines {
         let last = |key: TuningKey, when: &dyn Fn(u64) -> bool| {
             self.lines.iter().rev().find(|l| l.key == key && when(l.at)).map(|l| l.values.map(f64::to_bits))
         };
-        let set = TuningKey::ALL
-            .into_iter()
-            .filter(|&key| matches!((last(key, &|t| t == at), last(key, &|t| t < at)), (Some(a), Some(b)) if a != b))
-            .fold(0, |set, key| set | key.estimators().0);
-        let names: Vec<&str> =
-            ESTIMATOR_NAMES.iter().enumerate().filter(|&(i, _)| set & (1 << i) != 0).map(|(_, n)| *n).collect();
+        let set =
+            EstimatorSet::restarted_by(TuningKey::ALL.into_iter().filter(
+                |&key| matches!((last(key, &|t| t == at), last(key, &|t| t < at)), (Some(a), Some(b)) if a != b),
+            ));
+        let names: Vec<&str> = set.names().collect();
         match names.len() {
             0 => "no estimator's tuning changed".to_string(),
             4 => "every estimator restarted there".to_string(),
