@@ -3040,4 +3040,3 @@ fn the_rls_reset_in_the_middle_of_a_run_relocks_as_from_rest() {
         assert!((t - from_rest).abs() <= 0.5, "reset {r}: {t} s against {from_rest} s from rest");
     }
 }
-
