@@ -473,8 +473,8 @@ mod tests {
             let rms = libm::sqrt(power / samples as f64);
             std::println!("multisine {lo}-{hi} Hz, 2 V: RMS {rms:.4} V, peak {peak:.3} V ({:.2} of the amplitude), f32 off by {worst32:.1e} V", peak / 2.0);
             assert!((rms - 2.0 / libm::sqrt(2.0)).abs() < 0.01, "{lo}-{hi} Hz: RMS {rms}");
-            // The sum is the tone at `f_lo` times the envelope `|sum_j exp(i (j theta + phi_j))| / sqrt(N)`, whatever the
-            // band: with these phases its maximum over `theta` is 1.3545 (computed on 20 000 points of a cycle).
+            // The sum is the tone at `f_lo` times the envelope `|sum_j exp(i (j theta + phi_j))| / sqrt(N)`, whatever
+            // the band: with these phases its maximum over `theta` is 1.3545 (computed on 20 000 points of a cycle).
             assert!(peak < 1.3546 * 2.0, "{lo}-{hi} Hz: peak {peak}");
             // f32: the two phases to 2.3e-8 rad and their sines to 1e-7 put tone j off by up to about (1 + j) 1.2e-7;
             // at A / sqrt(N) a tone, all aligned, 1.1e-5 A; the rotations' rounding adds a few ulps a tone (measured

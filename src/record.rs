@@ -28,9 +28,9 @@
 //!   first sample they ran on (here the recording's first), the words of the console's `tune`, then each value as
 //!   the 16 hex digits of its f64 bits (exact, so that a replay with them is the board's to the bit); and again, all
 //!   of them, after each change of the tuning while the recording runs, with the sample the change applied to (the
-//!   estimators whose tuning it changed restarted there, which a replay from the start does not do). `decode` turns the recording's first
-//!   into the TOML file `identify --tuning` reads. Their tag is not `# nanopos-record`: a decoder of the first v2
-//!   firmware takes every line that starts so for the next recording's header, and skips these.
+//!   estimators whose tuning it changed restarted there, which a replay from the start does not do). `decode` turns the
+//!   recording's first into the TOML file `identify --tuning` reads. Their tag is not `# nanopos-record`: a decoder of
+//!   the first v2 firmware takes every line that starts so for the next recording's header, and skips these.
 //!
 //! Any other line (command replies, `ok ...`) is not part of the recording: a capture of the whole serial stream
 //! converts as is.

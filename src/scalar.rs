@@ -7,7 +7,8 @@ use core::ops::{AddAssign, Div, MulAssign, Neg, Sub, SubAssign};
 use num_traits::{Float, FloatConst, One, Zero};
 
 /// The arithmetic a kernel needs when it uses nothing but `+ - * /` and comparisons (the biquad, the discrete
-/// RLS): implemented by `f32`, `f64` and the fixed-point [`crate::fixed::Fx`], so one generic implementation serves all.
+/// RLS): implemented by `f32`, `f64` and the fixed-point [`crate::fixed::Fx`], so one generic implementation serves
+/// all.
 pub trait Scalar:
     Copy
     + Default
@@ -101,8 +102,8 @@ impl Real for f32 {
 
     /// In f32 throughout: libm's `sinf`/`cosf`/`sincosf` evaluate their kernels in f64, in software on the M4F
     /// (about 1 200 instructions a `sinf`). The phase is reduced in integers to the nearest quarter cycle `q` and a
-    /// remainder `x` in `[-pi/4, pi/4]` (to the nearest 2^-27 cycle, 2.3e-8 rad), where Taylor polynomials to `x^9` and `x^8`
-    /// are within 2e-9 and 3e-8 of `sin x` and `cos x`; `q` then swaps and negates them.
+    /// remainder `x` in `[-pi/4, pi/4]` (to the nearest 2^-27 cycle, 2.3e-8 rad), where Taylor polynomials to `x^9` and
+    /// `x^8` are within 2e-9 and 3e-8 of `sin x` and `cos x`; `q` then swaps and negates them.
     #[inline]
     fn phase_sin_cos(phase: u64) -> (Self, Self) {
         let q = phase.wrapping_add(1 << 61) >> 62;

@@ -2028,10 +2028,11 @@ fn a0_b0_off(p: StageParams<f32>, a0: f64, b0: f64) -> f64 {
 /// well (`reset`, or `tune stage`, which changes the initial parameters too), they start from it. Measured, the time
 /// from the change until both EKFs stay within 1 % of `a0` and `b0`: kept, they never leave it (at most 0.30 % and
 /// 0.55 % off, the second the bias of a pre-filter centred at 600 Hz, off the 423 Hz resonance); restarted, 0.08 s
-/// and 0.10 s. Restarted, without the wait (the states taken from the first sample) 0.10 s and 1.16 s; with the wait but the states at zero, 1.29 s after the first; before
-/// either (the EKFs started at zero, fed at once) 0.10 s and 0.10 s here, but at the end of the random session of
-/// seed 1031 (100 000 lines), and in `estimators_restarted_after_a_fault_start_from_the_settled_filter`, both EKFs
-/// settled on `b0` below zero until their relock test reset them 5 s later.
+/// and 0.10 s. Restarted, without the wait (the states taken from the first sample) 0.10 s and 1.16 s; with the wait
+/// but the states at zero, 1.29 s after the first; before either (the EKFs started at zero, fed at once) 0.10 s and
+/// 0.10 s here, but at the end of the random session of seed 1031 (100 000 lines), and in
+/// `estimators_restarted_after_a_fault_start_from_the_settled_filter`, both EKFs settled on `b0` below zero until their
+/// relock test reset them 5 s later.
 #[test]
 fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
     let changes = [(20.0, "tune prefilter 50 450 0.1"), (-15.0, "tune prefilter 200 600 0.2")];
@@ -2093,9 +2094,9 @@ fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
 /// states from the first sample, the filtered reading was 34.5 um at the restart with the reading within 0.1 um, and
 /// neither EKF came within 1 % of `a0` and `b0` in the first second (160 % off); with the states from the first
 /// sample but no wait, 0.80 s and 0.97 s (100-140 % off meanwhile); with the wait but the states at zero, 0.62 s and
-/// 0.56 s (18-20 % off); with both, 0.063 s after the wait, at most 0.3 % off from 0.1 s on (0.074 s with the states' variances `P0`'s). At `zeta_p`
-/// 0.02 the filter rings five times as long, and the wait is five times as long (177 ms): 0.046 s after it, at most
-/// 0.7 % off (0.022 s with `P0`'s).
+/// 0.56 s (18-20 % off); with both, 0.063 s after the wait, at most 0.3 % off from 0.1 s on (0.074 s with the states'
+/// variances `P0`'s). At `zeta_p` 0.02 the filter rings five times as long, and the wait is five times as long (177
+/// ms): 0.046 s after it, at most 0.7 % off (0.022 s with `P0`'s).
 #[test]
 fn estimators_restarted_after_a_fault_start_from_the_settled_filter() {
     for (zeta, wait) in [("0.1", 354), ("0.02", 1769)] {
@@ -2374,10 +2375,10 @@ fn random_session(seed: u64, length: u64) {
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
     // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
-    // the preset's commands (`nanopos-sim commands --tuning prbs`), every estimator reset, `start`; 5 s later both EKFs within 1 % of the
-    // truth's `a0` and `b0`, and nothing latched. A session of the same kind found (and these checks, the slew's
-    // and the long numbers came with it): a pre-filter that rang for ever (`tune prefilter 1.4e-8 9.9 6e-9`, taken
-    // before `PrefilterDesign::MAX_TIME_CONSTANT_S`) left a state from which the paper's pre-filter sent the
+    // the preset's commands (`nanopos-sim commands --tuning prbs`), every estimator reset, `start`; 5 s later both EKFs
+    // within 1 % of the truth's `a0` and `b0`, and nothing latched. A session of the same kind found (and these checks,
+    // the slew's and the long numbers came with it): a pre-filter that rang for ever (`tune prefilter 1.4e-8 9.9 6e-9`,
+    // taken before `PrefilterDesign::MAX_TIME_CONSTANT_S`) left a state from which the paper's pre-filter sent the
     // restarted continuous EKF to `b0` = -4e5; and a reply whose notes overflowed the console's buffer
     // (`a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command`). 60 seeds of this session then held.
     let preset = hal_sim::cmd::commands::run(&Tuning::preset("prbs").unwrap().into()).unwrap().lines;
@@ -2831,8 +2832,8 @@ fn a_reply_whose_notes_do_not_fit_keeps_its_verdict_and_its_command() {
 /// byte changed, garbage inserted, `\r\n` endings, the end line lost, the file cut anywhere), 400 ways: `decode`
 /// never panics; it refuses (one line naming the problem, and no output left where it refuses) or decodes, and what
 /// it writes is the board's samples: every row of every file it writes has the intact capture's `u` and `y` of that
-/// sample, to the bit (a file's time starts at 0 with its segment). With `--segments` (`Damage::Skip`) a frame damaged costs that frame (and the next, where the damage
-/// took the line's end) and no more.
+/// sample, to the bit (a file's time starts at 0 with its segment). With `--segments` (`Damage::Skip`) a frame damaged
+/// costs that frame (and the next, where the damage took the line's end) and no more.
 #[test]
 fn a_damaged_capture_is_refused_or_decoded_to_the_boards_samples_never_a_panic() {
     use hal_sim::cmd::decode::{run, Damage};
@@ -2969,12 +2970,13 @@ fn from_the_slowest_pre_filter_taken_the_paper_s_brings_the_ekfs_back() {
 /// after the payload came off (483 Hz; the initial parameters at 390 Hz): the time until both stay within 1 % of `a0`
 /// and `b0`, looked at every 10 ms for 2 s. Measured: both EKFs' median 0.07 s, 90 % within 0.14 s, one of 300 over
 /// 1 s (1.02 s: the 48th restart, where both were within 1 % from 0.05 s on and then both, alike, drifted to `b0`
-/// +1.1-1.2 % between 0.8 and 1.0 s, a young covariance following the data, not a failed lock). Until the gate was paused for the first 0.5 s after a start or a reset (`EkfHealthDesign`), the
-/// restarted filters met innovations hundreds of times their `S` and gated half their samples, learning from those
-/// their wrong model fitted: the continuous EKF's median 0.33 s, 17 of 300 over 1 s, some not within 2 s; the
-/// hybrid's 0.18 s, 40 over 1 s. (With the states primed with `P0`'s variances instead of a measurement's, then:
-/// 0.36 s, 14; 0.18 s, 51; that change came from the end of a random session, seed 1329 as the session was then,
-/// where the continuous EKF, primed on a 6 um ring with variances of 1e-11 um^2, stood at `b0` +9.6 % 5 s later.)
+/// +1.1-1.2 % between 0.8 and 1.0 s, a young covariance following the data, not a failed lock). Until the gate was
+/// paused for the first 0.5 s after a start or a reset (`EkfHealthDesign`), the restarted filters met innovations
+/// hundreds of times their `S` and gated half their samples, learning from those their wrong model fitted: the
+/// continuous EKF's median 0.33 s, 17 of 300 over 1 s, some not within 2 s; the hybrid's 0.18 s, 40 over 1 s. (With the
+/// states primed with `P0`'s variances instead of a measurement's, then: 0.36 s, 14; 0.18 s, 51; that change came from
+/// the end of a random session, seed 1329 as the session was then, where the continuous EKF, primed on a 6 um ring with
+/// variances of 1e-11 um^2, stood at `b0` +9.6 % 5 s later.)
 #[test]
 fn ekfs_reset_in_the_middle_of_a_run_relock() {
     let mut lab = Lab::with_stage(Some(StageParams::NO_PAYLOAD));

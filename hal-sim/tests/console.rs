@@ -122,9 +122,9 @@ fn a_session_on_a_stage_of_ones_own() {
 
 /// `--payload-off S|never` and `--gain-drift PCT_PER_MIN`: the payload taken off after 0.6 s, which the hybrid EKF
 /// detects (one change; in the first 0.5 s after a start the EKFs take every sample, and taken off at 0.3 s the
-/// payload was followed without a change detected); never taken off, with the gain drifting at 50 % a second: 1 s later the hybrid EKF has the
-/// payload's `a0` and about 1.5 times its `b0` (measured 1.48). Both sessions at once, a second of the board's time
-/// each. Bad values refused with what the options take.
+/// payload was followed without a change detected); never taken off, with the gain drifting at 50 % a second: 1 s later
+/// the hybrid EKF has the payload's `a0` and about 1.5 times its `b0` (measured 1.48). Both sessions at once, a second
+/// of the board's time each. Bad values refused with what the options take.
 #[test]
 fn a_session_with_the_payload_off_when_asked_and_a_drifting_gain() {
     let mut sessions =

@@ -339,8 +339,8 @@ fn drift_detection_relocks_the_triangle() {
 /// two f64 estimates agree to 1e-6. They are not the same arithmetic: the dense filter integrates the Riccati
 /// equation by RK4 (the SPEC's rule), the structured one propagates the covariance through the Jacobian of the
 /// state's RK4 map with a leading-order `Qd` (`EkfCore::predict`; per step they agree to 1.8e-2 of the process
-/// noise's part and 2e-4 of the rest, tested in `estimators::ekf`). Measured: a0 4.2e-8, a1 1.7e-7, b0 3.7e-7. A wrong term in `F`
-/// or the Joseph form moves the estimate by 1e-3 or more.
+/// noise's part and 2e-4 of the rest, tested in `estimators::ekf`). Measured: a0 4.2e-8, a1 1.7e-7, b0 3.7e-7. A wrong
+/// term in `F` or the Joseph form moves the estimate by 1e-3 or more.
 #[test]
 fn the_dense_hekf_computes_the_same_filter_as_the_structured_one() {
     use hal_sim::sim::{Scenario, Simulation};

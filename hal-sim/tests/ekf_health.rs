@@ -546,8 +546,9 @@ fn drift_after_prbs<E64: Estimator<f64>, E32: Estimator<f32>>(
 /// largest parameter change over 30.5-40 s, rls / arx / hekf / cekf: 0 for all. With the power test alone, at 100,
 /// 450 and 1 000 Hz: 20 / 274 / 2.3 / 2.2 %, 0.5 / 278 / 0.1 / 0.1 % and 391 / 284 / 1.6 / 1.6 %; with the spread
 /// measured on the pre-filtered input `u_f` instead (as it once was), whose curvature below about 60 Hz is the
-/// DAC's rounding, at 5, 20 and 50 Hz: 41 / 240 / 1.1 / 1.1 %, 5 / 80 / 2.9 / 2.8 % and 11 / 267 / 2.9 / 2.9 %. Before the monitor sees the sine (30-30.5 s) the estimates move
-/// at most 0.8 % (the EKFs at 450 Hz) but for the RLS at 1 kHz, 3.6 %: held to 5 %.
+/// DAC's rounding, at 5, 20 and 50 Hz: 41 / 240 / 1.1 / 1.1 %, 5 / 80 / 2.9 / 2.8 % and 11 / 267 / 2.9 / 2.9 %. Before
+/// the monitor sees the sine (30-30.5 s) the estimates move at most 0.8 % (the EKFs at 450 Hz) but for the RLS at 1
+/// kHz, 3.6 %: held to 5 %.
 #[test]
 fn a_single_sine_starves_every_estimator() {
     use nanopos_id::estimators::arx::{ArxDesign, ArxEstimator};

@@ -167,9 +167,9 @@ fn identify_reports_a_window_the_excitation_monitor_held() {
 }
 
 /// On a stage at 1 kHz, far from the initial parameters (423 Hz), the ARX's discrete model has no continuous
-/// equivalent for most of its first 2 s, and it reports the last parameters that had, near the initial ones: the summary
-/// says the share of the window they were held (`held`), `HEALTH.csv` says `held`, and a note says what the means
-/// are; once it has converged, none.
+/// equivalent for most of its first 2 s, and it reports the last parameters that had, near the initial ones: the
+/// summary says the share of the window they were held (`held`), `HEALTH.csv` says `held`, and a note says what the
+/// means are; once it has converged, none.
 #[test]
 fn identify_reports_a_window_where_the_arx_held_its_parameters() {
     use hal_sim::{lab::Lab, sim::Simulation};

@@ -172,8 +172,8 @@ impl<T: Real> TuningConfig<T> {
     /// bounds are divided by the squares of the initial parameters, `R` is inverted, and a value each range
     /// accepts can still leave f32's range (`tune initial 1e-20 70 6e6`: `q_b0 / b0^2 = 5e48`; `tune ekf r 1e-45`:
     /// `1 / R` infinite). An estimator designed so would reset on every sample; the console and `--tuning` files
-    /// refuse such a tuning instead. A tuning that fits but diverges on the data (a `Q` far too large) is the health logic's to report
-    /// (`resets=` in `status`).
+    /// refuse such a tuning instead. A tuning that fits but diverges on the data (a `Q` far too large) is the health
+    /// logic's to report (`resets=` in `status`).
     pub fn fits(&self) -> bool {
         self.rls.fits() && self.ekf.fits() && self.arx.fits()
     }

@@ -2,12 +2,12 @@
 //!
 //! Batch (weighted) least squares of the ARX model
 //! `y(k) = a1 y(k-1) + ... + a_NA y(k-NA) + b1 u(k-NK) + ... + b_NB u(k-NK-NB+1)` on the file's `u` and `y`,
-//! by the core's QR solver ([`nanopos_id::estimators::lsq`]). Prints `{"a": [...], "b": [...], "sse": ..., "rows": ...}`.
-//! Rows are those with full history, or with `--zero-initial` every sample, with the signals taken as zero before
-//! the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
-//! present, must be uniformly sampled. A sample of `u` or `y` more than 1 000 times the level 90 % of the record
-//! stays within (a glitch, or a logger's overflow value, which can decide the fit alone) gets a note on standard
-//! error, as in `identify`. An `sse` beyond f64's range (values of 1e154 and more) is `null`, with a note.
+//! by the core's QR solver ([`nanopos_id::estimators::lsq`]). Prints `{"a": [...], "b": [...], "sse": ..., "rows":
+//! ...}`. Rows are those with full history, or with `--zero-initial` every sample, with the signals taken as zero
+//! before the first. `--weight A,GAMMA` weights row `k` of `N` by `A GAMMA^(N-k)` (textbook 13.4). A `t` column, when
+//! present, must be uniformly sampled. A sample of `u` or `y` more than 1 000 times the level 90 % of the record stays
+//! within (a glitch, or a logger's overflow value, which can decide the fit alone) gets a note on standard error, as in
+//! `identify`. An `sse` beyond f64's range (values of 1e154 and more) is `null`, with a note.
 //!
 //! **An offset.** The model has no constant term, and a reading that sits off it (the probe's zero, the stage's
 //! position) biases every coefficient: 0.1 um on the paper's PRBS record, a fifth of its spread, moves `1 + a2`, the

@@ -17,22 +17,22 @@
 //! - `SUMMARY.json`: `precision` (`"f64"` or `"f32"`), then per window, each estimator's mean parameters over it and
 //!   the validation RMSE of SPEC section 7: model (1) with those means, simulated exactly (zero-order hold) on the
 //!   replica input `u'` from zero state one second before the window (the transient of the wrong start has decayed
-//!   by e^-38 by then), against `y'`; and the estimator's own innovation RMS (of the last second) averaged over the window
-//!   (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
+//!   by e^-38 by then), against `y'`; and the estimator's own innovation RMS (of the last second) averaged over the
+//!   window (`null` for the RLS-type estimators), the health view of the same question: far above the noise floor, the
 //!   model does not fit; and `starved`, the share of the window the excitation monitor held the estimator (input too
-//!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `held`, the
-//!   share of the window the estimator's parameters were held (the ARX's, while its discrete model had no continuous
-//!   equivalent: not yet converged), where the mean is of the last it could report; and `resets`, the
-//!   times in the window the estimator met a non-finite value (or an EKF an innovation beyond a metre, or no relock
-//!   within 5 s of a start or a change) and went back to its initial parameters (a tuning that does not suit the record resets it over and over, and its mean is then
-//!   of runs that diverged). Above 10 %
-//!   starved or held, or any reset, a note on standard error says so ([`health_notes`]); and of a window the record does not
-//!   wholly cover, what its figures are of; and of a window whose resonance is far from the pre-filter's centre; and
-//!   of an estimator whose means are not of a stage (`a0 <= 0` or not finite: it diverged) or whose validation RMSE
-//!   is more than 3 times the best one's in the window (not yet converged, or diverged); and of a sample of `u` or `y`
-//!   more than 1 000 times the level 90 % of the record stays within (a glitch, or a logger's overflow value: of
-//!   `y`, whether the spike gate replaced it; else the filters spread it over tenths of a second, and the estimators
-//!   take it for data); and of the readings the spike gate replaced.
+//!   weak, or a single sinusoid; sampled with the 100 Hz rows), where the mean is of held values; and `held`, the share
+//!   of the window the estimator's parameters were held (the ARX's, while its discrete model had no continuous
+//!   equivalent: not yet converged), where the mean is of the last it could report; and `resets`, the times in the
+//!   window the estimator met a non-finite value (or an EKF an innovation beyond a metre, or no relock within 5 s of a
+//!   start or a change) and went back to its initial parameters (a tuning that does not suit the record resets it over
+//!   and over, and its mean is then of runs that diverged). Above 10 % starved or held, or any reset, a note on
+//!   standard error says so ([`health_notes`]); and of a window the record does not wholly cover, what its figures are
+//!   of; and of a window whose resonance is far from the pre-filter's centre; and of an estimator whose means are not
+//!   of a stage (`a0 <= 0` or not finite: it diverged) or whose validation RMSE is more than 3 times the best one's in
+//!   the window (not yet converged, or diverged); and of a sample of `u` or `y` more than 1 000 times the level 90 % of
+//!   the record stays within (a glitch, or a logger's overflow value: of `y`, whether the spike gate replaced it; else
+//!   the filters spread it over tenths of a second, and the estimators take it for data); and of the readings the spike
+//!   gate replaced.
 //! - Windows default to the last quarter of each half of the record: the paper's payload-on, payload-off layout.
 //! - The excitation monitor discounts the input's DAC steps (`PipelineConfig::command_lsb_v`): by default the
 //!   board's (4.88 mV, what `simulate` and `decode` write), `--dac-step V` for a record from elsewhere (0: not
@@ -1128,8 +1128,9 @@ fn slow_input_note(r: &Identified, figs: &[WindowFigures]) -> Option<String> {
     let worse: Vec<&str> =
         (0..figs.len()).filter(|&i| ekf(i) && misfit(figs, &figs[i]).is_some()).map(|i| r.names[i]).collect();
     let (pace, f0) = (figs[best].input_rms_hz, figs[best].mean.f0_hz());
-    let slow = pace < SLOW_INPUT * f0; // false where either is NaN
-                                       // Shown to fit worse than a model linear in its parameters, or with none run to compare them with.
+    // False where either is NaN.
+    let slow = pace < SLOW_INPUT * f0;
+    // Shown to fit worse than a model linear in its parameters, or with none run to compare them with.
     let (only_ekfs, shown) = ((0..figs.len()).all(ekf), !worse.is_empty() && !ekf(best));
     if !(only_ekfs || shown) || r.ekf_q != EkfDesign::Q2 || !slow {
         return None;

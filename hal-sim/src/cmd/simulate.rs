@@ -5,11 +5,10 @@
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
 //! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it), and mains pickup on the probe
-//! ([`crate::board::BoardSettings::hum`]), another probe noise ([`super::NoiseArgs`]), the excitation at another amplitude if asked (through the firmware's
-//! default output limits: an 8 V PRBS's steps of 16 V are ramped by its slew limit of 2.5 V a sample, as on the
-//! board). Writes `t,u,y,a0,a1,b0` per
-//! sample: time (s), the commanded input as output by the DAC (V), the probe reading (um), and the true stage
-//! parameters at that sample.
+//! ([`crate::board::BoardSettings::hum`]), another probe noise ([`super::NoiseArgs`]), the excitation at another
+//! amplitude if asked (through the firmware's default output limits: an 8 V PRBS's steps of 16 V are ramped by its slew
+//! limit of 2.5 V a sample, as on the board). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as
+//! output by the DAC (V), the probe reading (um), and the true stage parameters at that sample.
 
 use super::{fail, show, CliError, OutputFile, Progress};
 use crate::sim::{Scenario, Simulation};
