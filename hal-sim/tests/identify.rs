@@ -772,6 +772,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     )
     .unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
+    std::fs::write(d.join("above_nyquist.toml"), "prefilter = [100, 6000, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
     std::fs::write(d.join("near_dc.toml"), "prefilter = [100, 1e-6, 0.1]\n").unwrap();
     std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
@@ -782,6 +783,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
             &["identify", "--input", "ms.csv"],
             "ms.csv: a sample every 0.1 s (10 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's f_p), \
              which needs more than 900 samples a second: is t in seconds?",
+        ),
+        // A record fast enough for the paper's band: the tuning's band is the one questioned.
+        (
+            &["identify", "--input", "ok.csv", "--tuning", "above_nyquist.toml"],
+            "ok.csv: a sample every 0.0001 s (10000 Hz) cannot show the pre-filter's band at 6000 Hz (above_nyquist.toml's \
+             f_p), which needs more than 12000 samples a second: is above_nyquist.toml's f_p in Hz, and below 5000 Hz?",
         ),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),

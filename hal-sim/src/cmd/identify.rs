@@ -322,12 +322,18 @@ fn identify_blocks<T: Real>(
     // it (a tuning is not checked at the board's 10 kHz when it is read).
     let (name, tuning) = (&tuning.name, tuning.at(dt)?);
     // A time column in ms or in samples reads as a record sampled 1 000 or 10 000 times too slowly: say that, rather
-    // than what it does to the pre-filter's RK4 step.
+    // than what it does to the pre-filter's RK4 step. A record fast enough for the paper's band has its time right,
+    // and the tuning's band is the one to question.
     let f_p = tuning.rls.prefilter.f_p_hz;
     if 1.0 / dt <= 2.0 * f_p {
+        let question = if 1.0 / dt > 2.0 * PrefilterDesign::default().f_p_hz {
+            format!("is {name}'s f_p in Hz, and below {} Hz?", show(0.5 / dt))
+        } else {
+            "is t in seconds?".to_string()
+        };
         return fail(format!(
             "{source}: a sample every {} s ({} Hz) cannot show the pre-filter's band at {} Hz ({name}'s f_p), which \
-             needs more than {} samples a second: is t in seconds?",
+             needs more than {} samples a second: {question}",
             show(dt),
             show(1.0 / dt),
             show(f_p),
