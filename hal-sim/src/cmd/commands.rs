@@ -10,7 +10,7 @@
 //! whole runnable in f32, the pre-filter one the pipeline can match), and every line after the stage's leaves a
 //! tuning the board can run. The values are written in full (Rust's shortest form that reads back to the same
 //! `f64`), unless a line would pass the console's [`MAX_LINE`]: then to as many significant digits as fit, which a
-//! note says. The board's decimal parser is within a few ulps of the correctly rounded value, so the board's values
+//! note says; the board then holds those values, and a key they set besides (`q` sets `p0`) gets its own line. The board's decimal parser is within a few ulps of the correctly rounded value, so the board's values
 //! are the file's to within a few ulps.
 
 use super::{show, CliError};
@@ -54,17 +54,36 @@ pub fn run(arg: &TuningArg) -> Result<Commands, CliError> {
         if !stage && board_tuning.get(key)[..key.len()] == *values {
             continue;
         }
-        board_tuning.set(key, values).expect("the target's values are in range");
+        let (line, digits) = line_of(key, values);
+        // What the board holds after the line: the values as written, which differ from the file's where they were
+        // shortened; so may a key they set besides (`q` sets `p0`), which then gets its own line.
+        let written: Vec<f64> = match digits {
+            None => values.to_vec(),
+            Some(_) => {
+                // After `tune NAME` or `tune SECTION NAME`.
+                let head = if key.path().0.is_empty() { 2 } else { 3 };
+                line.split(' ').skip(head).map(|w| w.parse().expect("a number written")).collect()
+            }
+        };
+        board_tuning.set(key, &written).map_err(|r| {
+            CliError(format!(
+                "{}: {key} = {}: {} once shortened to fit the console's {MAX_LINE}-byte line",
+                arg.name,
+                show(written[r.index]),
+                r.expected
+            ))
+        })?;
         if board_tuning.runnable::<f32>().is_err() {
-            // The keys set so far with the rest at the preset's: a board would refuse this line. Not met by any
-            // tuning seen; the whole was checked above.
+            // The keys set so far with the rest at the preset's: a board would refuse this line, though the whole was
+            // checked above. Met by 3 of 20 000 random files, at the ends of f32's range (`q` 3.4e38, whose `p0 = 10
+            // Q` no order of the lines avoids; an `initial` `a0` of 8e-13 under the preset's `p0`).
             return Err(CliError(format!(
-                "{}: {key} set before the keys after it leaves a tuning the board cannot run: set it on the console \
-                 with them in another order",
+                "{}: {key} set before the keys after it leaves a tuning the board cannot run, and the console refuses \
+                 such a line (`tune ekf q` also sets p0 to 10 Q): this order of the lines cannot give the board this \
+                 tuning",
                 arg.name
             )));
         }
-        let (line, digits) = line_of(key, values);
         if let Some(digits) = digits {
             notes.push(format!(
                 "{key}'s values written to {digits} significant digits (each within {} of the file's, relative), to \
