@@ -662,10 +662,18 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
         .collect();
     // The capture without the recording's frames, its end line kept.
     let no_frames: Vec<&str> = lines.iter().filter(|l| !l.starts_with('R')).copied().collect();
-    let cases: [(String, &[&str], &str); 16] = [
+    // Every line behind a terminal's timestamp.
+    let stamped: Vec<String> = lines.iter().map(|l| format!("[12:00:00.123] {l}")).collect();
+    let cases: [(String, &[&str], &str); 17] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
+        (
+            stamped.join("\n"),
+            &[],
+            "cap.txt:2: the recording header comes after '[12:00:00.123] ': the capture's lines carry something before \
+             the board's (a terminal's timestamps?), which decode does not read: capture without it",
+        ),
         (good.clone(), &["--recording", "2"], "recording 2 asked for, the capture holds 1"),
         // A header changed in transfer: its CRC no longer matches.
         (good.replace("rate_hz=10000", "rate_hz=10800"), &[], "cap.txt:2: recording header damaged in transfer"),

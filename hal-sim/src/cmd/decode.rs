@@ -232,6 +232,8 @@ pub fn run(
     let mut done = false;
     // The capture's lines read, for the message of a capture that ends before the chosen recording's frames.
     let mut lines = 0;
+    // The first line with a header after something else (a terminal's timestamp): where, and what comes first.
+    let mut prefixed: Option<(usize, String)> = None;
     for line_no in 1.. {
         bytes.clear();
         if reader.read_until(b'\n', &mut bytes).map_err(cannot_read)? == 0 {
@@ -248,6 +250,11 @@ pub fn run(
         let version = [(HEADER_TAG, Some(true)), (HEADER_TAG_V1, Some(false)), (HEADER_PREFIX, None)]
             .into_iter()
             .find(|(tag, _)| line.starts_with(tag) && !line.starts_with(END_TAG));
+        if version.is_none() && prefixed.is_none() {
+            if let Some(at) = line.find(HEADER_PREFIX).filter(|&at| at > 0) {
+                prefixed = Some((line_no, line[..at].to_string()));
+            }
+        }
         if done || (version.is_some() && chosen.is_some()) {
             (found, done) = (found + version.is_some() as usize, true);
             continue;
@@ -376,9 +383,16 @@ pub fn run(
         Some((r, s)) if r.segments.iter().any(|s| s.len >= MIN_SAMPLES as u64) => (r, s),
         Some((r, _)) => return fail(no_run(&name, which, &r, end_samples, lines)),
         None if found == 0 => {
+            if let Some((l, prefix)) = prefixed {
+                return fail(format!(
+                    "{name}:{l}: the recording header comes after '{}': the capture's lines carry something before \
+                     the board's (a terminal's timestamps?), which decode does not read: capture without it",
+                    clip(&prefix.escape_debug().to_string(), 40)
+                ));
+            }
             return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line){}", {
                 orphan.map_or(String::new(), |l| format!("; frames from line {l} on: {ORPHANS}"))
-            }))
+            }));
         }
         None => {
             return fail(format!("{name}: recording {which} asked for, the capture holds {found}{}", {
