@@ -168,6 +168,13 @@ impl Reader {
                 )));
             }
         }
+        if r.carry.starts_with(&[0xFF, 0xFE]) || r.carry.starts_with(&[0xFE, 0xFF]) {
+            return Err(CliError(format!(
+                "{}: UTF-16 text (its first bytes say so: Excel's \"Unicode text\" and a redirection in Windows \
+                 PowerShell write it): save it as CSV in UTF-8 or ASCII",
+                r.shown
+            )));
+        }
         let header = std::str::from_utf8(&r.carry[..header_end])
             .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
         // A spreadsheet's UTF-8 export starts with a byte-order mark, which would otherwise be part of the first name.

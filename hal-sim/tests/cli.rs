@@ -722,6 +722,12 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
         std::fs::remove_file(dir.path().join("cap.txt")).unwrap();
         no_stray_files(dir.path());
     }
+    // Saved as UTF-16 (little-endian, with its byte-order mark), as a redirection in Windows PowerShell writes it.
+    let dir = tempfile::tempdir().unwrap();
+    let utf16: Vec<u8> = [0xFF, 0xFE].into_iter().chain(good.encode_utf16().flat_map(u16::to_le_bytes)).collect();
+    std::fs::write(dir.path().join("cap.txt"), utf16).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    assert_clean_failure(&out, "cap.txt: UTF-16 text (its first bytes say so");
 }
 
 /// Ctrl-C (SIGINT) in the middle of a long `simulate`: exit code 130, and neither the output nor its temporary

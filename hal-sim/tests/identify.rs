@@ -771,6 +771,10 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (0..100).map(|k| format!("{},0,0\n", k as f64 * 4e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
     )
     .unwrap();
+    // Saved as UTF-16 (little-endian, with its byte-order mark).
+    let utf16: Vec<u8> =
+        [0xFF, 0xFE].into_iter().chain("t,u,y\n0,0,0\n".encode_utf16().flat_map(u16::to_le_bytes)).collect();
+    std::fs::write(d.join("utf16.csv"), utf16).unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     std::fs::write(d.join("above_nyquist.toml"), "prefilter = [100, 6000, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
@@ -790,6 +794,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
             "ok.csv: a sample every 0.0001 s (10000 Hz) cannot show the pre-filter's band at 6000 Hz (above_nyquist.toml's \
              f_p), which needs more than 12000 samples a second: is above_nyquist.toml's f_p in Hz, and below 5000 Hz?",
         ),
+        (&["identify", "--input", "utf16.csv"], "utf16.csv: UTF-16 text (its first bytes say so"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),
         (&["identify", "--input", "ok.csv", "--tuning", "fast"], "'fast' is neither a preset"),

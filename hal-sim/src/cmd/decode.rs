@@ -240,6 +240,12 @@ pub fn run(
             break;
         }
         lines = line_no;
+        if line_no == 1 && (bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF])) {
+            return fail(format!(
+                "{name}: UTF-16 text (its first bytes say so: a redirection in Windows PowerShell writes it): decode \
+                 reads the serial stream's bytes as they came; capture them to a file as they are"
+            ));
+        }
         // Captures can hold noise from before the link settled: decode what is text, the frames carry their
         // checksums.
         let text = String::from_utf8_lossy(&bytes);
