@@ -216,11 +216,21 @@ impl Reader {
                     }
                 }
                 None => {
+                    // One field holding the others: another separator (Excel in a locale with a decimal comma
+                    // writes ';').
+                    let other = [(';', "';'"), ('\t', "tabs")]
+                        .into_iter()
+                        .find(|(sep, _)| fields.len() == 1 && fields[0].contains(*sep))
+                        .map_or(String::new(), |(_, what)| {
+                            format!(
+                                ": its fields are separated by {what}; this reads commas, and '.' as the decimal point"
+                            )
+                        });
                     return Err(CliError(format!(
-                        "{}:1: no column '{name}' in the header (found: {})",
+                        "{}:1: no column '{name}' in the header (found: {}){other}",
                         r.shown,
                         clip(&fields.join(","), 120)
-                    )))
+                    )));
                 }
             }
         }

@@ -775,6 +775,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     let utf16: Vec<u8> =
         [0xFF, 0xFE].into_iter().chain("t,u,y\n0,0,0\n".encode_utf16().flat_map(u16::to_le_bytes)).collect();
     std::fs::write(d.join("utf16.csv"), utf16).unwrap();
+    std::fs::write(d.join("semicolons.csv"), "t;u;y\n0;0;0\n0,0001;0;0\n").unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     std::fs::write(d.join("above_nyquist.toml"), "prefilter = [100, 6000, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
@@ -795,6 +796,11 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
              f_p), which needs more than 12000 samples a second: is above_nyquist.toml's f_p in Hz, and below 5000 Hz?",
         ),
         (&["identify", "--input", "utf16.csv"], "utf16.csv: UTF-16 text (its first bytes say so"),
+        (
+            &["identify", "--input", "semicolons.csv"],
+            "semicolons.csv:1: no column 'u' in the header (found: t;u;y): its fields are separated by ';'; this reads \
+             commas, and '.' as the decimal point",
+        ),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,kalman"], "unknown estimator 'kalman'"),
         (&["identify", "--input", "ok.csv", "--estimators", "rls,rls"], "'rls' given twice"),
         (&["identify", "--input", "ok.csv", "--tuning", "fast"], "'fast' is neither a preset"),
