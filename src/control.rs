@@ -467,7 +467,10 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
 }
 
 /// Collects bytes from a serial port into lines, without allocation. A line ends at `\n`, at `\r` (a terminal's
-/// Enter: picocom, screen, PuTTY send it alone), or at both (`\r\n`, one line end). A line longer than [`MAX_LINE`]
+/// Enter: picocom, screen, PuTTY send it alone), or at both (`\r\n`, one line end). A terminal's Backspace (BS or
+/// DEL, whichever it sends) takes back the line's last byte, and Ctrl-U the whole line typed so far, as a terminal's
+/// own line editing does: typed at a terminal, the line executed is the line the user corrected, not one with the
+/// mistake and a control byte in it (which the parser refused). A line longer than [`MAX_LINE`]
 /// is reported once, as [`ParseError::TooLong`], and its rest discarded up to its end; a line that lost bytes on
 /// the link ([`LineBuffer::lost_bytes`]) is refused whole at its end, as [`ParseError::Damaged`].
 ///
@@ -506,6 +509,21 @@ impl LineBuffer {
             };
             (self.len, self.overflowed, self.damaged) = (0, false, false);
             return Some(result);
+        }
+        match byte {
+            // Backspace (BS, or DEL, which most terminals send for it): on a line that overflowed, the bytes it
+            // takes back were discarded already, and the line stays refused.
+            0x08 | 0x7F => {
+                self.len = self.len.saturating_sub(!self.overflowed as usize);
+                return None;
+            }
+            // Ctrl-U: the line typed so far, which a terminal's own line editing would erase. Bytes the link lost
+            // may have belonged to the next line as well, so a damaged line's refusal stands.
+            0x15 => {
+                (self.len, self.overflowed) = (0, false);
+                return None;
+            }
+            _ => {}
         }
         if self.len < MAX_LINE {
             self.buf[self.len] = byte;
@@ -772,6 +790,29 @@ mod tests {
         }
         use Command::{Start, Status, Stop};
         assert_eq!(out, [Ok(Start), Ok(Stop), Ok(Status), Ok(Stop), Ok(Start), Err(ParseError::Empty)]);
+    }
+
+    /// Typed at a terminal, Backspace (BS or DEL) takes back a byte and Ctrl-U the line: the corrected line is the one
+    /// executed. Backspace on an empty line does nothing; on a line too long, which is refused whatever is taken
+    /// back, it does not make it short again.
+    #[test]
+    fn backspace_and_ctrl_u_edit_the_line_typed() {
+        let mut lb = LineBuffer::default();
+        let mut feed = |bytes: &[u8]| bytes.iter().filter_map(|&b| lb.push(b)).collect::<std::vec::Vec<_>>();
+        let prbs = |amplitude_v| Ok(Command::Excite(ExcitationChoice::Prbs { amplitude_v, offset_v: 0.0 }));
+        assert_eq!(feed(b"excite prbs 2\x7f1\r"), [prbs(1.0)]);
+        assert_eq!(feed(b"excite prbs 1.5\x08\x08\r"), [prbs(1.0)]);
+        assert_eq!(feed(b"\x7f\x08stop\r"), [Ok(Command::Stop)]);
+        assert_eq!(feed(b"reset ekf\x15status\r"), [Ok(Command::Status)]);
+        assert_eq!(feed(b"stopp\x7f\x7f\x7f\x7f\x7f\x7f\r"), [Err(ParseError::Empty)]);
+        let mut long = [b'x'; MAX_LINE + 2].to_vec();
+        long.extend_from_slice(&[0x7F; 4]);
+        long.push(b'\r');
+        assert_eq!(feed(&long), [Err(ParseError::TooLong)]);
+        // Ctrl-U clears an overflowed line: what is typed after it is a line of its own.
+        let mut long = [b'x'; MAX_LINE + 2].to_vec();
+        long.extend_from_slice(b"\x15start\r");
+        assert_eq!(feed(&long), [Ok(Command::Start)]);
     }
 
     /// Bytes lost on the link: the line they belonged to is refused whole at its end, not executed as what
