@@ -510,20 +510,9 @@ impl LineBuffer {
             (self.len, self.overflowed, self.damaged) = (0, false, false);
             return Some(result);
         }
-        match byte {
-            // Backspace (BS, or DEL, which most terminals send for it): on a line that overflowed, the bytes it
-            // takes back were discarded already, and the line stays refused.
-            0x08 | 0x7F => {
-                self.len = self.len.saturating_sub(!self.overflowed as usize);
-                return None;
-            }
-            // Ctrl-U: the line typed so far, which a terminal's own line editing would erase. Bytes the link lost
-            // may have belonged to the next line as well, so a damaged line's refusal stands.
-            0x15 => {
-                (self.len, self.overflowed) = (0, false);
-                return None;
-            }
-            _ => {}
+        if matches!(byte, 0x08 | 0x7F | 0x15) {
+            self.edit(byte);
+            return None;
         }
         if self.len < MAX_LINE {
             self.buf[self.len] = byte;
@@ -532,6 +521,20 @@ impl LineBuffer {
             self.overflowed = true;
         }
         None
+    }
+
+    /// A terminal's editing byte: Backspace (BS, or DEL, which most terminals send for it) takes back the last byte,
+    /// Ctrl-U the line typed so far. On a line that overflowed, the bytes Backspace would take back were discarded
+    /// already, and the line stays refused; Ctrl-U starts it afresh. Bytes the link lost may have belonged to the
+    /// next line as well, so a damaged line's refusal stands.
+    #[cold]
+    #[inline(never)]
+    fn edit(&mut self, byte: u8) {
+        if byte == 0x15 {
+            (self.len, self.overflowed) = (0, false);
+        } else if !self.overflowed {
+            self.len = self.len.saturating_sub(1);
+        }
     }
 
     /// The link lost bytes (a receive error: overrun, framing, noise): the line in progress, whatever else of it
