@@ -10,8 +10,9 @@
 //! whole runnable in f32, the pre-filter one the pipeline can match), and every line after the stage's leaves a
 //! tuning the board can run. The values are written in full (Rust's shortest form that reads back to the same
 //! `f64`), unless a line would pass the console's [`MAX_LINE`]: then to as many significant digits as fit, which a
-//! note says; the board then holds those values, and a key they set besides (`q` sets `p0`) gets its own line. The board's decimal parser is within a few ulps of the correctly rounded value, so the board's values
-//! are the file's to within a few ulps.
+//! note says; the board then holds those values, and a key they set besides (`q` sets `p0`) gets its own line. The
+//! board's decimal parser is within a few ulps of the correctly rounded value, so the board's values are the file's to
+//! within a few ulps.
 
 use super::{show, CliError};
 use crate::board::SimBoard;
@@ -77,10 +78,10 @@ pub fn run(arg: &TuningArg) -> Result<Commands, CliError> {
             // The keys set so far with the rest at the preset's: a board would refuse this line, though the whole was
             // checked above. Met by 3 of 20 000 random files, at the ends of f32's range (`q` 3.4e38, whose `p0 = 10
             // Q` no order of the lines avoids; an `initial` `a0` of 8e-13 under the preset's `p0`).
+            let also = if key == TuningKey::EkfQ { " (`tune ekf q` also sets p0 to 10 Q)" } else { "" };
             return Err(CliError(format!(
                 "{}: {key} set before the keys after it leaves a tuning the board cannot run, and the console refuses \
-                 such a line (`tune ekf q` also sets p0 to 10 Q): this order of the lines cannot give the board this \
-                 tuning",
+                 such a line{also}: this order of the lines cannot give the board this tuning",
                 arg.name
             )));
         }
