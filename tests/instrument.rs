@@ -3179,4 +3179,3 @@ fn the_lines_commands_writes_give_the_board_the_files_tuning() {
     println!("{taken} of 20 000 files taken; the board's values within {worst} ulps of the file's where not shortened");
     assert!(taken > 5_000, "{taken}: too few taken to test anything");
 }
-
