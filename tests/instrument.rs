@@ -1813,6 +1813,56 @@ fn the_ekfs_covariance_is_no_error_bar() {
     assert!(err_poor > 4.0 * sd_poor, "far beyond it on the low multisine");
 }
 
+/// The notes of [`the_console_says_when_an_excitation_will_not_fit_the_limits`] on 400 random limits and
+/// excitations of the waveforms whose extent and steepest step the console judges (the PRBS, the sine, the constant):
+/// where a note says the clamp will clip or the slew limit ramp, the limits change commands over the next 0.5 s, and
+/// only there; but for a sine whose samples miss its crest or its steepest step, by up to `1 - cos(pi f / fs)` of
+/// them, which may leave a note with nothing limited. (The triangle's and the multisine's steps are not judged: the
+/// same check over all five waveforms found 32 mismatches in 400, each a triangle or a multisine ramped by a slew limit
+/// of a few hundred V/s without a note.)
+#[test]
+fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
+    let mut next = nanopos_id::xorshift64(0x3C6E_F372_FE94_F82B);
+    let mut unit = move || (next() >> 11) as f64 / (1u64 << 53) as f64;
+    let (mut noted, mut quiet) = (0, 0);
+    for _ in 0..400 {
+        let mut lab = Lab::new();
+        let (lo, hi) = (-10.0 + 10.0 * unit(), 10.0 * unit());
+        let slew = 10f64.powf(1.0 + 4.5 * unit());
+        let limits = format!("limits {lo:.3} {hi:.3} {slew:.1}\n");
+        let (amp, f) = (10f64.powf(-1.5 + 2.0 * unit()), 10f64.powf(1.0 + 2.0 * unit()));
+        let off = (lo + hi) / 2.0 + (unit() - 0.5) * 4.0;
+        let (excite, sine) = match (unit() * 3.0) as usize {
+            0 => (format!("excite prbs {amp:.3} {off:.3}\n"), false),
+            1 => (format!("excite sine {amp:.3} {f:.2} {off:.3}\n"), true),
+            _ => (format!("excite constant {off:.3}\n"), false),
+        };
+        if !verdict(&lab.send(&limits)).starts_with("ok ") {
+            continue;
+        }
+        let reply = lab.send(&excite);
+        if !verdict(&reply).starts_with("ok ") {
+            continue;
+        }
+        // The ramp from the last command to the new excitation (a step the excitation did not make) first.
+        lab.run(3000);
+        let before = lab.isr.status().counters.limited;
+        lab.run(5000);
+        let limited = lab.isr.status().counters.limited > before;
+        let says = notes(&reply).iter().any(|n| n.contains("will clip") || n.contains("will be ramped"));
+        let missed_crest = sine && says && !limited && {
+            let miss = 1.0 - (std::f64::consts::PI * f / 1e4).cos();
+            let near = |edge: f64, crest: f64| (edge - crest).abs() <= miss * amp;
+            let step = 2.0 * amp * (std::f64::consts::PI * f / 1e4).sin();
+            near(hi, off + amp) || near(lo, off - amp) || (slew * 1e-4 - step).abs() <= miss * step
+        };
+        assert!(says == limited || missed_crest, "{limits}{excite}{reply}limited: {limited}");
+        (noted, quiet) = (noted + says as usize, quiet + !says as usize);
+    }
+    println!("{noted} noted, {quiet} quiet");
+    assert!(noted > 50 && quiet > 50, "{noted} noted, {quiet} quiet: the cases do not cover both");
+}
+
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
 /// limits: beyond the clamp (the sine's and PRBS's extent exact, the multisine's from its 1.36 `A` bound), or with
 /// steps steeper than the slew limit (the PRBS's and the sine's). Where the note says so, the limits then change
