@@ -816,8 +816,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         // 10 ms: its default windows fall between the 100 Hz rows.
         (
             &["identify", "--input", "ok.csv"],
-            "ok.csv: window 0.00375:0.005 holds no estimate (the record covers 0 to 0.0099 s; estimates are taken \
-             every 0.01 s from 0.0099 s)",
+            "ok.csv: default window 0.00375:0.005 holds no estimate (the record covers 0 to 0.0099 s; estimates are \
+             taken every 0.01 s from 0.0099 s): give --window T0:T1, or a longer record",
         ),
         // In exponent form, not the 301 digits of `Display`.
         (&["identify", "--input", "late.csv", "--out", "e.csv"], "late.csv:3: time 1e300 does not advance from 1e300"),

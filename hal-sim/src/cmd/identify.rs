@@ -487,8 +487,11 @@ fn identify_blocks<T: Real>(
                 Some(&t) => format!("estimates are taken every {} s from {} s", show(every as f64 * dt), show(t)),
                 None => format!("it is shorter than the {} s between estimates", show(every as f64 * dt)),
             };
+            // Not asked for: say whose it is and what to do.
+            let whose = if defaulted { "default " } else { "" };
+            let advice = if defaulted { ": give --window T0:T1, or a longer record" } else { "" };
             return fail(format!(
-                "{source}: window {}:{} holds no estimate (the record covers {} to {} s; {rows_at})",
+                "{source}: {whose}window {}:{} holds no estimate (the record covers {} to {} s; {rows_at}){advice}",
                 show(w.t0),
                 show(w.t1),
                 show(t_first),
