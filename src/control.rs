@@ -198,6 +198,8 @@ pub enum ParseError {
     NotAscii {
         /// Byte offset in the line.
         at: usize,
+        /// The byte.
+        byte: u8,
     },
     /// The first word is no command.
     UnknownCommand,
@@ -228,7 +230,14 @@ impl core::fmt::Display for ParseError {
             ParseError::Empty => write!(f, "empty line"),
             ParseError::TooLong => write!(f, "line longer than {MAX_LINE} bytes"),
             ParseError::Damaged => write!(f, "bytes of this line were lost on the link: send it again"),
-            ParseError::NotAscii { at } => write!(f, "byte {at} is not printable ASCII"),
+            ParseError::NotAscii { at, byte } => {
+                write!(f, "byte {at} is not printable ASCII")?;
+                // UTF-8 pasted from a document: a minus sign (U+2212), a non-breaking space, a typographic quote.
+                if (0xC2..=0xF4).contains(byte) {
+                    f.write_str(", the start of a Unicode character (a pasted minus sign or non-breaking space?)")?;
+                }
+                Ok(())
+            }
             ParseError::UnknownCommand => write!(
                 f,
                 "unknown command (help, status, excite, start, stop, select, reset, freeze, adapt, tuning, tune, \
@@ -325,7 +334,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
     }
     let line = line.strip_suffix(b"\r").unwrap_or(line);
     if let Some(at) = line.iter().position(|&b| !(b == b' ' || b == b'\t' || b.is_ascii_graphic())) {
-        return Err(ParseError::NotAscii { at });
+        return Err(ParseError::NotAscii { at, byte: line[at] });
     }
     // Words in any case: one lowercase copy of the line.
     let mut lower = [0u8; MAX_LINE];
@@ -333,7 +342,8 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
     lower.copy_from_slice(line);
     lower.make_ascii_lowercase();
     // Printable ASCII is UTF-8.
-    let text = core::str::from_utf8(lower).map_err(|e| ParseError::NotAscii { at: e.valid_up_to() })?;
+    let text = core::str::from_utf8(lower)
+        .map_err(|e| ParseError::NotAscii { at: e.valid_up_to(), byte: lower[e.valid_up_to()] })?;
     let mut words = Words { it: text.split_ascii_whitespace(), n: 0 };
     let (_, command) = words.next("a command").map_err(|_| ParseError::Empty)?;
     let amplitude = |x: f32| (0.0..=10.0).contains(&x);
@@ -688,7 +698,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 52] = [
+        let cases: [(&[u8], ParseError); 53] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -729,7 +739,8 @@ mod tests {
             ),
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
             (b"record burst 0", Invalid { word: 3, expected: "a sample count, 1 to 1000000" }),
-            (b"status\xff", NotAscii { at: 6 }),
+            (b"status\xff", NotAscii { at: 6, byte: 0xff }),
+            ("limits \u{2212}5 5 100".as_bytes(), NotAscii { at: 7, byte: 0xe2 }),
             (
                 b"tune",
                 Missing { word: 2, expected: "initial, prefilter, spike_ratio, stage, rls, ekf (both EKFs) or arx" },
@@ -834,6 +845,11 @@ mod tests {
         lb.lost_bytes();
         assert_eq!(feed(&mut lb, b"atus\r\nstop\r\n"), [Err(ParseError::Damaged), Ok(Command::Stop)]);
         assert_eq!(std::format!("{}", ParseError::Damaged), "bytes of this line were lost on the link: send it again");
+        assert_eq!(
+            std::format!("{}", parse("limits \u{2212}5 5 100".as_bytes()).unwrap_err()),
+            "byte 7 is not printable ASCII, the start of a Unicode character (a pasted minus sign or \
+             non-breaking space?)"
+        );
     }
 
     /// A read that came with a receive error refuses every line it touches; one that took the whole receive buffer
