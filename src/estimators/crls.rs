@@ -309,8 +309,11 @@ impl<T: Real> Estimator<T> for Crls<T> {
         let k3 = self.derivative(&axpy(&x, &k2, hh), u, y_mid, gain, adapt_p);
         let k4 = self.derivative(&axpy(&x, &k3, h), u, y_new, gain, adapt_p);
         rk4_combine(&mut self.x, &x, [&k1, &k2, &k3, &k4], self.cfg.h6);
-        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
-        let finite = self.x.iter().fold(T::zero(), |acc, &v| acc + v).is_finite();
+        // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway); with the
+        // parameters as reported, which can overflow where their normalised values do not.
+        let s = &self.cfg.scale;
+        let reported = self.x[THETA] * s[0] + self.x[THETA + 1] * s[1] + self.x[THETA + 2] * s[2];
+        let finite = self.x.iter().fold(reported, |acc, &v| acc + v).is_finite();
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();

@@ -185,6 +185,7 @@ impl EkfDesign {
             },
             half_period: period * T::of(0.5),
             c0w: T::of(p.a0),
+            b0_scale: T::of(p.b0),
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -435,8 +436,11 @@ pub struct EkfConfig<T> {
     bow_gain: T,
     /// `period / 2`: from the step's start to its middle.
     half_period: T,
-    /// `a0_init` (normalised `c0 W`): `x2''` from `x2` and `x2'` with the parameters and `u` held.
+    /// `a0_init` (normalised `c0 W`): `x2''` from `x2` and `x2'` with the parameters and `u` held; and the report's
+    /// scale of `z[2]`.
     c0w: T,
+    /// `b0_init`: the report's scale of `z[4]` (`c1`, `a1_init`, is `z[3]`'s).
+    b0_scale: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -676,7 +680,7 @@ impl<T: Real> EkfConfig<T> {
         let t = [self.h_third, self.h_sq_half, self.period, self.period6, self.bow_gain, self.half_period];
         let (q_xt, q_xx) = (self.q_xt.as_flattened(), self.q_xx.as_flattened());
         let arrays = [&self.p_ceiling[..], &self.p_floor, &self.p_ramp_step, &self.q, &self.p0, &self.q_period];
-        let scales = [self.inv_r, self.w, self.c0, self.c1, self.c2, self.c0w];
+        let scales = [self.inv_r, self.w, self.c0, self.c1, self.c2, self.c0w, self.b0_scale];
         all_finite(&[&s, &t, q_xt, q_xx])
             && all_finite(&arrays)
             && scales.iter().all(|x| x.is_normal())
@@ -829,8 +833,8 @@ impl<T: Real> EkfCore<T> {
 
     /// The model's parameters, from the normalised state.
     fn model_params(&self) -> StageParams<T> {
-        let (i, z) = (&self.cfg.initial, &self.z);
-        StageParams { a0: z[2] * T::of(i.a0), a1: z[3] * T::of(i.a1), b0: z[4] * T::of(i.b0) }
+        let (c, z) = (&self.cfg, &self.z);
+        StageParams { a0: z[2] * c.c0w, a1: z[3] * c.c1, b0: z[4] * c.b0_scale }
     }
 
     /// The model's `x2'` (normalised) at `z` with the input as `c2u = c2 u`: `-c0 z2 z0 - c1 z3 z1 + c2u z4`.
@@ -1014,10 +1018,14 @@ impl<T: Real> EkfCore<T> {
     }
 
     /// Called after [`Self::bound_covariance`], which leaves no finite diagonal below zero: finiteness is all that
-    /// is left to check, of the state, the covariance and `levels` (the health logic's own).
+    /// is left to check, of the state, the covariance, `levels` (the health logic's own) and the parameters as
+    /// reported. A normalised parameter can be finite and its report not: with `b0`'s `q` at 3.4e38 (`p0` 10 times
+    /// that, still finite normalised by a `b0_init` of 5e5) a diverging continuous EKF reported `b0 = inf` for a
+    /// sample before its state overflowed (the random session of seed 7, 500 000 lines).
     fn healthy(&self, levels: T) -> bool {
+        let p = self.model_params();
         // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway).
-        let sum = self.z.iter().chain(self.p.iter()).fold(levels, |acc, &x| acc + x);
+        let sum = self.z.iter().chain(self.p.iter()).fold(levels + (p.a0 + p.a1 + p.b0), |acc, &x| acc + x);
         sum.is_finite()
     }
 }
