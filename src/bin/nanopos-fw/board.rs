@@ -49,7 +49,7 @@
 //!   right by 2 to a 16-bit code. A centred boxcar adds no delay; its droop at 450 Hz is 0.03 %.
 //! - ADC1's end of conversion (at `t_k` + 14.3 us) raises ADC1_2, the highest-priority interrupt, which reads the
 //!   code, computes the next command and writes its code to the DAC's holding register first (a posted change
-//!   applied, the excitation, the limits: at most 2 329 instructions, QEMU's `isr_to_command_write`), then runs the
+//!   applied, the excitation, the limits: at most 2 357 instructions, QEMU's `isr_to_command_write`), then runs the
 //!   filters and the estimators. The command's deadline: the next TIM2 update, 85.7 us ([`DEADLINE_CYCLES`], 14 568
 //!   cycles) after the conversion ends; crossing it is detected (TIM2's update flag set again when the code is
 //!   written, or TIM2's count at the interrupt's entry past it: [`G474Board::entered`]) and counted. The rest of the
