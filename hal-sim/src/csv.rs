@@ -27,6 +27,12 @@ pub enum Time {
     IfPresent,
 }
 
+/// Whether `bytes` start with a UTF-16 byte-order mark (little- or big-endian): a text file of another encoding,
+/// which Excel's "Unicode text" and a redirection in Windows PowerShell write.
+pub fn utf16(bytes: &[u8]) -> bool {
+    bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF])
+}
+
 /// Read `names` from `path`, and `t` as [`Time`] says. Time may start anywhere but must advance by a constant step
 /// (to a relative 1e-6 of the step, which printed decimal times meet).
 pub fn read_columns(path: &Path, names: &[&str], time: Time) -> Result<Columns, CliError> {
@@ -168,7 +174,7 @@ impl Reader {
                 )));
             }
         }
-        if r.carry.starts_with(&[0xFF, 0xFE]) || r.carry.starts_with(&[0xFE, 0xFF]) {
+        if utf16(&r.carry) {
             return Err(CliError(format!(
                 "{}: UTF-16 text (its first bytes say so: Excel's \"Unicode text\" and a redirection in Windows \
                  PowerShell write it): save it as CSV in UTF-8 or ASCII",

@@ -237,6 +237,13 @@ impl<T: Real> Crls<T> {
         }
     }
 
+    /// The regression's parameters in the paper's units, before [`Estimator::params`] undoes the RK4 step's dispersion.
+    #[inline(always)]
+    fn fitted(&self) -> StageParams<T> {
+        let (s, theta) = (&self.cfg.scale, &self.x[THETA..THETA + 3]);
+        StageParams { b0: theta[0] * s[0], a1: theta[1] * s[1], a0: theta[2] * s[2] }
+    }
+
     /// `||P||_F^2` in the paper's units, from the packed entries: `sum w_ij P_ij^2` with `w_ij = (s_i s_j)^2`,
     /// doubled off the diagonal.
     fn norm_sq(&self) -> T {
@@ -311,9 +318,8 @@ impl<T: Real> Estimator<T> for Crls<T> {
         rk4_combine(&mut self.x, &x, [&k1, &k2, &k3, &k4], self.cfg.h6);
         // The sum of all is finite exactly when each is (or, harmlessly, when they are near overflow anyway); with the
         // parameters as reported, which can overflow where their normalised values do not.
-        let s = &self.cfg.scale;
-        let reported = self.x[THETA] * s[0] + self.x[THETA + 1] * s[1] + self.x[THETA + 2] * s[2];
-        let finite = self.x.iter().fold(reported, |acc, &v| acc + v).is_finite();
+        let p = self.fitted();
+        let finite = self.x.iter().fold(p.b0 + p.a1 + p.a0, |acc, &v| acc + v).is_finite();
         let healthy = finite && (0..3).all(|i| self.x[P + ix(i, i)] >= T::zero());
         if !healthy {
             self.reset_state();
@@ -322,12 +328,9 @@ impl<T: Real> Estimator<T> for Crls<T> {
     }
 
     fn params(&self) -> StageParams<T> {
-        let s = &self.cfg.scale;
-        let theta = &self.x[THETA..THETA + 3];
         // One RK4 step per sample of its pre-filter turns the regression's `s` at `w` into `s (1 + (w T)^4 / 120)`,
         // the same dispersion as the continuous EKF's model: undone the same way.
-        let fitted = StageParams { b0: theta[0] * s[0], a1: theta[1] * s[1], a0: theta[2] * s[2] };
-        undo_rk4_dispersion(fitted, self.cfg.h)
+        undo_rk4_dispersion(self.fitted(), self.cfg.h)
     }
 
     fn param_covariance(&self) -> [[T; 3]; 3] {

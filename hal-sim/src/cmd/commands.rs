@@ -60,11 +60,7 @@ pub fn run(arg: &TuningArg) -> Result<Commands, CliError> {
         // shortened; so may a key they set besides (`q` sets `p0`), which then gets its own line.
         let written: Vec<f64> = match digits {
             None => values.to_vec(),
-            Some(_) => {
-                // After `tune NAME` or `tune SECTION NAME`.
-                let head = if key.path().0.is_empty() { 2 } else { 3 };
-                line.split(' ').skip(head).map(|w| w.parse().expect("a number written")).collect()
-            }
+            Some(d) => values.iter().map(|&v| shortened(v, d).parse().expect("a number written")).collect(),
         };
         board_tuning.set(key, &written).map_err(|r| {
             CliError(format!(
@@ -108,13 +104,7 @@ fn line_of(key: TuningKey, values: &[f64]) -> (String, Option<usize>) {
                 let (plain, exp) = (format!("{v}"), format!("{v:e}"));
                 format!("{line} {}", if plain.len() <= exp.len() { plain } else { exp })
             }
-            Some(d) => {
-                // Without the zeros that end the mantissa: 1e-12, not 1.00000000000e-12.
-                let text = format!("{v:.*e}", d - 1);
-                let (mantissa, exp) = text.split_once('e').expect("an exponent");
-                let mantissa = if mantissa.contains('.') { mantissa.trim_end_matches('0') } else { mantissa };
-                format!("{line} {}e{exp}", mantissa.trim_end_matches('.'))
-            }
+            Some(d) => format!("{line} {}", shortened(*v, d)),
         })
     };
     let full = with(None);
@@ -123,6 +113,14 @@ fn line_of(key: TuningKey, values: &[f64]) -> (String, Option<usize>) {
     }
     let digits = (1..=17).rev().find(|&d| with(Some(d)).len() <= MAX_LINE).expect("one digit always fits");
     (with(Some(digits)), Some(digits))
+}
+
+/// `v` to `digits` significant digits, without the zeros that end the mantissa: `1e-12`, not `1.00000000000e-12`.
+fn shortened(v: f64, digits: usize) -> String {
+    let text = format!("{v:.*e}", digits - 1);
+    let (mantissa, exp) = text.split_once('e').expect("an exponent");
+    let mantissa = if mantissa.contains('.') { mantissa.trim_end_matches('0') } else { mantissa };
+    format!("{}e{exp}", mantissa.trim_end_matches('.'))
 }
 
 #[cfg(test)]

@@ -240,7 +240,7 @@ pub fn run(
             break;
         }
         lines = line_no;
-        if line_no == 1 && (bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF])) {
+        if line_no == 1 && crate::csv::utf16(&bytes) {
             return fail(format!(
                 "{name}: UTF-16 text (its first bytes say so: a redirection in Windows PowerShell writes it): decode \
                  reads the serial stream's bytes as they came; capture them to a file as they are"
@@ -256,7 +256,8 @@ pub fn run(
         let version = [(HEADER_TAG, Some(true)), (HEADER_TAG_V1, Some(false)), (HEADER_PREFIX, None)]
             .into_iter()
             .find(|(tag, _)| line.starts_with(tag) && !line.starts_with(END_TAG));
-        if version.is_none() && prefixed.is_none() {
+        // Only until a header is found: the note is for a capture without one (not a search of every line).
+        if found == 0 && version.is_none() && prefixed.is_none() {
             if let Some(at) = line.find(HEADER_PREFIX).filter(|&at| at > 0) {
                 prefixed = Some((line_no, line[..at].to_string()));
             }
