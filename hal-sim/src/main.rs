@@ -34,21 +34,8 @@ enum Command {
         /// Add piezo creep (1 % of a step per decade of time, from 0.1 s to 100 s).
         #[arg(long)]
         creep: bool,
-        /// Let the piezo's gain drift (as with temperature) at this many % of its starting value per minute,
-        /// negative for a fall: the stage's b0 (and the truth's) at the rate
-        #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
-        gain_drift: f64,
-        /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
-        /// --hum 150:5)
-        #[arg(long, value_name = "HZ:NM")]
-        hum: Vec<hal_sim::cmd::HumArg>,
-        /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
-        #[arg(long, value_name = "NM", allow_negative_numbers = true)]
-        noise: Option<f64>,
-        /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
-        /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
-        #[arg(long, value_name = "DOF")]
-        noise_tail: Option<u32>,
+        #[command(flatten)]
+        disturbances: hal_sim::cmd::Disturbances,
         /// The excitation's amplitude, V, 0 to 10, as the console's `excite` takes it (the paper's: 1), through the
         /// firmware's default output limits
         #[arg(long, value_name = "V", allow_negative_numbers = true)]
@@ -142,21 +129,8 @@ enum Command {
         /// When the paper's payload comes off, seconds from the start, or never [default: 100]
         #[arg(long, value_name = "S|never", allow_hyphen_values = true)]
         payload_off: Option<hal_sim::cmd::console::PayloadOff>,
-        /// Let the piezo's gain drift (as with temperature) at this many % of its starting value per minute,
-        /// negative for a fall (stopping at zero)
-        #[arg(long, value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
-        gain_drift: f64,
-        /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
-        /// --hum 150:5)
-        #[arg(long, value_name = "HZ:NM")]
-        hum: Vec<hal_sim::cmd::HumArg>,
-        /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
-        #[arg(long, value_name = "NM", allow_negative_numbers = true)]
-        noise: Option<f64>,
-        /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
-        /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
-        #[arg(long, value_name = "DOF")]
-        noise_tail: Option<u32>,
+        #[command(flatten)]
+        disturbances: hal_sim::cmd::Disturbances,
     },
     /// The board's console commands that give it a tuning (a file decode wrote, or one for identify --tuning), one
     /// a line on standard output: send them one at a time, each after the last one's verdict.
@@ -223,28 +197,14 @@ impl From<ScenarioArg> for Scenario {
 
 fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>) -> Result<(), CliError> {
     match cli.command {
-        Command::Simulate {
-            scenario,
-            duration,
-            seed,
-            hysteresis,
-            creep,
-            gain_drift,
-            hum,
-            noise,
-            noise_tail,
-            amplitude,
-            out,
-        } => {
+        Command::Simulate { scenario, duration, seed, hysteresis, creep, disturbances, amplitude, out } => {
             let args = simulate::SimulateArgs {
                 scenario: scenario.into(),
                 duration_s: duration,
                 seed,
                 hysteresis,
                 creep,
-                gain_drift_pct_per_min: gain_drift,
-                hum,
-                noise: hal_sim::cmd::NoiseArgs { rms_nm: noise, tail_dof: noise_tail },
+                disturbances,
                 amplitude_v: amplitude,
                 out: &out,
             };
@@ -376,14 +336,12 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             Ok(())
         }
-        Command::Console { status_every, stage, payload_off, gain_drift, hum, noise, noise_tail } => {
+        Command::Console { status_every, stage, payload_off, disturbances } => {
             let args = hal_sim::cmd::console::ConsoleArgs {
                 status_every_s: status_every,
                 stage,
                 payload_off,
-                gain_drift_pct_per_min: gain_drift,
-                hum,
-                noise: hal_sim::cmd::NoiseArgs { rms_nm: noise, tail_dof: noise_tail },
+                disturbances,
                 interrupted,
             };
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {

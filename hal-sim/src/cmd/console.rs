@@ -86,12 +86,8 @@ pub struct ConsoleArgs {
     pub status_every_s: Option<f64>,
     /// When the paper's payload comes off, if not after 100 s.
     pub payload_off: Option<PayloadOff>,
-    /// The piezo's gain drift, % of its starting value per minute.
-    pub gain_drift_pct_per_min: f64,
-    /// Mains pickup on the probe's reading (at most two tones).
-    pub hum: Vec<super::HumArg>,
-    /// The probe's noise, if not the paper's 1.25 nm RMS Gaussian.
-    pub noise: super::NoiseArgs,
+    /// The piezo's gain drift, mains pickup, the probe's noise.
+    pub disturbances: super::Disturbances,
     /// Set (by a Ctrl-C handler) to end the session as the input's end does.
     pub interrupted: Option<Arc<AtomicBool>>,
 }
@@ -126,9 +122,7 @@ pub fn run(
         return Err(CliError("--payload-off: only on the paper's stage (a --stage has no payload to take off)".into()));
     }
     let (mut board, settings) = Lab::settings(args.stage.map(|s| s.0));
-    board.plant.gain_drift_per_s = super::gain_drift_per_s(args.gain_drift_pct_per_min)?;
-    board.hum = super::hum_tones(&args.hum)?;
-    args.noise.apply(&mut board)?;
+    args.disturbances.apply(&mut board)?;
     let rate_hz = 1.0 / board.plant.sample_period_s;
     if let Some(PayloadOff(off)) = args.payload_off {
         board.plant.change_at_sample = off.map_or(u64::MAX, |t| (t * rate_hz).round() as u64);

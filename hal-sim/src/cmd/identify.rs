@@ -1522,9 +1522,7 @@ mod tests {
             seed: None,
             hysteresis: false,
             creep: false,
-            gain_drift_pct_per_min: 0.0,
-            hum: Vec::new(),
-            noise: Default::default(),
+            disturbances: Default::default(),
             amplitude_v: None,
             out: &input,
         };

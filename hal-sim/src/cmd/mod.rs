@@ -201,28 +201,42 @@ pub const MAX_NOISE_NM: f64 = 5e4;
 /// excess kurtosis is 0.06 (0 for a Gaussian), beyond which the option changes nothing one could measure.
 pub const MAX_NOISE_TAIL_DOF: u32 = 100;
 
-/// `--noise NM` and `--noise-tail DOF`: the probe's noise on the displacement, its RMS
-/// ([`crate::board::BoardSettings::noise_um_rms`], the paper's 1.25 nm if not given) and its distribution (Gaussian,
-/// or Student's t with `DOF` degrees of freedom at the same RMS, [`crate::board::BoardSettings::noise_tail_dof`]:
-/// heavier tails, the fewer the degrees).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct NoiseArgs {
-    /// RMS, nm.
-    pub rms_nm: Option<f64>,
-    /// Student's t's degrees of freedom (3 to [`MAX_NOISE_TAIL_DOF`]).
-    pub tail_dof: Option<u32>,
+/// The departures from the paper's board that `simulate` and `console` both take: the piezo's gain drift
+/// (`--gain-drift`), mains pickup (`--hum`), and the probe's noise on the displacement, its RMS (`--noise`,
+/// [`crate::board::BoardSettings::noise_um_rms`], the paper's 1.25 nm if not given) and its distribution
+/// (`--noise-tail`: Gaussian, or Student's t with `DOF` degrees of freedom at the same RMS,
+/// [`crate::board::BoardSettings::noise_tail_dof`]: heavier tails, the fewer the degrees).
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
+pub struct Disturbances {
+    /// Let the piezo's gain drift (as with temperature) at this many % of its starting value per minute, negative
+    /// for a fall (stopping at zero): the stage's b0 (and the truth's) at the rate
+    #[arg(long = "gain-drift", value_name = "PCT_PER_MIN", default_value_t = 0.0, allow_negative_numbers = true)]
+    pub gain_drift_pct_per_min: f64,
+    /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
+    /// --hum 150:5)
+    #[arg(long, value_name = "HZ:NM")]
+    pub hum: Vec<HumArg>,
+    /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
+    #[arg(long = "noise", value_name = "NM", allow_negative_numbers = true)]
+    pub noise_rms_nm: Option<f64>,
+    /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
+    /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
+    #[arg(long = "noise-tail", value_name = "DOF")]
+    pub noise_tail_dof: Option<u32>,
 }
 
-impl NoiseArgs {
+impl Disturbances {
     /// Checked, onto `board`.
     pub fn apply(&self, board: &mut crate::board::BoardSettings) -> Result<(), CliError> {
-        if let Some(nm) = self.rms_nm {
+        board.plant.gain_drift_per_s = gain_drift_per_s(self.gain_drift_pct_per_min)?;
+        board.hum = hum_tones(&self.hum)?;
+        if let Some(nm) = self.noise_rms_nm {
             if !(0.0..=MAX_NOISE_NM).contains(&nm) {
                 return fail(format!("--noise {}: must be 0 to {MAX_NOISE_NM} nm RMS", show(nm)));
             }
             board.noise_um_rms = nm / 1e3;
         }
-        if let Some(dof) = self.tail_dof {
+        if let Some(dof) = self.noise_tail_dof {
             if !(3..=MAX_NOISE_TAIL_DOF).contains(&dof) {
                 return fail(format!(
                     "--noise-tail {dof}: must be 3 to {MAX_NOISE_TAIL_DOF} degrees of freedom (below 3 the noise has \

@@ -5,7 +5,7 @@
 //! duration; with the piezo's hysteresis and creep if asked (their defaults, [`crate::plant::Hysteresis`] and
 //! [`crate::plant::Creep`]), and its gain drifting at a steady rate
 //! ([`crate::plant::PlantSettings::gain_drift_per_s`]: the truth's `b0` follows it), and mains pickup on the probe
-//! ([`crate::board::BoardSettings::hum`]), another probe noise ([`super::NoiseArgs`]), the excitation at another
+//! ([`crate::board::BoardSettings::hum`]), another probe noise ([`super::Disturbances`]), the excitation at another
 //! amplitude if asked (through the firmware's default output limits: an 8 V PRBS's steps of 16 V are ramped by its slew
 //! limit of 2.5 V a sample, as on the board). Writes `t,u,y,a0,a1,b0` per sample: time (s), the commanded input as
 //! output by the DAC (V), the probe reading (um), and the true stage parameters at that sample.
@@ -35,12 +35,8 @@ pub struct SimulateArgs<'a> {
     pub hysteresis: bool,
     /// With the default piezo creep.
     pub creep: bool,
-    /// The piezo's gain drift, % of its value at the start per minute (0: none).
-    pub gain_drift_pct_per_min: f64,
-    /// Mains pickup on the probe's reading (at most two tones).
-    pub hum: Vec<super::HumArg>,
-    /// The probe's noise, if not the paper's 1.25 nm RMS Gaussian.
-    pub noise: super::NoiseArgs,
+    /// The piezo's gain drift, mains pickup, the probe's noise.
+    pub disturbances: super::Disturbances,
     /// The excitation's amplitude, V (default: the scenario's, 1 V).
     pub amplitude_v: Option<f64>,
     /// Where to write.
@@ -55,7 +51,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     if args.duration_s > MAX_DURATION_S {
         return fail(format!("--duration {}: longer than the {MAX_DURATION_S} s limit", show(args.duration_s)));
     }
-    let drift = args.gain_drift_pct_per_min;
+    let drift = args.disturbances.gain_drift_pct_per_min;
     let drift_per_s = super::gain_drift_per_s(drift)?;
     if 1.0 + drift_per_s * args.duration_s <= 0.0 {
         return fail(format!(
@@ -75,9 +71,7 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     }
     board.plant.hysteresis = args.hysteresis.then(crate::plant::Hysteresis::default);
     board.plant.creep = args.creep.then(crate::plant::Creep::default);
-    board.plant.gain_drift_per_s = drift_per_s;
-    board.hum = super::hum_tones(&args.hum)?;
-    args.noise.apply(&mut board)?;
+    args.disturbances.apply(&mut board)?;
     let samples = (args.duration_s / board.plant.sample_period_s).round() as u64;
     if samples < 2 {
         return fail(format!("--duration {}: shorter than two samples", show(args.duration_s)));
