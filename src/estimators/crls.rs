@@ -65,7 +65,7 @@
 //! 16.4 s to 2 % after the payload change, `tests/instrument.rs`).
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{all_finite, axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
+use crate::estimators::{all_finite, axpy, rk4_combine, rk4_dispersed_start, undo_rk4_dispersion, PeFloor};
 use crate::filters::PrefilterDesign;
 use crate::{Real, StageParams};
 
@@ -110,6 +110,9 @@ pub struct CrlsConfig<T> {
     p0: [T; 3],
     /// `theta0` (`[b0, a1, a0]`), the normalisation.
     scale: [T; 3],
+    /// Where the normalised `theta` starts: the model it reports as `theta0` (`estimators::rk4_dispersed_start` on
+    /// `b0` and `a0`, 1 + 6e-5 for the paper's stage).
+    start: [T; 3],
     r0_sq: T,
     /// `||P||_F^2` of the packed normalised `P` is `sum norm_weight[k] P[k]^2`.
     norm_weight: [T; 6],
@@ -132,6 +135,10 @@ impl CrlsDesign {
             gamma: T::of(self.gamma),
             p0: core::array::from_fn(|k| T::of(self.p0_diag[k] / (scale[k] * scale[k]))),
             scale: scale.map(T::of),
+            start: {
+                let d = T::of(rk4_dispersed_start(i, self.sample_period_s));
+                [d, T::one(), d]
+            },
             r0_sq: T::of(self.r0 * self.r0),
             norm_weight: {
                 let mut w = [T::zero(); 6];
@@ -220,7 +227,7 @@ impl<T: Real> Crls<T> {
     fn reset_state(&mut self) {
         self.x = [T::zero(); 15];
         for k in 0..3 {
-            self.x[THETA + k] = T::one();
+            self.x[THETA + k] = self.cfg.start[k];
             self.x[P + ix(k, k)] = self.cfg.p0[k];
         }
         self.u_prev = T::zero();

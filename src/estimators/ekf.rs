@@ -60,7 +60,7 @@
 pub mod dense;
 
 use crate::estimator::{Adaptation, Estimator, FilteredSample, Health};
-use crate::estimators::{all_finite, axpy, rk4_combine, undo_rk4_dispersion, PeFloor};
+use crate::estimators::{all_finite, axpy, rk4_combine, rk4_dispersed_start, undo_rk4_dispersion, PeFloor};
 use crate::scalar::fmax;
 use crate::{Real, StageParams};
 
@@ -186,6 +186,7 @@ impl EkfDesign {
             half_period: period * T::of(0.5),
             c0w: T::of(p.a0),
             b0_scale: T::of(p.b0),
+            dispersed_start: T::of(rk4_dispersed_start(p, h * self.substeps.max(1) as f64)),
             substeps: self.substeps.max(1),
             initial: *p,
         }
@@ -441,6 +442,9 @@ pub struct EkfConfig<T> {
     c0w: T,
     /// `b0_init`: the report's scale of `z[4]` (`c1`, `a1_init`, is `z[3]`'s).
     b0_scale: T,
+    /// Where the continuous filter starts its normalised `a0` and `b0`: the model it reports as the initial
+    /// parameters (`estimators::rk4_dispersed_start`, 1 + 6e-5 for the paper's stage).
+    dispersed_start: T,
     substeps: u32,
     initial: StageParams<f64>,
 }
@@ -457,6 +461,12 @@ pub trait EkfKind: Copy + core::fmt::Debug + Default {
     #[inline]
     fn reported<T: Real>(core: &EkfCore<T>) -> StageParams<T> {
         core.model_params()
+    }
+    /// The normalised `a0` and `b0` a start or a reset puts the filter at: the model it reports as the initial
+    /// parameters.
+    #[inline]
+    fn start<T: Real>(_cfg: &EkfConfig<T>) -> T {
+        T::one()
     }
 }
 
@@ -516,6 +526,11 @@ impl EkfKind for Continuous {
     #[inline]
     fn reported<T: Real>(core: &EkfCore<T>) -> StageParams<T> {
         undo_rk4_dispersion(core.model_params(), core.cfg.period)
+    }
+
+    #[inline]
+    fn start<T: Real>(cfg: &EkfConfig<T>) -> T {
+        cfg.dispersed_start
     }
 }
 
@@ -617,7 +632,8 @@ impl<T: Real, K: EkfKind> Ekf<T, K> {
 
     fn reset_state(&mut self) {
         let c = &mut self.core;
-        c.z = [T::zero(), T::zero(), T::one(), T::one(), T::one()];
+        let start = K::start(&c.cfg);
+        c.z = [T::zero(), T::zero(), start, T::one(), start];
         c.p = [T::zero(); 15];
         for i in 0..5 {
             c.p[idx(i, i)] = c.cfg.p0[i];
