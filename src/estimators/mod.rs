@@ -360,7 +360,7 @@ mod tests {
             let mut tuning = Tuning::preset("prbs").unwrap();
             tuning.set(TuningKey::Initial, &[initial.b0, initial.a1, initial.a0]).unwrap();
             let mut bank = full_bank::<T>(&tuning.design());
-            let mut reports = |bank: &mut FullBank<T>, reset: bool| {
+            let reports = |bank: &mut FullBank<T>, reset: bool| {
                 if reset {
                     bank.0.reset();
                     bank.1.reset();
