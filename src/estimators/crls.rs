@@ -136,7 +136,7 @@ impl CrlsDesign {
             p0: core::array::from_fn(|k| T::of(self.p0_diag[k] / (scale[k] * scale[k]))),
             scale: scale.map(T::of),
             start: {
-                let d = T::of(rk4_dispersed_start(i, self.sample_period_s));
+                let d = rk4_dispersed_start(T::of(i.a0), T::of(self.sample_period_s));
                 [d, T::one(), d]
             },
             r0_sq: T::of(self.r0 * self.r0),

@@ -186,7 +186,7 @@ impl EkfDesign {
             half_period: period * T::of(0.5),
             c0w: T::of(p.a0),
             b0_scale: T::of(p.b0),
-            dispersed_start: T::of(rk4_dispersed_start(p, h * self.substeps.max(1) as f64)),
+            dispersed_start: rk4_dispersed_start(T::of(p.a0), period),
             substeps: self.substeps.max(1),
             initial: *p,
         }
