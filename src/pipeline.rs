@@ -865,10 +865,13 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
     }
 
     /// The command in effect over the next sample period is `v`, V, not the one just written: that one missed its
-    /// deadline, and the DAC holds the one written before it (see [`crate::instrument::Instrument::sample`]).
+    /// deadline, and the DAC holds the one written before it (see [`crate::instrument::Instrument::sample`]). The
+    /// slew limiter steps from `v` too: from the skipped one, the next code would follow it by a step and the output
+    /// jump from `v` by two (the DAC never puts the skipped code out).
     #[cold]
     pub fn hold_command(&mut self, v: T) {
         self.command_v = v;
+        self.slewed_v = v;
     }
 
     /// Latched faults.

@@ -1369,6 +1369,35 @@ fn deadline_misses_and_overruns_are_counted_and_reported() {
     assert!(s.contains("faults=none"), "{s}");
 }
 
+/// A missed deadline skips a code: the DAC holds the one before it for a second period, and the next code follows
+/// the skipped one's. The slew limiter steps from the code the DAC holds, so that the output never moves by more
+/// than the slew limit (and the DAC's rounding) from one period to the next, one miss or two in a row, in the middle
+/// of the PRBS's ramps at 1 000 V/s. It moved by twice the limit before (found by the random session).
+#[test]
+fn a_missed_deadline_does_not_make_the_output_jump_past_the_slew_limit() {
+    for misses in [&[40usize][..], &[40, 41], &[40, 42], &[7, 19, 33, 34, 61]] {
+        let mut lab = Lab::new();
+        assert!(verdict(&lab.send("limits -5 5 1000\n")).starts_with("ok limits"));
+        assert!(verdict(&lab.send("excite prbs 4\n")).starts_with("ok excite"));
+        let (step, lsb) = (lab.isr.config().max_step_v as f64, lab.isr.config().command_lsb_v);
+        let bound = step + 2.0 * lsb + 1e-9;
+        let (mut last, mut worst, mut ramping) = (lab.board.last_u_v(), 0.0f64, 0);
+        for k in 0..2_000 {
+            if misses.contains(&(k % 100)) {
+                lab.board.inject_faults = Some(BoardFaults { deadline_missed: true, adc_overrun: false });
+            }
+            lab.sample();
+            let u = lab.board.last_u_v();
+            worst = worst.max((u - last).abs());
+            ramping += ((u - last).abs() > 0.5 * step) as usize;
+            last = u;
+        }
+        assert!(ramping > 200, "{misses:?}: the misses fell in ramps ({ramping} samples stepping)");
+        assert!(worst <= bound, "{misses:?}: the output moved {worst} V in a period, the limit {bound} V");
+        assert!(lab.send("status\n").contains(&format!("deadline_misses={} ", 20 * misses.len())));
+    }
+}
+
 #[test]
 fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
     // Asked every 100 ms: 1000 samples at 10 kHz; half of that suffices.
@@ -2313,7 +2342,7 @@ fn random_session(seed: u64, length: u64) {
         "q",
     ];
     let sets = ["all", "none", "rls", "ekf,hekf", "arx", "hekf,rls,rls", "kalman", ""];
-    let templates: [&str; 30] = [
+    let templates: [&str; 36] = [
         "help",
         "select $ $",
         "excite prbs #",
@@ -2344,6 +2373,12 @@ fn random_session(seed: u64, length: u64) {
         "record off",
         "select $",
         "reset $",
+        "freeze $",
+        "adapt $",
+        "record on",
+        "tune spike_ratio #",
+        "tune ekf @",
+        "tune initial",
     ];
     let lsb = 20.0 / 4096.0;
     let mut slew = SlewWatch::new(&lab);
@@ -2371,13 +2406,16 @@ fn random_session(seed: u64, length: u64) {
             line.push_str(&w);
             line.push(' ');
         }
-        // Now and then the verb alone, a word cut short, a control byte, every word in capitals, or a line too long.
+        // Now and then the verb alone, a word cut short, a control byte, every word in capitals, a line too long,
+        // or one corrected as typed: a byte taken back with Backspace (DEL), or what came before it with Ctrl-U.
         match next() % 16 {
             0 => line.truncate(line.find(' ').unwrap_or(0)),
             1 => line.truncate(line.len() / 2),
             2 => line.push('\u{1}'),
             3 => line.make_ascii_uppercase(),
             4 if next() % 4 == 0 => line.push_str(&" ".repeat(nanopos_id::control::MAX_LINE)),
+            5 => line.insert_str(next() as usize % (line.len() + 1), "q\u{7f}"),
+            6 => line.insert_str(0, "excite prbs 10\u{15}"),
             _ => {}
         }
         let line = if line.len() > nanopos_id::control::MAX_LINE { line.as_str() } else { line.trim_end() };
@@ -2448,6 +2486,58 @@ fn random_session(seed: u64, length: u64) {
             assert!(st.faults.contains(Faults::PROBE_OVER_RANGE), "{:?}\n{}", st.faults, recent(&session));
             assert!(st.command_v.abs() <= lsb / 2.0, "not safe 0.1 s after a fault\n{}", recent(&session));
             session.push("probe over range, 1002 samples".into());
+        }
+        // Now and then a stuck probe (the same code for 0.12 s: while an excitation runs, the fault latches and the
+        // output goes safe as above; without one a steady reading is no fault), a lone glitch of the reading (the
+        // spike gate's, no fault), or a late sample or lost conversion (counted).
+        match next() % 50 {
+            0 => {
+                let moving = lab.isr.config().excitation.is_active();
+                lab.board.forced_probe_code = Some(30_000);
+                for _ in 0..1200 {
+                    lab.sample();
+                    slew.check(&lab, || format!("probe stuck\n{}", recent(&session)));
+                }
+                lab.board.forced_probe_code = None;
+                if moving {
+                    let faults = lab.isr.status().faults;
+                    assert!(faults.contains(Faults::PROBE_STUCK), "{faults:?}\n{}", recent(&session));
+                }
+                // Latched (until `start`): 0.1 s later the output is safe.
+                for _ in 0..1002 {
+                    lab.sample();
+                    slew.check(&lab, || format!("after the probe stuck\n{}", recent(&session)));
+                }
+                let st = lab.isr.status();
+                if !st.faults.is_empty() {
+                    assert!(st.command_v.abs() <= lsb / 2.0, "not safe 0.1 s after a fault\n{}", recent(&session));
+                }
+                session.push(format!("probe stuck, 1200 samples (excitation moving: {moving}), 1002 after"));
+            }
+            1 => {
+                lab.board.forced_probe_code = Some(50_000);
+                lab.sample();
+                slew.check(&lab, || format!("probe glitch\n{}", recent(&session)));
+                lab.board.forced_probe_code = None;
+                session.push("probe glitch, 1 sample".into());
+            }
+            2 => {
+                let before = lab.isr.status().counters;
+                let faults = BoardFaults { deadline_missed: next() % 2 == 0, adc_overrun: next() % 2 == 0 };
+                lab.board.inject_faults = Some(faults);
+                lab.sample();
+                slew.check(&lab, || format!("{faults:?}\n{}", recent(&session)));
+                let after = lab.isr.status().counters;
+                let grown = |b: u32, a: u32, f: bool| a == b.saturating_add(f as u32);
+                assert!(
+                    grown(before.deadline_misses, after.deadline_misses, faults.deadline_missed)
+                        && grown(before.adc_overruns, after.adc_overruns, faults.adc_overrun),
+                    "{faults:?}: {before:?} -> {after:?}\n{}",
+                    recent(&session)
+                );
+                session.push(format!("{faults:?}, 1 sample"));
+            }
+            _ => {}
         }
         for (k, (p, _)) in lab.isr.estimates().iter().enumerate() {
             let name = ESTIMATOR_NAMES[k];
