@@ -2382,7 +2382,7 @@ fn random_session(seed: u64, length: u64) {
     ];
     let lsb = 20.0 / 4096.0;
     let mut slew = SlewWatch::new(&lab);
-    let (mut since_change, mut lines, mut accepted) = (0usize, 0usize, 0usize);
+    let (mut since_change, mut lines, mut accepted, mut frozen_runs) = (0usize, 0usize, 0usize, 0usize);
     // The session so far, for a failure's message: each line with the samples run after it.
     let mut session: Vec<String> = Vec::new();
     let recent = |s: &[String]| s[s.len().saturating_sub(30)..].join("\n");
@@ -2444,6 +2444,9 @@ fn random_session(seed: u64, length: u64) {
         if let Some((kind, level)) = external {
             session.push(format!("external command kind {kind} level {level}"));
         }
+        // A frozen estimator's parameters do not move, whatever the samples bring (unless a health reset took it
+        // back to its initial parameters, which it counts).
+        let before = lab.isr.estimates();
         for _ in 0..samples {
             let o = match external {
                 Some((0, level)) => lab.isr.sample_adding(&mut lab.board, |_| level),
@@ -2467,6 +2470,15 @@ fn random_session(seed: u64, length: u64) {
                     o.u_v,
                     recent(&session)
                 );
+            }
+        }
+        for (k, ((p, h), (p0, h0))) in lab.isr.estimates().iter().zip(before.iter()).enumerate() {
+            if h0.adaptation == Adaptation::Frozen
+                && h.adaptation == Adaptation::Frozen
+                && h.numeric_resets == h0.numeric_resets
+            {
+                assert!(p == p0, "{} frozen moved: {p0:?} -> {p:?}\n{}", ESTIMATOR_NAMES[k], recent(&session));
+                frozen_runs += (samples > 0) as usize;
             }
         }
         // `stop` stops the excitation, not an external command: with one, the output follows it.
@@ -2545,7 +2557,7 @@ fn random_session(seed: u64, length: u64) {
         }
     }
     // The session exercised the commands, not only their refusals.
-    println!("{accepted} of {lines} lines accepted");
+    println!("{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it");
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
     // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
