@@ -2419,6 +2419,7 @@ fn random_session(seed: u64, length: u64) {
             _ => {}
         }
         let line = if line.len() > nanopos_id::control::MAX_LINE { line.as_str() } else { line.trim_end() };
+        let config_before = format!("{:?}", lab.isr.config());
         let reply = lab.send(&format!("{line}\n"));
         lines += 1;
         slew.check(&lab, || format!("{line:?}\n{}", recent(&session)));
@@ -2432,6 +2433,9 @@ fn random_session(seed: u64, length: u64) {
         if last.starts_with("ok") {
             accepted += 1;
             since_change = 0;
+        } else {
+            // A refused command changes nothing.
+            assert_eq!(format!("{:?}", lab.isr.config()), config_before, "{line:?}: {reply}\n{}", recent(&session));
         }
         let samples = if last.starts_with("ok stop") { 1002 } else { (next() % 300) as usize };
         session.push(format!("{line:?} -> {last}, {samples} samples"));
