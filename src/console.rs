@@ -154,6 +154,10 @@ pub struct Controller {
     /// Since `record on` or `record burst`, until `record off` or [`Controller::record_ended`]: a change of the
     /// tuning then goes into the recording too.
     recording: bool,
+    /// Since `record on` or `record burst`, until [`Controller::record_ended`] (its end line went out): no other
+    /// recording starts meanwhile. One that did cleared the ring before the console drained it, and the recording
+    /// before lost its last samples and its end line.
+    record_open: bool,
     /// The recording stream owes the tuning's lines ([`Controller::take_tuning_due`]).
     tuning_due: bool,
 }
@@ -176,6 +180,7 @@ impl Controller {
             tuned: tuning != Tuning::of(TuningPreset::Prbs),
             frozen: EstimatorSet(0),
             recording: false,
+            record_open: false,
             tuning_due: false,
         };
         c.design::<f32>(&c.settings, running)?;
@@ -213,9 +218,10 @@ impl Controller {
         s.design(&self.board)
     }
 
-    /// The recording stopped by itself (a burst's end, or an overflow): its end line went out.
+    /// The recording stopped (`record off`, a burst's end, or an overflow), and its end line went out.
     pub fn record_ended(&mut self) {
         self.recording = false;
+        self.record_open = false;
     }
 
     /// Whether the recording stream owes the tuning's lines, once: after the reply to `record on` or `record burst`
@@ -710,7 +716,14 @@ impl Controller {
                 if self.board.probe.max_code > 0xFFFF || self.board.amplifier.max_code > 0xFFFF {
                     return Err(Refusal::Text("record: the v1 stream carries 16-bit codes; this board's are wider"));
                 }
+                if r != Recording::Off && self.record_open {
+                    return Err(Refusal::Text(
+                        "record: a recording runs, or its end line is still to come: record off, and wait for the end \
+                         line",
+                    ));
+                }
                 self.recording = r != Recording::Off;
+                self.record_open |= self.recording;
                 change.record = Some(match r {
                     Recording::Off => Some(0),
                     Recording::On => None,

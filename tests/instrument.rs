@@ -14,7 +14,7 @@ use nanopos_id::instrument::{
     News, RecordStatus, WatchdogGate, RECORD_BUFFER,
 };
 use nanopos_id::pipeline::{FaultCounters, Faults, Pipeline};
-use nanopos_id::record::{decode_frame, RawSample, FRAME_SAMPLES};
+use nanopos_id::record::{decode_frame, RawSample, END_TAG, FRAME_SAMPLES, HEADER_TAG};
 use nanopos_id::text::{Num, TextBuf};
 use nanopos_id::StageParams;
 use std::path::{Path, PathBuf};
@@ -1534,6 +1534,45 @@ fn recorded_samples(link: &str) -> Vec<RawSample> {
     samples
 }
 
+/// A recording is closed by its end line before another may start: `record on` or `record burst` while one runs, or
+/// while its end line is still to come (`record off` and a new one in the same batch of bytes, before the console
+/// drained the ring), is refused. Taken, the new recording cleared the ring: the old one's last samples were lost,
+/// and its end line never came (a header inside a recording; found by the random session).
+#[test]
+fn a_recording_is_closed_before_another_starts() {
+    let refused = "error: record: a recording runs, or its end line is still to come: record off, and wait for the \
+                   end line";
+    // The frames as the console task writes them after each batch of lines, on the link after the replies.
+    let drain = |lab: &mut Lab| {
+        let frames = lab.drain_recording();
+        lab.link.push_str(&frames);
+    };
+    for second in ["record on", "record burst 5"] {
+        let mut lab = Lab::new();
+        let start = lab.link.len();
+        assert!(verdict(&lab.send("record on\n")).starts_with("ok record on"));
+        lab.run(150);
+        drain(&mut lab);
+        // While it runs.
+        assert_eq!(verdict(&lab.send(&format!("{second}\n"))), refused);
+        lab.run(150);
+        drain(&mut lab);
+        // Stopped, its last frame and end line not yet out: in the same batch as the stop.
+        let reply = lab.send(&format!("record off\n{second}\n"));
+        assert!(reply.contains("ok record off\n") && reply.ends_with(&format!("{refused}\n")), "{reply}");
+        drain(&mut lab);
+        // Once its end line went out, a new one starts.
+        assert!(verdict(&lab.send(&format!("{second}\n"))).starts_with("ok record"));
+        lab.run(300);
+        lab.send("record off\n");
+        drain(&mut lab);
+        let mut watch = RecordWatch::default();
+        watch.feed(&lab.link[start..], String::new);
+        assert_eq!(watch.ended, 2, "{second}");
+        assert_eq!(watch.samples, 301 + if second == "record on" { 301 } else { 5 }, "{second}");
+    }
+}
+
 #[test]
 fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     let mut lab = Lab::new();
@@ -1660,6 +1699,8 @@ fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in
     assert_eq!(tuning_lines(&mut lab, "tune ekf r\n"), None, "a question");
     assert_eq!(tuning_lines(&mut lab, "record off\n"), None);
     assert_eq!(tuning_lines(&mut lab, "tune ekf r 4e-6\n"), None, "stopped");
+    // The recording's end line, before another starts.
+    lab.drain_recording();
     assert_eq!(tuning_lines(&mut lab, "record burst 10\n"), Some(4e-6));
     lab.run(20);
     lab.ctl.record_ended();
@@ -2382,6 +2423,8 @@ fn random_session(seed: u64, length: u64) {
     ];
     let lsb = 20.0 / 4096.0;
     let mut slew = SlewWatch::new(&lab);
+    let mut records = RecordWatch::default();
+    lab.link.clear();
     let (mut since_change, mut lines, mut accepted, mut frozen_runs) = (0usize, 0usize, 0usize, 0usize);
     // The session so far, for a failure's message: each line with the samples run after it.
     let mut session: Vec<String> = Vec::new();
@@ -2476,6 +2519,13 @@ fn random_session(seed: u64, length: u64) {
                 );
             }
         }
+        // The recording streamed as the firmware's console task drains it, between lines; every recording in the
+        // session's capture is whole.
+        let frames = lab.drain_recording();
+        lab.link.push_str(&frames);
+        records.feed(&lab.link, || recent(&session));
+        // Read: a long session's stream would otherwise be held whole.
+        lab.link.clear();
         for (k, ((p, h), (p0, h0))) in lab.isr.estimates().iter().zip(before.iter()).enumerate() {
             if h0.adaptation == Adaptation::Frozen
                 && h.adaptation == Adaptation::Frozen
@@ -2562,6 +2612,7 @@ fn random_session(seed: u64, length: u64) {
     }
     // The session exercised the commands, not only their refusals.
     println!("{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it");
+    println!("{} recordings ended whole, {} samples recorded", records.ended, records.samples);
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
     // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
@@ -2588,6 +2639,43 @@ fn random_session(seed: u64, length: u64) {
         let (a0, b0) = (p.a0 as f64 / truth.a0 - 1.0, p.b0 as f64 / truth.b0 - 1.0);
         println!("after the session and 5 s: {} a0 {a0:+.2e} b0 {b0:+.2e}", ESTIMATOR_NAMES[i]);
         assert!(a0.abs() < 0.01 && b0.abs() < 0.01, "{}: {p:?} against {truth:?}\n{status}", ESTIMATOR_NAMES[i]);
+    }
+}
+
+/// The recordings of a capture, checked line by line as it grows: a header, frames whose samples follow on from each
+/// other's (each frame's CRC checked), an end line whose count is the samples its frames carried; and nothing
+/// outside a recording but replies.
+#[derive(Default)]
+struct RecordWatch {
+    /// Inside a recording: the index of the next sample due, once a frame came, and the samples so far.
+    inside: Option<(Option<u64>, u64)>,
+    ended: usize,
+    samples: u64,
+}
+
+impl RecordWatch {
+    fn feed(&mut self, text: &str, context: impl Fn() -> String) {
+        let mut out = [RawSample::default(); FRAME_SAMPLES];
+        for line in text.lines() {
+            if line.starts_with(HEADER_TAG) {
+                assert!(self.inside.is_none(), "a header inside a recording: {line}\n{}", context());
+                self.inside = Some((None, 0));
+            } else if line.starts_with('R') {
+                let Some((next, count)) = self.inside.as_mut() else {
+                    panic!("a frame outside: {line}\n{}", context())
+                };
+                let (first, n) =
+                    decode_frame(line.as_bytes(), &mut out).unwrap_or_else(|e| panic!("{e:?}: {line}\n{}", context()));
+                assert!(next.is_none_or(|k| k == first), "a gap before {line} ({next:?})\n{}", context());
+                (*next, *count) = (Some(first + n as u64), *count + n as u64);
+            } else if let Some(rest) = line.strip_prefix(END_TAG) {
+                let Some((_, count)) = self.inside.take() else { panic!("an end outside: {line}\n{}", context()) };
+                let said = rest.split_once("samples=").and_then(|(_, r)| r.split(' ').next()?.parse::<u64>().ok());
+                assert_eq!(said, Some(count), "{line}\n{}", context());
+                self.ended += 1;
+                self.samples += count;
+            }
+        }
     }
 }
 
