@@ -2355,11 +2355,16 @@ const SINE: &str =
 #[test]
 fn a_random_session_of_commands_keeps_every_promise() {
     let from_env = |name: &str| std::env::var(name).ok().map(|v| v.parse().unwrap_or_else(|_| panic!("{name}={v}")));
-    random_session(from_env("SOAK_SEED").unwrap_or(0x9E37_79B9_7F4A_7C15), from_env("SOAK_LINES").unwrap_or(20_000));
+    random_session(
+        from_env("SOAK_SEED").unwrap_or(0x9E37_79B9_7F4A_7C15),
+        from_env("SOAK_LINES").unwrap_or(20_000),
+        false,
+    );
 }
 
-/// [`a_random_session_of_commands_keeps_every_promise`] for the session of `seed`, `length` lines long.
-fn random_session(seed: u64, length: u64) {
+/// [`a_random_session_of_commands_keeps_every_promise`] for the session of `seed`, `length` lines long: the
+/// recordings it streamed, and with `keep_stream` the stream itself (the link's every byte: replies, recordings).
+fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, String) {
     let mut lab = Lab::new();
     let mut next = nanopos_id::xorshift64(seed);
     let nums = [
@@ -2423,7 +2428,7 @@ fn random_session(seed: u64, length: u64) {
     ];
     let lsb = 20.0 / 4096.0;
     let mut slew = SlewWatch::new(&lab);
-    let mut records = RecordWatch::default();
+    let (mut records, mut stream) = (RecordWatch::default(), String::new());
     lab.link.clear();
     let (mut since_change, mut lines, mut accepted, mut frozen_runs) = (0usize, 0usize, 0usize, 0usize);
     // The session so far, for a failure's message: each line with the samples run after it.
@@ -2525,6 +2530,9 @@ fn random_session(seed: u64, length: u64) {
         lab.link.push_str(&frames);
         records.feed(&lab.link, || recent(&session));
         // Read: a long session's stream would otherwise be held whole.
+        if keep_stream {
+            stream.push_str(&lab.link);
+        }
         lab.link.clear();
         for (k, ((p, h), (p0, h0))) in lab.isr.estimates().iter().zip(before.iter()).enumerate() {
             if h0.adaptation == Adaptation::Frozen
@@ -2640,6 +2648,47 @@ fn random_session(seed: u64, length: u64) {
         println!("after the session and 5 s: {} a0 {a0:+.2e} b0 {b0:+.2e}", ESTIMATOR_NAMES[i]);
         assert!(a0.abs() < 0.01 && b0.abs() < 0.01, "{}: {p:?} against {truth:?}\n{status}", ESTIMATOR_NAMES[i]);
     }
+    (records, stream)
+}
+
+/// The stream of a random session, as a capture of the console would hold it (replies, `status` lines, tuning lines,
+/// hundreds of recordings among them, bursts and runs, stopped, ended or overflowed), decodes recording by
+/// recording: each to the samples and the end its own end line gives.
+#[test]
+fn a_random_sessions_capture_decodes_recording_by_recording() {
+    use hal_sim::cmd::decode::{self, Damage};
+    let (records, stream) = random_session(0x5EED, 6_000, true);
+    let n = records.recordings.len();
+    assert!(n > 100, "{n} recordings");
+    let dir = std::env::temp_dir().join(format!("nanopos-random-capture-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let capture = dir.join("capture.txt");
+    std::fs::write(&capture, &stream).unwrap();
+    let (mut decoded, mut single) = (0, 0);
+    for (k, &(samples, overflowed)) in records.recordings.iter().enumerate() {
+        let out = dir.join(format!("run{k}.csv"));
+        match decode::run(&capture, &out, k + 1, Damage::Refuse) {
+            Ok((rec, files)) => {
+                assert_eq!(
+                    (rec.len(), rec.ended, rec.segments.len()),
+                    (samples, Some(overflowed), 1),
+                    "recording {}",
+                    k + 1
+                );
+                assert!(rec.damage.is_empty() && files == [Some(out.clone())], "recording {}: {rec:?}", k + 1);
+                let rows = std::fs::read_to_string(&out).unwrap().lines().count() as u64;
+                assert_eq!(rows, samples + 1, "recording {}: a header and a row a sample", k + 1);
+                decoded += 1;
+            }
+            Err(e) => {
+                assert_eq!(samples, 1, "recording {} of {samples} samples: {e}", k + 1);
+                single += 1;
+            }
+        }
+    }
+    println!("{n} recordings in the capture; {decoded} decoded, {single} of a single sample refused");
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(decoded > 100, "{decoded}");
 }
 
 /// The recordings of a capture, checked line by line as it grows: a header, frames whose samples follow on from each
@@ -2651,6 +2700,8 @@ struct RecordWatch {
     inside: Option<(Option<u64>, u64)>,
     ended: usize,
     samples: u64,
+    /// Each recording ended: its samples, and whether it overflowed.
+    recordings: Vec<(u64, bool)>,
 }
 
 impl RecordWatch {
@@ -2674,6 +2725,7 @@ impl RecordWatch {
                 assert_eq!(said, Some(count), "{line}\n{}", context());
                 self.ended += 1;
                 self.samples += count;
+                self.recordings.push((count, rest.contains(" overflow=1 ")));
             }
         }
     }
