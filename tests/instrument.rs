@@ -2508,6 +2508,7 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
                 None => lab.sample(),
             };
             slew.check(&lab, || format!("{external:?}\n{}", recent(&session)));
+            records.read.insert(lab.isr.pipeline.samples() - 1, o.probe_code as u16);
             since_change += 1;
             assert!(
                 (249..=3847).contains(&o.dac_code) && o.u_v.is_finite() && o.u_v.abs() <= 8.7842,
@@ -2620,7 +2621,10 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
     }
     // The session exercised the commands, not only their refusals.
     println!("{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it");
-    println!("{} recordings ended whole, {} samples recorded", records.ended, records.samples);
+    println!(
+        "{} recordings ended whole, {} samples recorded, {} of them checked against the probe's codes",
+        records.ended, records.samples, records.checked
+    );
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
     // And it leaves a firmware that identifies the stage as one just started: the default limits and excitation,
@@ -2702,6 +2706,11 @@ struct RecordWatch {
     samples: u64,
     /// Each recording ended: its samples, and whether it overflowed.
     recordings: Vec<(u64, bool)>,
+    /// The probe codes the interrupt read, by sample index since the board started (of the samples the test ran
+    /// itself; the ring holds the last 0.1 s): a recorded sample of one of those carries it.
+    read: std::collections::HashMap<u64, u16>,
+    /// Recorded samples checked against them.
+    checked: u64,
 }
 
 impl RecordWatch {
@@ -2719,6 +2728,12 @@ impl RecordWatch {
                     decode_frame(line.as_bytes(), &mut out).unwrap_or_else(|e| panic!("{e:?}: {line}\n{}", context()));
                 assert!(next.is_none_or(|k| k == first), "a gap before {line} ({next:?})\n{}", context());
                 (*next, *count) = (Some(first + n as u64), *count + n as u64);
+                for (k, s) in out[..n].iter().enumerate() {
+                    if let Some(&code) = self.read.get(&(first + k as u64)) {
+                        assert_eq!(s.y_code, code, "sample {} of {line}\n{}", first + k as u64, context());
+                        self.checked += 1;
+                    }
+                }
             } else if let Some(rest) = line.strip_prefix(END_TAG) {
                 let Some((_, count)) = self.inside.take() else { panic!("an end outside: {line}\n{}", context()) };
                 let said = rest.split_once("samples=").and_then(|(_, r)| r.split(' ').next()?.parse::<u64>().ok());
@@ -2727,6 +2742,11 @@ impl RecordWatch {
                 self.samples += count;
                 self.recordings.push((count, rest.contains(" overflow=1 ")));
             }
+        }
+        // What the ring can no longer hold is not recorded any more.
+        if self.read.len() > 4 * RECORD_BUFFER {
+            let newest = self.read.keys().max().copied().unwrap_or(0);
+            self.read.retain(|&k, _| k + 2 * RECORD_BUFFER as u64 > newest);
         }
     }
 }
