@@ -2508,7 +2508,7 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
                 None => lab.sample(),
             };
             slew.check(&lab, || format!("{external:?}\n{}", recent(&session)));
-            records.read.insert(lab.isr.pipeline.samples() - 1, o.probe_code as u16);
+            records.saw(&lab, &o, false);
             since_change += 1;
             assert!(
                 (249..=3847).contains(&o.dac_code) && o.u_v.is_finite() && o.u_v.abs() <= 8.7842,
@@ -2600,7 +2600,8 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
                 let before = lab.isr.status().counters;
                 let faults = BoardFaults { deadline_missed: next() % 2 == 0, adc_overrun: next() % 2 == 0 };
                 lab.board.inject_faults = Some(faults);
-                lab.sample();
+                let o = lab.sample();
+                records.saw(&lab, &o, faults.deadline_missed);
                 slew.check(&lab, || format!("{faults:?}\n{}", recent(&session)));
                 let after = lab.isr.status().counters;
                 let grown = |b: u32, a: u32, f: bool| a == b.saturating_add(f as u32);
@@ -2622,8 +2623,8 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
     // The session exercised the commands, not only their refusals.
     println!("{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it");
     println!(
-        "{} recordings ended whole, {} samples recorded, {} of them checked against the probe's codes",
-        records.ended, records.samples, records.checked
+        "{} recordings ended whole, {} samples recorded, {} checked against the probe's codes, {} against the DAC's",
+        records.ended, records.samples, records.checked, records.checked_u
     );
     assert!(accepted > lines / 5, "{accepted} of {lines}");
 
@@ -2706,14 +2707,22 @@ struct RecordWatch {
     samples: u64,
     /// Each recording ended: its samples, and whether it overflowed.
     recordings: Vec<(u64, bool)>,
-    /// The probe codes the interrupt read, by sample index since the board started (of the samples the test ran
-    /// itself; the ring holds the last 0.1 s): a recorded sample of one of those carries it.
-    read: std::collections::HashMap<u64, u16>,
-    /// Recorded samples checked against them.
+    /// The probe code the interrupt read and the DAC code it wrote, and whether that write missed its deadline, by
+    /// sample index since the board started (of the samples the test ran itself; the ring holds the last 0.1 s): a
+    /// recorded sample of one of those carries its probe code, and the sample after it its DAC code (in effect over
+    /// the next period, on time).
+    read: std::collections::HashMap<u64, (u16, u16, bool)>,
+    /// Recorded samples checked against them: their probe codes, their DAC codes.
     checked: u64,
+    checked_u: u64,
 }
 
 impl RecordWatch {
+    /// The sample the interrupt just ran gave `o`, its write `late` or not.
+    fn saw(&mut self, lab: &Lab, o: &nanopos_id::pipeline::SampleOutput<f32>, late: bool) {
+        self.read.insert(lab.isr.pipeline.samples() - 1, (o.probe_code as u16, o.dac_code as u16, late));
+    }
+
     fn feed(&mut self, text: &str, context: impl Fn() -> String) {
         let mut out = [RawSample::default(); FRAME_SAMPLES];
         for line in text.lines() {
@@ -2729,9 +2738,14 @@ impl RecordWatch {
                 assert!(next.is_none_or(|k| k == first), "a gap before {line} ({next:?})\n{}", context());
                 (*next, *count) = (Some(first + n as u64), *count + n as u64);
                 for (k, s) in out[..n].iter().enumerate() {
-                    if let Some(&code) = self.read.get(&(first + k as u64)) {
-                        assert_eq!(s.y_code, code, "sample {} of {line}\n{}", first + k as u64, context());
+                    let i = first + k as u64;
+                    if let Some(&(y, _, _)) = self.read.get(&i) {
+                        assert_eq!(s.y_code, y, "sample {i}'s y of {line}\n{}", context());
                         self.checked += 1;
+                    }
+                    if let Some(&(_, u, false)) = i.checked_sub(1).and_then(|j| self.read.get(&j)) {
+                        assert_eq!(s.u_code, u, "sample {i}'s u of {line}\n{}", context());
+                        self.checked_u += 1;
                     }
                 }
             } else if let Some(rest) = line.strip_prefix(END_TAG) {
