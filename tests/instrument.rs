@@ -2338,16 +2338,23 @@ const SINE: &str =
 /// A long random session at the console, as a user in a hurry (or a noisy link) would type it: commands of every
 /// verb with numbers from everyday to absurd (`nan`, `inf`, `1e39`, `1e-45`, huge counts), interleaved with runs of
 /// samples, now and then with an external command added (steady, following the probe, huge or not finite), and now
-/// and then a probe fault. What must hold throughout: every line gets exactly one final `ok` or `error:`; every DAC
-/// code is within the DAC's swing (codes 249 to 3847, whatever the limits) and every command finite within -8.78 to
-/// 8.78 V, and within the slew limit of the last (`SlewWatch`); every estimate finite; after `stop` (without an
-/// external command, which `stop` does not stop) or a fault the output is at its safe value within 0.1 s; once a
-/// change has had 0.2 s to ramp in, the output is inside the clamp in force. Found so far: a slew
-/// limit of 1e-30 V/s accepted (the output then never went safe), and, 22 000 lines into a longer run, the continuous
-/// EKF's `a0 = -inf` from a finite state (its RK4 dispersion correction, applied to an estimate gone wild on a
-/// pre-filter tuned to ring for ever, `tune prefilter 25 0.5 1e-45`). 1.2 million lines over four seeds then held,
-/// and 0.9 million with the probe faults and the external commands, over three. At its end the preset's commands
-/// give back a firmware that identifies the stage (see there for what that found).
+/// and then a probe fault (over range, stuck, a lone glitch), a missed deadline or a lost conversion; lines corrected
+/// with Backspace or Ctrl-U; the recording drained between lines, as the console task does. What must hold
+/// throughout: every line gets exactly one final `ok` or `error:`, and a refused one leaves the interrupt's
+/// configuration as it was; every DAC code is within the DAC's swing (codes 249 to 3847, whatever the limits) and
+/// every command finite within -8.78 to 8.78 V, and within the slew limit of the last (`SlewWatch`); every estimate
+/// finite, and a frozen one's unmoved; after `stop` (without an external command, which `stop` does not stop) or a
+/// fault the output is at its safe value within 0.1 s; once a change has had 0.2 s to ramp in, the output is inside
+/// the clamp in force; the missed deadlines and lost conversions counted; every recording in the stream whole
+/// (`RecordWatch`: a header, frames following on from each other, an end line with their count) and each sample in
+/// it the codes the interrupt read and wrote. Found so far: a slew limit of 1e-30 V/s accepted (the output then never
+/// went safe); 22 000 lines into a longer run, the continuous EKF's `a0 = -inf` from a finite state (its RK4
+/// dispersion correction, applied to an estimate gone wild on a pre-filter tuned to ring for ever, `tune prefilter
+/// 25 0.5 1e-45`); at 500 000 lines, `b0 = inf` reported from a finite state; the output moving by twice the slew
+/// limit after a missed deadline (`a_missed_deadline_does_not_make_the_output_jump_past_the_slew_limit`); and a
+/// recording started while another ran, or before its end line, which lost the other's last samples and end line
+/// (`a_recording_is_closed_before_another_starts`). At its end the preset's commands give back a firmware that
+/// identifies the stage (see there for what that found).
 ///
 /// To soak it, `SOAK_SEED` and `SOAK_LINES` in the environment replace the seed and the 20 000 lines, e.g.
 /// `for s in $(seq 1001 1100); do SOAK_SEED=$s SOAK_LINES=100000 cargo test -q --release --test instrument --
