@@ -109,11 +109,7 @@ impl ExcitationDesign {
     /// The generator's configuration for sample rate `fs_hz`.
     #[inline(never)]
     pub fn design<T: Real>(&self, fs_hz: f64) -> Excitation<T> {
-        let phase_step = |f_hz: f64| {
-            let cycles = f_hz / fs_hz;
-            let frac = cycles - libm::floor(cycles);
-            (frac * 18_446_744_073_709_551_616.0) as u64
-        };
+        let phase_step = |f_hz: f64| phase_step(f_hz, fs_hz);
         let mut weights = [T::zero(); MAX_HARMONICS];
         let mut spacing_step = 0;
         let (kind, step, harmonics) = match self.waveform {
@@ -182,9 +178,9 @@ pub struct Reach {
     pub low_v: f64,
     /// The highest value.
     pub high_v: f64,
-    /// The largest change from one sample to the next, where a simple bound is tight (the PRBS: exact; a sine:
-    /// within `1 - cos(pi f / fs)`); `None` for the smoothed triangle and the multisine, whose steepest steps depend
-    /// on their harmonics' phases.
+    /// The largest change from one sample to the next over every phase the samples can take (the PRBS: exact; a
+    /// sine or the smoothed triangle: its samples may miss it by up to `1 - cos(pi f / fs)`, `f` the top frequency);
+    /// `None` for the multisine, whose tones' relative phases drift through values no short search covers.
     pub step_v: Option<f64>,
 }
 
@@ -204,14 +200,86 @@ impl ExcitationDesign {
                 (a, Some(2.0 * a * libm::fabs(libm::sin(core::f64::consts::PI * libm::fmin(freq_hz / fs_hz, 0.5)))))
             }
             Waveform::Triangle { freq_hz, max_hz } => {
-                // Summed in f32, to 1e-7: on the board a loop of soft-double calls took 1.2 KiB of flash.
-                let sum: f32 = (0..triangle_harmonics(freq_hz, max_hz)).map(triangle_weight::<f32>).sum();
-                (a * sum as f64, None)
+                // Summed in f32, to 1e-7, and raised by 1e-6 for it (it fell 2e-9 short of the generator's crest at
+                // 171 Hz): on the board a loop of soft-double calls took 1.2 KiB of flash.
+                let harmonics = triangle_harmonics(freq_hz, max_hz);
+                let sum: f32 = (0..harmonics).map(triangle_weight::<f32>).sum();
+                (a * sum as f64 * (1.0 + 1e-6), Some(a * triangle_steepest_step(phase_step(freq_hz, fs_hz), harmonics)))
             }
             Waveform::Multisine { .. } => (MULTISINE_PEAK * a, None),
         };
         Reach { low_v: self.offset_v - peak, high_v: self.offset_v + peak, step_v }
     }
+}
+
+/// The phase a sample of `f_hz` at `fs_hz` turns, in 2^-64 of a cycle (the generators' unit). Out of line: soft
+/// double on the board, in the designs and in `reach`.
+#[inline(never)]
+fn phase_step(f_hz: f64, fs_hz: f64) -> u64 {
+    let cycles = f_hz / fs_hz;
+    let frac = cycles - libm::floor(cycles);
+    (frac * 18_446_744_073_709_551_616.0) as u64
+}
+
+/// The smoothed triangle's largest change from one sample to the next, for a unit amplitude, over every phase: the
+/// change from phase `x` to `x + d` (`d` the phase a sample turns, `step`) is `sum_k w_k (sin(n_k (x + d)) - sin(n_k
+/// x))`, that is `g(phi) = sum_k c_k cos(n_k phi)` with `c_k = 2 w_k sin(n_k d / 2)` (`w_k` signed, `n_k = 2 k + 1`)
+/// at `phi = x + d / 2`; `|g|` repeats every half period and is even, so a quarter period holds its maximum. Sampled
+/// at 16 points a period of the top harmonic, each local maximum then refined by 24 ternary steps (to 1e-4 of a grid
+/// step): the sum's largest lobe is a few grid steps wide, so the coarse grid finds every candidate, and the
+/// refinement takes the missed crest's 1-2 % back. In f32 with the generators' own sines (at most 509 points of at
+/// most 64 terms, `cos(n phi)` by the recurrence `2 cos(2 phi) cos(n phi) - cos((n - 2) phi)`), raised by 1e-5 for
+/// its rounding (measured at most 2.8e-6 below the maximum computed in f64). The steepest step sits next to the
+/// crests, where the harmonics' sum overshoots the straight flank (Gibbs): about 1.18 times `4 A f / fs` when there
+/// are many.
+#[inline(never)]
+fn triangle_steepest_step(step: u64, harmonics: usize) -> f64 {
+    if harmonics == 0 {
+        return 0.0;
+    }
+    let mut c = [0f32; MAX_HARMONICS];
+    for (k, c) in c[..harmonics].iter_mut().enumerate() {
+        let sign = if k % 2 == 0 { 2.0 } else { -2.0 };
+        *c = sign * triangle_weight::<f32>(k) * f32::phase_sin_cos((step / 2).wrapping_mul(2 * k as u64 + 1)).0;
+    }
+    let c = &c[..harmonics];
+    let points = 4 * (2 * harmonics as u64 - 1);
+    // A quarter cycle is 2^62.
+    let h = (1u64 << 62) / points;
+    let (mut best, mut before, mut here) = (0.0f32, 0.0f32, abs_odd_cosine_series(c, 0));
+    for i in 0..=points {
+        let after = if i < points { abs_odd_cosine_series(c, (i + 1) * h) } else { 0.0 };
+        // A local maximum of the grid (the ends count: `|g|` is even about both).
+        if here >= before && here >= after {
+            let (mut lo, mut hi) = ((i * h).wrapping_sub(h), (i * h).wrapping_add(h));
+            for _ in 0..24 {
+                let third = hi.wrapping_sub(lo) / 3;
+                let (m1, m2) = (lo.wrapping_add(third), hi.wrapping_sub(third));
+                if abs_odd_cosine_series(c, m1) < abs_odd_cosine_series(c, m2) {
+                    lo = m1;
+                } else {
+                    hi = m2;
+                }
+            }
+            let middle = lo.wrapping_add(hi.wrapping_sub(lo) / 2);
+            best = best.max(here).max(abs_odd_cosine_series(c, middle));
+        }
+        (before, here) = (here, after);
+    }
+    best as f64 * (1.0 + 1e-5)
+}
+
+/// `|sum_k c_k cos((2 k + 1) phi)|` at the phase `phi` (2^-64 of a cycle), by the recurrence.
+#[inline(never)]
+fn abs_odd_cosine_series(c: &[f32], phi: u64) -> f32 {
+    let c1 = f32::phase_sin_cos(phi).1;
+    let two_c2 = 4.0 * c1 * c1 - 2.0;
+    let (mut prev, mut cos_n, mut sum) = (c1, c1, 0.0f32);
+    for &ck in c {
+        sum += ck * cos_n;
+        (prev, cos_n) = (cos_n, two_c2 * cos_n - prev);
+    }
+    libm::fabsf(sum)
 }
 
 /// The multisine's peak over its amplitude, at most ([`Waveform::Multisine`]: the envelope's maximum 1.3545).
@@ -489,11 +557,21 @@ mod tests {
     /// PRBS's exactly.
     #[test]
     fn the_reach_bounds_the_waveform_and_is_tight_where_exact() {
+        let tri = |freq_hz: f64, amplitude_v: f64| ExcitationDesign {
+            waveform: Waveform::Triangle { freq_hz, max_hz: 1000.0 },
+            amplitude_v,
+            offset_v: 0.0,
+        };
         let designs = [
             (ExcitationDesign { offset_v: 0.5, ..ExcitationDesign::PAPER_PRBS }, true),
             (ExcitationDesign { offset_v: -2.0, ..ExcitationDesign::sine(97.0, 3.0) }, true),
             (ExcitationDesign::sine(1000.0, 1.0), true),
             (ExcitationDesign { offset_v: 1.0, ..ExcitationDesign::PAPER_TRIANGLE }, true),
+            (tri(7.0, 2.0), true),
+            (tri(33.3, 0.5), true),
+            (tri(171.0, 1.0), true),
+            (tri(333.4, 1.0), true),
+            (tri(1000.0, 1.0), true),
             (ExcitationDesign::multisine(200.0, 800.0, 2.0), false),
             (ExcitationDesign::constant(4.0), true),
         ];
@@ -519,9 +597,56 @@ mod tests {
                 assert!(low - r.low_v <= slack * a && r.high_v - high <= slack * a, "{design:?}: {low} {high} {r:?}");
             }
             if let Some(bound) = r.step_v {
-                assert!(step <= bound + 1e-12 && step >= near * bound, "{design:?}: step {step}, bound {bound}");
+                // The triangle's, from a search in f32, raised by 1e-5 for its rounding (and that rounding).
+                let low = near * bound / (1.0 + 2e-5);
+                assert!(step <= bound + 1e-12 && step >= low, "{design:?}: step {step}, bound {bound}");
             }
         }
+    }
+
+    /// The triangle's steepest step, searched in f32, against the change from one phase to the next computed in f64
+    /// on a grid of 2^17 phases a period (the unit triangle's series at `x` and `x + 2 pi f / fs`), for fundamentals
+    /// from 0.5 Hz (64 harmonics, the most) to 1 kHz (one): at or above it, by at most its raise of 1e-5 and the
+    /// f32 search's own error. And with many harmonics
+    /// it is the flank's `4 f / fs` overshot by Gibbs's 1.18 (1.15-1.19 here, as the harmonics' count and the sample
+    /// period round the lobe).
+    #[test]
+    fn the_triangles_steepest_step_is_found_in_every_phase() {
+        let fs = 1e4;
+        let mut next = crate::xorshift64(0x7A1E);
+        let mut worst = 0.0f64;
+        for i in 0..40 {
+            let f = if i == 0 { 0.5 } else { 0.5 * libm::pow(2000.0, (next() >> 11) as f64 / (1u64 << 53) as f64) };
+            let harmonics = triangle_harmonics(f, 1000.0);
+            let d = 2.0 * core::f64::consts::PI * f / fs;
+            // `sin(n x)` for odd `n` by the recurrence in f64 (its error a few 1e-15, far below what is judged).
+            let u = |x: f64| {
+                let (s1, two_c2) = (libm::sin(x), 2.0 * libm::cos(2.0 * x));
+                let (mut prev, mut sin_n, mut sum) = (-s1, s1, 0.0);
+                for k in 0..harmonics {
+                    let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+                    sum += sign * triangle_weight::<f64>(k) * sin_n;
+                    (prev, sin_n) = (sin_n, two_c2 * sin_n - prev);
+                }
+                sum
+            };
+            let points = 1 << 17;
+            let brute = (0..points)
+                .map(|j| 2.0 * core::f64::consts::PI * j as f64 / points as f64)
+                .map(|x| libm::fabs(u(x + d) - u(x)))
+                .fold(0.0, f64::max);
+            let found = triangle_steepest_step(phase_step(f, fs), harmonics);
+            // The phase grid itself may miss the crest of a lobe by up to 5e-6 (64 harmonics).
+            assert!(found >= brute && found <= brute * (1.0 + 3e-5), "{f} Hz: {found} against {brute}");
+            worst = worst.max(1.0 - found / (1.0 + 1e-5) / brute);
+            if harmonics >= 16 {
+                let gibbs = found / (4.0 * f / fs);
+                assert!((1.15..1.19).contains(&gibbs), "{f} Hz: {gibbs} times the flank");
+            }
+        }
+        std::println!(
+            "the steepest step searched in f32 at most {worst:.1e} below the phase grid's in f64, before the raise"
+        );
     }
 
     /// The triangle's harmonic count in closed form is the count of the loop it replaced, over fundamentals from

@@ -1883,29 +1883,34 @@ fn the_ekfs_covariance_is_no_error_bar() {
     assert!(err_poor > 4.0 * sd_poor, "far beyond it on the low multisine");
 }
 
-/// The notes of [`the_console_says_when_an_excitation_will_not_fit_the_limits`] on 400 random limits and
-/// excitations of the waveforms whose extent and steepest step the console judges (the PRBS, the sine, the constant):
-/// where a note says the clamp will clip or the slew limit ramp, the limits change commands over the next 0.5 s, and
-/// only there; but for a sine whose samples miss its crest or its steepest step, by up to `1 - cos(pi f / fs)` of
-/// them, which may leave a note with nothing limited. (The triangle's and the multisine's steps are not judged: the
-/// same check over all five waveforms found 32 mismatches in 400, each a triangle or a multisine ramped by a slew limit
-/// of a few hundred V/s without a note.)
+/// The notes of [`the_console_says_when_an_excitation_will_not_fit_the_limits`] on 500 random limits and
+/// excitations of the waveforms whose extent and steepest step the console judges (the PRBS, the sine, the smoothed
+/// triangle, the constant): where a note says the clamp will clip or the slew limit ramp, the limits change commands
+/// over the next 0.5 s, and only there; but for a sine or a triangle whose samples miss its crest or its steepest
+/// step, by up to `1 - cos(pi f / fs)` of them (`f` the top harmonic's), which may leave a note with nothing limited.
+/// (The multisine's steps are not judged. Before the triangle's were, the same check over all five waveforms found
+/// 32 mismatches in 400, each a triangle or a multisine ramped by a slew limit of a few hundred V/s without a note.)
 #[test]
 fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
     let mut next = nanopos_id::xorshift64(0x3C6E_F372_FE94_F82B);
     let mut unit = move || (next() >> 11) as f64 / (1u64 << 53) as f64;
     let (mut noted, mut quiet) = (0, 0);
-    for _ in 0..400 {
+    for _ in 0..500 {
         let mut lab = Lab::new();
         let (lo, hi) = (-10.0 + 10.0 * unit(), 10.0 * unit());
         let slew = 10f64.powf(1.0 + 4.5 * unit());
         let limits = format!("limits {lo:.3} {hi:.3} {slew:.1}\n");
         let (amp, f) = (10f64.powf(-1.5 + 2.0 * unit()), 10f64.powf(1.0 + 2.0 * unit()));
         let off = (lo + hi) / 2.0 + (unit() - 0.5) * 4.0;
-        let (excite, sine) = match (unit() * 3.0) as usize {
-            0 => (format!("excite prbs {amp:.3} {off:.3}\n"), false),
-            1 => (format!("excite sine {amp:.3} {f:.2} {off:.3}\n"), true),
-            _ => (format!("excite constant {off:.3}\n"), false),
+        // The top harmonic's frequency, for the waveforms whose samples may miss their crest and steepest step.
+        let (excite, top) = match (unit() * 4.0) as usize {
+            0 => (format!("excite prbs {amp:.3} {off:.3}\n"), None),
+            1 => (format!("excite sine {amp:.3} {f:.2} {off:.3}\n"), Some(f)),
+            2 => (
+                format!("excite triangle {amp:.3} {f:.2} {off:.3}\n"),
+                Some(f * (2.0 * ((1000.0 / f + 1.0) / 2.0).floor() - 1.0)),
+            ),
+            _ => (format!("excite constant {off:.3}\n"), None),
         };
         if !verdict(&lab.send(&limits)).starts_with("ok ") {
             continue;
@@ -1920,17 +1925,50 @@ fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
         lab.run(5000);
         let limited = lab.isr.status().counters.limited > before;
         let says = notes(&reply).iter().any(|n| n.contains("will clip") || n.contains("will be ramped"));
-        let missed_crest = sine && says && !limited && {
-            let miss = 1.0 - (std::f64::consts::PI * f / 1e4).cos();
-            let near = |edge: f64, crest: f64| (edge - crest).abs() <= miss * amp;
-            let step = 2.0 * amp * (std::f64::consts::PI * f / 1e4).sin();
-            near(hi, off + amp) || near(lo, off - amp) || (slew * 1e-4 - step).abs() <= miss * step
-        };
+        let missed_crest = says
+            && !limited
+            && top.is_some_and(|top| {
+                let miss = 1.0 - (std::f64::consts::PI * top / 1e4).cos();
+                let near = |edge: f64, crest: f64| (edge - crest).abs() <= miss * amp;
+                // The note's steepest step (the sine's `2 A sin(pi f / fs)`, the triangle's searched).
+                let step = notes(&reply).iter().find_map(|n| {
+                    n.strip_prefix("note: the excitation steps by up to ")?.split_once(' ')?.0.parse::<f64>().ok()
+                });
+                near(hi, off + amp) || near(lo, off - amp) || step.is_some_and(|s| (slew * 1e-4 - s).abs() <= miss * s)
+            });
         assert!(says == limited || missed_crest, "{limits}{excite}{reply}limited: {limited}");
         (noted, quiet) = (noted + says as usize, quiet + !says as usize);
     }
     println!("{noted} noted, {quiet} quiet");
     assert!(noted > 50 && quiet > 50, "{noted} noted, {quiet} quiet: the cases do not cover both");
+}
+
+/// The smoothed triangle's steepest step is judged against the slew limit like the PRBS's and the sine's: next to
+/// its crests its harmonics overshoot the flank's `4 A f / fs` (0.04 V a sample for 1 V at 100 Hz) by Gibbs's 18 %,
+/// and a slew limit between the two ramps it there (a 1 V, 100 Hz triangle under 300 V/s: 0.047 V a sample against
+/// 0.03, limited in most of its samples); at 10 Hz it steps by 0.0047 V and passes.
+#[test]
+fn the_triangles_steepest_step_is_judged_against_the_slew_limit() {
+    let mut lab = Lab::new();
+    assert!(verdict(&lab.send("limits -5 5 300\n")).starts_with("ok limits"));
+    let r = lab.send("excite triangle 1 100\n");
+    assert!(
+        notes(&r).contains(
+            &"note: the excitation steps by up to 0.0471588 V a sample, beyond the slew limit's 0.03 V: it will be ramped"
+                .to_string()
+        ),
+        "{r}"
+    );
+    lab.run(3000);
+    let before = lab.isr.status().counters.limited;
+    lab.run(1000);
+    assert!(lab.isr.status().counters.limited - before > 500, "ramped in most samples");
+    let r = lab.send("excite triangle 1 10\n");
+    assert!(!r.contains("will be ramped"), "{r}");
+    lab.run(3000);
+    let before = lab.isr.status().counters.limited;
+    lab.run(2000);
+    assert_eq!(lab.isr.status().counters.limited, before, "not ramped");
 }
 
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
@@ -2041,7 +2079,7 @@ fn the_triangle_with_the_prbs_tuning_is_given_the_triangle_tuning() {
         ("tuning prbs\n", &[]),
         (
             "excite triangle 1e-3 10\n",
-            &["note: the excitation spans 0.00199189 V, less than one step of the DAC \
+            &["note: the excitation spans 0.0019919 V, less than one step of the DAC \
                                           (0.00488281 V): the output holds one code or toggles between two, and the \
                                           excitation monitor holds the estimators (starved)"],
         ),
@@ -2056,7 +2094,10 @@ fn the_triangle_with_the_prbs_tuning_is_given_the_triangle_tuning() {
     assert!(verdict(&lab.send("limits -0.5 0.5 100\n")).starts_with("ok"));
     let reply = lab.send("excite triangle 8.5 1000 0.3\n");
     let notes = notes(&reply);
-    assert!(notes.len() == 2 && notes[0].contains("clip") && notes[1] == Q2, "{reply}");
+    assert!(
+        notes.len() == 3 && notes[0].contains("clip") && notes[1].contains("will be ramped") && notes[2] == Q2,
+        "{reply}"
+    );
 }
 
 /// An excitation that spans less than one step of the DAC (4.88 mV as a command): the output holds one code (about
