@@ -2479,6 +2479,7 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
     let (mut records, mut stream) = (RecordWatch::default(), String::new());
     lab.link.clear();
     let (mut since_change, mut lines, mut accepted, mut frozen_runs) = (0usize, 0usize, 0usize, 0usize);
+    let mut restarts_checked = 0usize;
     // The session so far, for a failure's message: each line with the samples run after it.
     let mut session: Vec<String> = Vec::new();
     let recent = |s: &[String]| s[s.len().saturating_sub(30)..].join("\n");
@@ -2516,6 +2517,7 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
         }
         let line = if line.len() > nanopos_id::control::MAX_LINE { line.as_str() } else { line.trim_end() };
         let config_before = format!("{:?}", lab.isr.config());
+        let health_before = lab.isr.estimates().map(|(_, h)| h);
         let reply = lab.send(&format!("{line}\n"));
         lines += 1;
         slew.check(&lab, || format!("{line:?}\n{}", recent(&session)));
@@ -2529,6 +2531,28 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
         if last.starts_with("ok") {
             accepted += 1;
             since_change = 0;
+            // A new tuning restarts the estimators its reply names, frozen ones staying frozen (a tuning that left
+            // them adapting fails this), and the others run on: their counts go on from where they were (a restart
+            // starts them from zero; one whose counts are all zero, as the RLS's mostly are, is not told apart).
+            let health = lab.isr.estimates().map(|(_, h)| h);
+            if let Some((restarted, kept)) = restarted_and_kept(last) {
+                for (k, (h, h0)) in health.iter().zip(&health_before).enumerate() {
+                    let name = ESTIMATOR_NAMES[k];
+                    let counts = |h: &nanopos_id::estimator::Health| {
+                        [h.numeric_resets, h.rejected_samples, h.changes_detected, h.covariance_repairs]
+                    };
+                    if kept.contains(&name) {
+                        let grew = counts(h).iter().zip(counts(h0)).all(|(a, b)| *a >= b);
+                        assert!(grew, "{name} kept: {h0:?} -> {h:?}\n{line:?}: {last}\n{}", recent(&session));
+                    } else if restarted.contains(&name) {
+                        assert!(counts(h).iter().all(|&c| c <= 1), "{name} restarted: {h:?}\n{}", recent(&session));
+                        if h0.adaptation == Adaptation::Frozen {
+                            assert_eq!(h.adaptation, Adaptation::Frozen, "{name}\n{}", recent(&session));
+                        }
+                    }
+                    restarts_checked += 1;
+                }
+            }
         } else {
             // A refused command changes nothing.
             assert_eq!(format!("{:?}", lab.isr.config()), config_before, "{line:?}: {reply}\n{}", recent(&session));
@@ -2669,7 +2693,10 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
         }
     }
     // The session exercised the commands, not only their refusals.
-    println!("{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it");
+    println!(
+        "{accepted} of {lines} lines accepted; {frozen_runs} runs of a frozen estimator held it; {restarts_checked} \
+         estimators checked restarted or kept as a reply said"
+    );
     println!(
         "{} recordings ended whole, {} samples recorded, {} checked against the probe's codes, {} against the DAC's",
         records.ended, records.samples, records.checked, records.checked_u
@@ -2742,6 +2769,21 @@ fn a_random_sessions_capture_decodes_recording_by_recording() {
     println!("{n} recordings in the capture; {decoded} decoded, {single} of a single sample refused");
     std::fs::remove_dir_all(&dir).unwrap();
     assert!(decoded > 100, "{decoded}");
+}
+
+/// The estimators a tuning's reply says it restarted and kept (`(ekf,hekf restarted; rls,arx kept)`, `(estimators
+/// restarted)`, `(estimators kept: their tuning is unchanged)`), if it says.
+fn restarted_and_kept(verdict: &str) -> Option<(Vec<&'static str>, Vec<&'static str>)> {
+    let said = verdict.rsplit_once('(')?.1.strip_suffix(')')?;
+    let names = |list: &str| ESTIMATOR_NAMES.iter().copied().filter(|n| list.split(',').any(|w| w == *n)).collect();
+    match said {
+        "estimators restarted" => Some((ESTIMATOR_NAMES.to_vec(), Vec::new())),
+        "estimators kept: their tuning is unchanged" => Some((Vec::new(), ESTIMATOR_NAMES.to_vec())),
+        _ => {
+            let (restarted, kept) = said.split_once(" restarted; ")?;
+            Some((names(restarted), names(kept.strip_suffix(" kept")?)))
+        }
+    }
 }
 
 /// The recordings of a capture, checked line by line as it grows: a header, frames whose samples follow on from each
