@@ -151,13 +151,9 @@ pub struct Controller {
     /// soft double costs 1.2 KiB of flash.
     tuned: bool,
     frozen: EstimatorSet,
-    /// Since `record on` or `record burst`, until `record off` or [`Controller::record_ended`]: a change of the
-    /// tuning then goes into the recording too.
-    recording: bool,
-    /// Since `record on` or `record burst`, until [`Controller::record_ended`] (its end line went out): no other
-    /// recording starts meanwhile. One that did cleared the ring before the console drained it, and the recording
-    /// before lost its last samples and its end line.
-    record_open: bool,
+    /// The recording stream: a change of the tuning goes into it while it runs; no other recording starts until
+    /// its end line went out.
+    stream: Stream,
     /// The recording stream owes the tuning's lines ([`Controller::take_tuning_due`]).
     tuning_due: bool,
 }
@@ -179,8 +175,7 @@ impl Controller {
             preset: TuningPreset::Prbs,
             tuned: tuning != Tuning::of(TuningPreset::Prbs),
             frozen: EstimatorSet(0),
-            recording: false,
-            record_open: false,
+            stream: Stream::Closed,
             tuning_due: false,
         };
         c.design::<f32>(&c.settings, running)?;
@@ -220,8 +215,7 @@ impl Controller {
 
     /// The recording stopped (`record off`, a burst's end, or an overflow), and its end line went out.
     pub fn record_ended(&mut self) {
-        self.recording = false;
-        self.record_open = false;
+        self.stream = Stream::Closed;
     }
 
     /// Whether the recording stream owes the tuning's lines, once: after the reply to `record on` or `record burst`
@@ -572,8 +566,8 @@ impl Controller {
         let change = match result {
             Ok(change) => {
                 // The tuning the estimators run, into the recording: at its start, and at each change while it runs.
-                self.tuning_due |=
-                    self.recording && change.as_ref().is_some_and(|c| c.tuning.is_some() || c.record.is_some());
+                self.tuning_due |= self.stream == Stream::Running
+                    && change.as_ref().is_some_and(|c| c.tuning.is_some() || c.record.is_some());
                 change
             }
             Err(e) => {
@@ -716,14 +710,17 @@ impl Controller {
                 if self.board.probe.max_code > 0xFFFF || self.board.amplifier.max_code > 0xFFFF {
                     return Err(Refusal::Text("record: the v1 stream carries 16-bit codes; this board's are wider"));
                 }
-                if r != Recording::Off && self.record_open {
+                if r != Recording::Off && self.stream != Stream::Closed {
                     return Err(Refusal::Text(
                         "record: a recording runs, or its end line is still to come: record off, and wait for the end \
                          line",
                     ));
                 }
-                self.recording = r != Recording::Off;
-                self.record_open |= self.recording;
+                self.stream = match (r, self.stream) {
+                    (Recording::Off, Stream::Closed) => Stream::Closed,
+                    (Recording::Off, _) => Stream::Closing,
+                    _ => Stream::Running,
+                };
                 change.record = Some(match r {
                     Recording::Off => Some(0),
                     Recording::On => None,
@@ -878,6 +875,18 @@ enum Refusal {
     Unrunnable(Unrunnable),
     /// The reply did not fit its buffer (it was cut, and says so).
     Reply,
+}
+
+/// The recording stream, as the console has it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Stream {
+    /// No recording, or the last one's end line went out ([`Controller::record_ended`]).
+    Closed,
+    /// Since `record on` or `record burst`: a change of the tuning goes into it.
+    Running,
+    /// After `record off`, until its end line went out: another recording would clear the ring before the console
+    /// drained it, and the one before would lose its last samples and its end line.
+    Closing,
 }
 
 /// Why `tune initial ESTIMATOR` was refused.

@@ -110,9 +110,9 @@ pub struct CrlsConfig<T> {
     p0: [T; 3],
     /// `theta0` (`[b0, a1, a0]`), the normalisation.
     scale: [T; 3],
-    /// Where the normalised `theta` starts: the model it reports as `theta0` (`estimators::rk4_dispersed_start` on
-    /// `b0` and `a0`, 1 + 6e-5 for the paper's stage).
-    start: [T; 3],
+    /// Where the normalised `b0` and `a0` start (`a1` at 1): the model it reports as `theta0`
+    /// (`estimators::rk4_dispersed_start`, 1 + 6e-5 for the paper's stage).
+    dispersed_start: T,
     r0_sq: T,
     /// `||P||_F^2` of the packed normalised `P` is `sum norm_weight[k] P[k]^2`.
     norm_weight: [T; 6],
@@ -135,10 +135,7 @@ impl CrlsDesign {
             gamma: T::of(self.gamma),
             p0: core::array::from_fn(|k| T::of(self.p0_diag[k] / (scale[k] * scale[k]))),
             scale: scale.map(T::of),
-            start: {
-                let d = rk4_dispersed_start(T::of(i.a0), T::of(self.sample_period_s));
-                [d, T::one(), d]
-            },
+            dispersed_start: rk4_dispersed_start(T::of(i.a0), T::of(self.sample_period_s)),
             r0_sq: T::of(self.r0 * self.r0),
             norm_weight: {
                 let mut w = [T::zero(); 6];
@@ -226,8 +223,9 @@ impl<T: Real> Crls<T> {
 
     fn reset_state(&mut self) {
         self.x = [T::zero(); 15];
+        let d = self.cfg.dispersed_start;
+        self.x[THETA..THETA + 3].copy_from_slice(&[d, T::one(), d]);
         for k in 0..3 {
-            self.x[THETA + k] = self.cfg.start[k];
             self.x[P + ix(k, k)] = self.cfg.p0[k];
         }
         self.u_prev = T::zero();
