@@ -712,8 +712,7 @@ impl Controller {
                 }
                 if r != Recording::Off && self.stream != Stream::Closed {
                     return Err(Refusal::Text(
-                        "record: a recording runs, or its end line is still to come: record off, and wait for the end \
-                         line",
+                        "record: a recording runs (or its end line has not gone out): record off first",
                     ));
                 }
                 self.stream = match (r, self.stream) {
@@ -885,7 +884,8 @@ enum Stream {
     /// Since `record on` or `record burst`: a change of the tuning goes into it.
     Running,
     /// After `record off`, until its end line went out: another recording would clear the ring before the console
-    /// drained it, and the one before would lose its last samples and its end line.
+    /// drained it, and the one before would lose its last samples and its end line. (The firmware's console sends a
+    /// stopped recording's end before it executes the next line, so a `record on` does not find it closing.)
     Closing,
 }
 

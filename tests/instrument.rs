@@ -1540,8 +1540,7 @@ fn recorded_samples(link: &str) -> Vec<RawSample> {
 /// and its end line never came (a header inside a recording; found by the random session).
 #[test]
 fn a_recording_is_closed_before_another_starts() {
-    let refused = "error: record: a recording runs, or its end line is still to come: record off, and wait for the \
-                   end line";
+    let refused = "error: record: a recording runs (or its end line has not gone out): record off first";
     // The frames as the console task writes them after each batch of lines, on the link after the replies.
     let drain = |lab: &mut Lab| {
         let frames = lab.drain_recording();
@@ -1553,23 +1552,31 @@ fn a_recording_is_closed_before_another_starts() {
         assert!(verdict(&lab.send("record on\n")).starts_with("ok record on"));
         lab.run(150);
         drain(&mut lab);
-        // While it runs.
+        // While it runs: refused, and the recording goes on.
         assert_eq!(verdict(&lab.send(&format!("{second}\n"))), refused);
+        assert!(lab.isr.record_status().active);
         lab.run(150);
-        drain(&mut lab);
-        // Stopped, its last frame and end line not yet out: in the same batch as the stop.
+        // Stopped in the same batch: the stopped one's last frames and end line go out before the next line
+        // executes, which starts the new one.
+        let at = lab.link.len();
         let reply = lab.send(&format!("record off\n{second}\n"));
-        assert!(reply.contains("ok record off\n") && reply.ends_with(&format!("{refused}\n")), "{reply}");
-        drain(&mut lab);
-        // Once its end line went out, a new one starts.
-        assert!(verdict(&lab.send(&format!("{second}\n"))).starts_with("ok record"));
+        assert!(reply.contains("ok record off\n") && verdict(&reply).starts_with("ok record"), "{reply}");
+        let sent = &lab.link[at..];
+        let end = sent.find("# nanopos-record end samples=301 ").expect("the first recording's end line");
+        assert!(end > sent.find("ok record off\n").unwrap() && end < sent.find(HEADER_TAG).unwrap(), "{sent}");
         lab.run(300);
+        // A burst that ended by itself, its end line not yet out: the next line's `record` starts another.
         lab.send("record off\n");
+        assert_eq!(verdict(&lab.send("record burst 5\n")), "ok record burst 5");
+        lab.run(20);
+        assert_eq!(verdict(&lab.send("record burst 7\n")), "ok record burst 7");
+        lab.run(20);
         drain(&mut lab);
         let mut watch = RecordWatch::default();
         watch.feed(&lab.link[start..], String::new);
-        assert_eq!(watch.ended, 2, "{second}");
-        assert_eq!(watch.samples, 301 + if second == "record on" { 301 } else { 5 }, "{second}");
+        assert_eq!(watch.ended, 4, "{second}");
+        let second_len = if second == "record on" { 301 } else { 5 };
+        assert_eq!(watch.samples, 301 + second_len + 5 + 7, "{second}");
     }
 }
 
@@ -1581,8 +1588,12 @@ fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     let st = lab.isr.record_status();
     assert!(!st.active && st.overflowed, "{st:?}");
     assert_eq!(st.recorded, RECORD_BUFFER as u64);
-    assert!(lab.send("status\n").contains(&format!("record=overflowed recorded={RECORD_BUFFER}")));
-    let link = lab.drain_recording();
+    let start = lab.link.len();
+    let reply = lab.send("status\n");
+    assert!(reply.contains(&format!("record=overflowed recorded={RECORD_BUFFER}")));
+    // The stopped recording's frames and end line went out before the line's reply.
+    let link = lab.link[start..].strip_suffix(reply.as_str()).expect("the reply last").to_string();
+    assert_eq!(lab.drain_recording(), "");
     assert_eq!(recorded_samples(&link).len(), RECORD_BUFFER);
     let end = link.lines().last().unwrap();
     assert!(end.starts_with(&format!("# nanopos-record end samples={RECORD_BUFFER} overflow=1 ")), "{end}");
@@ -1683,7 +1694,9 @@ fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in
     let tuning_lines = |lab: &mut Lab, command: &str| {
         let start = lab.link.len();
         let reply = lab.send(command);
-        let after = lab.link[start..].strip_prefix(reply.as_str()).unwrap().to_string();
+        // After the reply (a stopped recording's last frames and end line go out before it).
+        let sent = &lab.link[start..];
+        let after = sent[sent.find(reply.as_str()).expect("the reply on the link") + reply.len()..].to_string();
         assert!(verdict(&reply).starts_with("ok"), "{command}: {reply}");
         let lines: Vec<_> = after.lines().map(|l| nanopos_id::record::read_tuning_line(l).unwrap()).collect();
         assert!(lines.is_empty() || lines.len() == nanopos_id::estimators::TuningKey::ALL.len(), "{command}: {after}");
@@ -1699,12 +1712,10 @@ fn the_tuning_lines_follow_the_recordings_start_and_each_change_of_the_tuning_in
     assert_eq!(tuning_lines(&mut lab, "tune ekf r\n"), None, "a question");
     assert_eq!(tuning_lines(&mut lab, "record off\n"), None);
     assert_eq!(tuning_lines(&mut lab, "tune ekf r 4e-6\n"), None, "stopped");
-    // The recording's end line, before another starts.
-    lab.drain_recording();
     assert_eq!(tuning_lines(&mut lab, "record burst 10\n"), Some(4e-6));
     lab.run(20);
-    lab.ctl.record_ended();
     assert_eq!(tuning_lines(&mut lab, "tune ekf r 5e-6\n"), None, "the burst ended");
+    assert_eq!(lab.link.matches(END_TAG).count(), 2, "{}", lab.link);
 }
 
 /// The largest relative difference between an estimate and the board's, over the estimators and the parameters.

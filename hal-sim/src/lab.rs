@@ -24,8 +24,9 @@ pub struct Lab {
     pub ctl: Controller,
     /// The console's line assembly.
     pub line: LineBuffer,
-    /// Everything sent back on the serial link: replies, the recording's tuning lines (not its frames: see
-    /// [`Lab::drain_recording`]).
+    /// Everything sent back on the serial link: replies, the recording's tuning lines; its frames only where a
+    /// line found the recording stopped (its last frames and end line, which go out before the line's reply). The
+    /// others are the caller's to take, where the console task would send them: [`Lab::drain_recording`].
     pub link: String,
     /// A recording started and its end line has not gone out (the firmware's console keeps the same flag).
     recording: bool,
@@ -77,6 +78,12 @@ impl Lab {
         // As the firmware reads its receive buffer, on a link that loses nothing.
         let mut line = core::mem::take(&mut self.line);
         for parsed in line.read(bytes, false, usize::MAX) {
+            // As the firmware: a recording that stopped ends before the line, its last frames and end line on the
+            // link ahead of the reply.
+            if self.recording && !self.isr.record_status().active {
+                let tail = self.drain_recording();
+                self.link.push_str(&tail);
+            }
             replies.push_str(&self.execute(parsed));
         }
         self.line = line;

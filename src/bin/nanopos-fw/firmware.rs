@@ -216,18 +216,20 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     let (mut tx, mut rx) = uart.split();
     let mut line = LineBuffer::default();
     let mut reply = TextBuf::<REPLY_BYTES>::default();
-    let mut frame = [0u8; FRAME_MAX_BYTES];
-    let mut samples = [RawSample::default(); FRAME_SAMPLES];
-    let mut recording = false;
+    let mut bytes = [0u8; CONSOLE_RX_BYTES];
+    let mut stream = RecordStream {
+        recording: false,
+        frame: [0u8; FRAME_MAX_BYTES],
+        samples: [RawSample::default(); FRAME_SAMPLES],
+    };
     loop {
         // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms). All of the
         // receive buffer is taken at once, with the receive errors noted so far, under the lock (a copy of at most
         // 128 bytes): the lines those errors or a full buffer may have damaged are refused (`LineBuffer::read`).
-        // The bytes go through `frame`, which the recording uses only after them.
         let arrived = embassy_futures::select::select(rx.fill_buf(), Timer::after_millis(2)).await;
         let (n, error) = match arrived {
             embassy_futures::select::Either::First(_) => cortex_m::interrupt::free(|_| {
-                let n = embedded_io::Read::read(&mut rx, &mut frame[..CONSOLE_RX_BYTES]);
+                let n = embedded_io::Read::read(&mut rx, &mut bytes);
                 (n.unwrap_or(0), board::take_console_rx_error() || n.is_err())
             }),
             embassy_futures::select::Either::Second(()) => (0, board::take_console_rx_error()),
@@ -237,7 +239,12 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 "console: receive error (bytes lost or changed on the link; the lines they touch are refused)"
             );
         }
-        for parsed in line.read(&frame[..n], error, CONSOLE_RX_BYTES) {
+        for parsed in line.read(&bytes[..n], error, CONSOLE_RX_BYTES) {
+            // A recording that stopped (`record off` earlier in this batch, a burst's end, an overflow) ends before
+            // the line: its last frames and end line go out first, and a `record on` starts a new one.
+            if stream.recording && with_task(|t| !t.instrument.record_status().active).unwrap_or(false) {
+                stream.send(&mut tx, &mut ctl, &mut reply).await;
+            }
             reply.clear();
             let (mut change, mut rest) = match parsed {
                 Ok(cmd) => ctl.execute(cmd, board_status, &mut reply),
@@ -252,7 +259,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 if let Some(cfg) = &c.config {
                     SAFE_CODE.store(cfg.safe_code() as u16, Ordering::Relaxed);
                 }
-                recording |= c.record.is_some_and(|r| r != Some(0));
+                stream.recording |= c.record.is_some_and(|r| r != Some(0));
                 post(&mut change).await;
             }
             // The reply in parts (`status` a line at a time), each sent before the next is written.
@@ -278,27 +285,43 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 }
             }
         }
-        // The recording: whole frames while it runs; the rest, and the end line, once it stopped.
-        while recording {
+        stream.send(&mut tx, &mut ctl, &mut reply).await;
+    }
+}
+
+/// The recording's side of the console: whether a recording's end line is still to go out, and its buffers.
+struct RecordStream {
+    /// A recording started and its end line has not gone out.
+    recording: bool,
+    frame: [u8; FRAME_MAX_BYTES],
+    samples: [RawSample; FRAME_SAMPLES],
+}
+
+impl RecordStream {
+    /// Send what the recording has: whole frames while it runs; the rest, and the end line (which `ctl` learns of),
+    /// once it stopped. The end line is written through `reply`.
+    async fn send(&mut self, tx: &mut impl Write, ctl: &mut Controller, reply: &mut TextBuf<REPLY_BYTES>) {
+        while self.recording {
+            let samples = &mut self.samples;
             let Some((first, n, status)) = with_task(|t| {
                 let st = t.instrument.record_status();
                 if st.active && st.buffered < FRAME_SAMPLES {
                     return (0, 0, st);
                 }
-                let (first, n) = t.instrument.drain_recorded(&mut samples);
+                let (first, n) = t.instrument.drain_recorded(samples);
                 (first, n, t.instrument.record_status())
             }) else {
                 break;
             };
             if n > 0 {
-                let len = encode_frame(first, &samples[..n], &mut frame);
-                let _ = tx.write_all(&frame[..len]).await;
+                let len = encode_frame(first, &self.samples[..n], &mut self.frame);
+                let _ = tx.write_all(&self.frame[..len]).await;
             }
             if !status.active && status.buffered == 0 {
                 reply.clear();
-                let _ = write_record_end(&status, &mut reply);
+                let _ = write_record_end(&status, reply);
                 let _ = tx.write_all(reply.as_bytes()).await;
-                recording = false;
+                self.recording = false;
                 ctl.record_ended();
             }
             if n == 0 {
