@@ -294,11 +294,11 @@ impl Controller {
             )?;
         }
         let max_step = l.max_slew_v_per_s / fs;
-        if let Some(step) = r.step_v.filter(|&s| s > max_step) {
+        if r.step_v > max_step {
             writeln!(
                 reply,
                 "note: the excitation steps by up to {} V a sample, beyond the slew limit's {} V: it will be ramped",
-                Num(step, 6),
+                Num(r.step_v, 6),
                 Num(max_step, 6)
             )?;
         }

@@ -1905,7 +1905,7 @@ fn the_ekfs_covariance_is_no_error_bar() {
 fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
     let mut next = nanopos_id::xorshift64(0x3C6E_F372_FE94_F82B);
     let mut unit = move || (next() >> 11) as f64 / (1u64 << 53) as f64;
-    let (mut noted, mut quiet) = (0, 0);
+    let (mut noted, mut quiet, mut multisines, mut multisines_noted) = (0, 0, 0, 0);
     for _ in 0..500 {
         let mut lab = Lab::new();
         let (lo, hi) = (-10.0 + 10.0 * unit(), 10.0 * unit());
@@ -1914,15 +1914,23 @@ fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
         let (amp, f) = (10f64.powf(-1.5 + 2.0 * unit()), 10f64.powf(1.0 + 2.0 * unit()));
         let off = (lo + hi) / 2.0 + (unit() - 0.5) * 4.0;
         // The top harmonic's frequency, for the waveforms whose samples may miss their crest and steepest step.
-        let (excite, top) = match (unit() * 4.0) as usize {
+        let (excite, top) = match (unit() * 5.0) as usize {
             0 => (format!("excite prbs {amp:.3} {off:.3}\n"), None),
             1 => (format!("excite sine {amp:.3} {f:.2} {off:.3}\n"), Some(f)),
             2 => (
                 format!("excite triangle {amp:.3} {f:.2} {off:.3}\n"),
                 Some(f * (2.0 * ((1000.0 / f + 1.0) / 2.0).floor() - 1.0)),
             ),
+            // Tones at least 2 Hz apart, so that their relative phases turn through every value in the 0.5 s
+            // watched.
+            3 => {
+                let lo = (f / 2.0).min(900.0);
+                let hi = (lo + 31.0 * (2.0 + 30.0 * unit())).min(1000.0);
+                (format!("excite multisine {amp:.3} {lo:.2} {hi:.2} {off:.3}\n"), None)
+            }
             _ => (format!("excite constant {off:.3}\n"), None),
         };
+        let multisine = excite.contains("multisine");
         if !verdict(&lab.send(&limits)).starts_with("ok ") {
             continue;
         }
@@ -1936,21 +1944,31 @@ fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
         lab.run(5000);
         let limited = lab.isr.status().counters.limited > before;
         let says = notes(&reply).iter().any(|n| n.contains("will clip") || n.contains("will be ramped"));
+        // The note's steepest step (the sine's `2 A sin(pi f / fs)`, the triangle's and the multisine's searched).
+        let step = notes(&reply).iter().find_map(|n| {
+            n.strip_prefix("note: the excitation steps by up to ")?.split_once(' ')?.0.parse::<f64>().ok()
+        });
+        // The multisine's samples come within 3.5 % of its peak's bound (1.36 `A`) and within 2.5 % of its steepest
+        // step's (`multisine_steepest_step`).
+        let missed_bound = says && !limited && multisine && {
+            let near = |edge: f64, crest: f64| (edge - crest).abs() <= 0.035 * 1.36 * amp;
+            near(hi, off + 1.36 * amp)
+                || near(lo, off - 1.36 * amp)
+                || step.is_some_and(|s| s * (1.0 - 0.025) <= slew * 1e-4)
+        };
         let missed_crest = says
             && !limited
             && top.is_some_and(|top| {
                 let miss = 1.0 - (std::f64::consts::PI * top / 1e4).cos();
                 let near = |edge: f64, crest: f64| (edge - crest).abs() <= miss * amp;
-                // The note's steepest step (the sine's `2 A sin(pi f / fs)`, the triangle's searched).
-                let step = notes(&reply).iter().find_map(|n| {
-                    n.strip_prefix("note: the excitation steps by up to ")?.split_once(' ')?.0.parse::<f64>().ok()
-                });
                 near(hi, off + amp) || near(lo, off - amp) || step.is_some_and(|s| (slew * 1e-4 - s).abs() <= miss * s)
             });
-        assert!(says == limited || missed_crest, "{limits}{excite}{reply}limited: {limited}");
+        assert!(says == limited || missed_crest || missed_bound, "{limits}{excite}{reply}limited: {limited}");
         (noted, quiet) = (noted + says as usize, quiet + !says as usize);
+        (multisines, multisines_noted) =
+            (multisines + multisine as usize, multisines_noted + (multisine && says) as usize);
     }
-    println!("{noted} noted, {quiet} quiet");
+    println!("{noted} noted, {quiet} quiet; of {multisines} multisines {multisines_noted} noted");
     assert!(noted > 50 && quiet > 50, "{noted} noted, {quiet} quiet: the cases do not cover both");
 }
 
@@ -1980,6 +1998,33 @@ fn the_triangles_steepest_step_is_judged_against_the_slew_limit() {
     let before = lab.isr.status().counters.limited;
     lab.run(2000);
     assert_eq!(lab.isr.status().counters.limited, before, "not ramped");
+}
+
+/// The multisine's steepest step is judged against the slew limit too: `excite multisine 1 200 800` steps by up to
+/// 0.556 V a sample (its tones' relative phases turned through their crest: its samples reach 0.543 V), which 1 000
+/// V/s (0.1 V a sample) ramps in most samples and 5 000 V/s in some; 6 000 V/s passes it whole.
+#[test]
+fn the_multisines_steepest_step_is_judged_against_the_slew_limit() {
+    let mut lab = Lab::new();
+    let note = |limit: &str| {
+        format!("note: the excitation steps by up to 0.555887 V a sample, beyond the slew limit's {limit} V: it will be ramped")
+    };
+    let limited = |lab: &mut Lab| {
+        lab.run(3000);
+        let before = lab.isr.status().counters.limited;
+        lab.run(5000);
+        lab.isr.status().counters.limited - before
+    };
+    assert!(verdict(&lab.send("limits -5 5 1000\n")).starts_with("ok limits"));
+    let r = lab.send("excite multisine 1 200 800\n");
+    assert!(notes(&r).contains(&note("0.1")), "{r}");
+    assert!(limited(&mut lab) > 2500, "ramped in most samples");
+    let r = lab.send("limits -5 5 5000\n");
+    assert!(notes(&r).contains(&note("0.5")), "{r}");
+    assert!(limited(&mut lab) > 0, "ramped at the steepest steps");
+    let r = lab.send("limits -5 5 6000\n");
+    assert!(!r.contains("will be ramped"), "{r}");
+    assert_eq!(limited(&mut lab), 0, "not ramped");
 }
 
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
