@@ -66,7 +66,19 @@ struct Clock {
     /// `command-latency` build's).
     #[cfg_attr(not(feature = "command-latency"), allow(dead_code))]
     to_mark: u32,
+    /// Instructions of SysTick's exception handler, which counts the counter's wraps in a long count
+    /// ([`Clock::count_long`]): what each wrap adds to it.
+    wrap_cost: u32,
 }
+
+/// SysTick's wraps during a long count ([`Clock::count_long`]), counted by its exception.
+static WRAPS: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new(0);
+
+/// SYST_CSR's TICKINT: SysTick's exception on each wrap.
+const SYST_CSR_TICKINT: u32 = 1 << 1;
+/// SCB_ICSR's PENDSTSET (read: SysTick's exception pending) and PENDSTCLR (write: clear it).
+const ICSR_PENDSTSET: u32 = 1 << 26;
+const ICSR_PENDSTCLR: u32 = 1 << 25;
 
 /// Calls the closure behind `ctx` (the timed call: its body and its prologue and epilogue are what is counted).
 unsafe extern "C" fn trampoline<F: FnMut()>(ctx: *mut F) {
@@ -120,6 +132,13 @@ fn systick_now() -> u32 {
 #[cfg(feature = "command-latency")]
 static COMMAND_MARK: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new(0);
 
+/// 1 000 `nop`s, called: inlined into a loop, its size (which LLVM does not know from the `.rept`) put the loop's
+/// branch out of reach.
+#[inline(never)]
+fn thousand_nops() {
+    nops::<1000>();
+}
+
 /// Exactly `N` instructions.
 #[inline(always)]
 fn nops<const N: usize>() {
@@ -157,7 +176,7 @@ impl Clock {
             );
             return None;
         }
-        let mut clock = Clock { shift, frame: 0, to_mark: 0 };
+        let mut clock = Clock { shift, frame: 0, to_mark: 0, wrap_cost: 0 };
         clock.frame = clock.instructions(empty);
         // The instructions from the first reading to a mark taken first thing in the call.
         #[cfg(feature = "command-latency")]
@@ -168,12 +187,46 @@ impl Clock {
         }
         let exact = clock.instructions(one) == 1 + clock.frame && clock.instructions(thousand) == 1000 + clock.frame;
         defmt::info!("clock: the timing frame (two reads and an empty call) is {} instructions; 1 and 1000 instructions counted exactly: {}", clock.frame, exact);
-        exact.then_some(clock)
+        if !exact {
+            return None;
+        }
+        clock.wrap_cost = clock.calibrate_wraps()?;
+        Some(clock)
+    }
+
+    /// The instructions each wrap adds to a long count, from runs of `k` blocks of 1 000 `nop`s: two within
+    /// SysTick's range give the cost of a block (its loop included), and two past it (6 and 11 million
+    /// instructions: one wrap and two) what each wrap adds beyond it. `None` unless both agree on a whole number.
+    fn calibrate_wraps(&self) -> Option<u32> {
+        let blocks = |k: u32| {
+            move || {
+                // Read at run time, so that the loop is the same code for every `k`.
+                for _ in 0..core::hint::black_box(k) {
+                    thousand_nops();
+                }
+            }
+        };
+        let raw = |k: u32| self.count_long_raw(blocks(k));
+        let ((_, short, w0), (_, shorter, w1)) = (raw(20), raw(10));
+        let block = (short - shorter) / 10;
+        let per_wrap = |k: u32| {
+            let (_, n, wraps) = raw(k);
+            let extra = n.checked_sub(short + (k - 20) * block)?;
+            (wraps > 0 && extra.is_multiple_of(wraps)).then(|| extra / wraps)
+        };
+        let (a, b) = (per_wrap(6_000), per_wrap(11_000));
+        let cost = a.filter(|&a| w0 == 0 && w1 == 0 && (short - shorter).is_multiple_of(10) && Some(a) == b);
+        defmt::info!(
+            "clock: a block of 1 000 nops counted as {} instructions; each SysTick wrap in a long count adds {}: {}",
+            block,
+            a.unwrap_or(0),
+            if cost.is_some() { "exact" } else { "NOT EXACT" }
+        );
+        cost
     }
 
     fn instructions(&self, ticks: u32) -> u32 {
-        let ps_per_insn = 1000u64 << self.shift;
-        ((u64::from(ticks) * TICK_PS + ps_per_insn / 2) / ps_per_insn) as u32
+        self.instructions_long(u64::from(ticks))
     }
 
     /// Instructions `f` executes from its call to the command's write ([`COMMAND_MARK`]; its prologue included),
@@ -196,6 +249,54 @@ impl Clock {
         let n = ticks(&mut || out = Some(f()));
         (out.unwrap_or_else(|| fail("timed call did not run")), self.instructions(n).saturating_sub(self.frame))
     }
+
+    /// [`Clock::count`] for a call that may run past SysTick's range (2^24 ticks: 5.2 million instructions on
+    /// mps2, 4.1 on the microbit), a console command's: SysTick restarted, its exception counting the wraps, and
+    /// what its handler adds each time taken off ([`Clock::calibrate_wraps`]).
+    fn count_long<R>(&self, f: impl FnMut() -> R) -> (R, u32) {
+        let (out, n, wraps) = self.count_long_raw(f);
+        (out, n - wraps * self.wrap_cost)
+    }
+
+    /// [`Clock::count_long`] with the handler's instructions left in, and the wraps.
+    fn count_long_raw<R>(&self, mut f: impl FnMut() -> R) -> (R, u32, u32) {
+        use core::sync::atomic::Ordering::Relaxed;
+        // SAFETY: SysTick's and the SCB's registers, always mapped; nothing else uses SysTick while this runs.
+        // Writing the current value restarts the count from the reload value and clears COUNTFLAG.
+        let (syst, scb) = unsafe { (&*SYST::PTR, &*cortex_m::peripheral::SCB::PTR) };
+        unsafe { syst.cvr.write(0) };
+        WRAPS.store(0, Relaxed);
+        unsafe { syst.csr.modify(|v| v | SYST_CSR_TICKINT) };
+        let mut out = None;
+        let (t0, t1) = ticks_at(&mut || out = Some(f()));
+        unsafe { syst.csr.modify(|v| v & !SYST_CSR_TICKINT) };
+        let (t2, mut wraps) = (syst.cvr.read(), WRAPS.load(Relaxed));
+        // A wrap in the few instructions after the last reading (the count has gone up since): counted by the
+        // handler if it came before its exception was turned off, else left pending.
+        if t2 > t1 {
+            if scb.icsr.read() & ICSR_PENDSTSET != 0 {
+                // SAFETY: clears the pending SysTick exception only.
+                unsafe { scb.icsr.write(ICSR_PENDSTCLR) };
+            } else {
+                wraps -= 1;
+            }
+        }
+        let ticks = u64::from(wraps) << 24 | u64::from(t0.wrapping_sub(t1) & 0x00FF_FFFF);
+        let n = self.instructions_long(ticks).saturating_sub(self.frame);
+        (out.unwrap_or_else(|| fail("timed call did not run")), n, wraps)
+    }
+
+    fn instructions_long(&self, ticks: u64) -> u32 {
+        let ps_per_insn = 1000u64 << self.shift;
+        u32::try_from((ticks * TICK_PS + ps_per_insn / 2) / ps_per_insn).unwrap_or_else(|_| fail("a count past 2^32"))
+    }
+}
+
+/// Counts SysTick's wraps while [`Clock::count_long`] has its exception on.
+#[exception]
+fn SysTick() {
+    use core::sync::atomic::Ordering::Relaxed;
+    WRAPS.store(WRAPS.load(Relaxed) + 1, Relaxed);
 }
 
 /// Per-update counts of one kernel.
@@ -404,8 +505,8 @@ fn main() -> ! {
 
     // 3. The console's heaviest commands, each once from the controller's start: their designs (in f64, in
     //    software on the M4F) run in thread mode on the board, where they hold up the telemetry task, which feeds the
-    //    watchdog (0.5 s), and the draining of the recording (a ring of 0.1 s). Restarted before each count, SysTick
-    //    holds 5.2 million instructions; had it wrapped, the count would be refused.
+    //    watchdog (0.5 s), and the draining of the recording (a ring of 0.1 s). Counted across SysTick's wraps
+    //    (`Clock::count_long`): on the cores without an FPU several run past its range.
     let mut ctl = Controller::new(PipelineSettings::default(), vectors.board, true)
         .unwrap_or_else(|_| fail("the controller's settings are invalid"));
     //    `excite multisine` and `tune prefilter` judge the band and the pre-filter against the interrupt's estimate: a
@@ -427,25 +528,13 @@ fn main() -> ! {
     .into_iter()
     .enumerate()
     {
-        // On the Cortex-M0 the refused command's longest design (double precision in software, without a divide
-        // instruction) runs past SysTick's range (2^24 ticks: 4.1 million instructions at the microbit's shift, 5.2
-        // at mps2's): not counted there. It changes nothing (the M4F's and M3's runs check its refusal).
-        if cfg!(cortex_m0) && !accepted {
-            continue;
-        }
         let cmd = parse(line.as_bytes()).unwrap_or_else(|_| fail("a console command did not parse"));
         let mut reply = TextBuf::<REPLY_BYTES>::default();
         table.kernel(name, |c, s| {
-            // SAFETY: SysTick's registers, always mapped; nothing else uses them while this runs. Writing the
-            // current value restarts the count from the reload value and clears COUNTFLAG.
-            unsafe { (*SYST::PTR).cvr.write(0) };
             let asks = matches!(name, "console_excite_multisine" | "console_tune_prefilter");
             let status = || if asks { snapshot } else { idle_status() };
-            let ((change, _), n) = c.count(|| ctl.execute::<f32>(cmd, status, &mut reply));
-            // SAFETY: as above; reading the control register clears COUNTFLAG.
-            if unsafe { (*SYST::PTR).csr.read() } & (1 << 16) != 0 {
-                fail("a console command ran past SysTick's range: its count would be wrong");
-            }
+            // Past SysTick's range on the cores without an FPU (double precision, and there f32 too, in software).
+            let ((change, _), n) = c.count_long(|| ctl.execute::<f32>(cmd, status, &mut reply));
             if change.is_some() != accepted {
                 defmt::error!("{=str}: {=str}", line, reply.as_str());
                 fail("a console command was not answered as expected");
