@@ -1895,12 +1895,14 @@ fn the_ekfs_covariance_is_no_error_bar() {
 }
 
 /// The notes of [`the_console_says_when_an_excitation_will_not_fit_the_limits`] on 500 random limits and
-/// excitations of the waveforms whose extent and steepest step the console judges (the PRBS, the sine, the smoothed
-/// triangle, the constant): where a note says the clamp will clip or the slew limit ramp, the limits change commands
-/// over the next 0.5 s, and only there; but for a sine or a triangle whose samples miss its crest or its steepest
-/// step, by up to `1 - cos(pi f / fs)` of them (`f` the top harmonic's), which may leave a note with nothing limited.
-/// (The multisine's steps are not judged. Before the triangle's were, the same check over all five waveforms found
-/// 32 mismatches in 400, each a triangle or a multisine ramped by a slew limit of a few hundred V/s without a note.)
+/// excitations of every waveform (the PRBS, the sine, the smoothed triangle, the multisine, the constant): where a
+/// note says the clamp will clip or the slew limit ramp, the limits change commands over the next 0.5 s, and only
+/// there; but for a sine or a triangle whose samples miss its crest or its steepest step, by up to `1 - cos(pi f /
+/// fs)` of them (`f` the top harmonic's), and a multisine whose samples come within 3.5 % of its peak's bound and 2.5
+/// % of its steepest step's, which may leave a note with nothing limited. (Before the triangle's and the multisine's
+/// steps were judged, the same check over all five waveforms found 32 mismatches in 400, each a triangle or a
+/// multisine ramped by a slew limit of a few hundred V/s without a note; with the triangle's judged, it fails on the
+/// first multisine so ramped.)
 #[test]
 fn the_fit_notes_of_random_excitations_and_limits_are_the_limits_effect() {
     let mut next = nanopos_id::xorshift64(0x3C6E_F372_FE94_F82B);
@@ -2029,7 +2031,8 @@ fn the_multisines_steepest_step_is_judged_against_the_slew_limit() {
 
 /// `excite`, `start` and `limits` say, before the verdict, when the chosen excitation will not fit the output
 /// limits: beyond the clamp (the sine's and PRBS's extent exact, the multisine's from its 1.36 `A` bound), or with
-/// steps steeper than the slew limit (the PRBS's and the sine's). Where the note says so, the limits then change
+/// steps steeper than the slew limit (the PRBS's and the sine's here; the triangle's and the multisine's in tests of
+/// their own). Where the note says so, the limits then change
 /// commands (`limited=` grows over the next 0.2 s); where it is silent, they do not. `excite sine` also says that a
 /// sine cannot identify the stage, and `excite multisine` that a band missing the resonance (as the estimators have
 /// it, else from `tune initial`) cannot either.
