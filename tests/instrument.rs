@@ -1580,6 +1580,61 @@ fn a_recording_is_closed_before_another_starts() {
     }
 }
 
+/// Random batches of lines, one to four a batch as a pasted script arrives, among them `record off`, `record on` and
+/// short bursts, with up to 0.01 s of samples between batches: every line answered once, a recording asked for right
+/// after a `record off` in the same batch taken (the stopped one ends first), and every recording in the stream whole.
+#[test]
+fn recording_commands_pasted_in_batches_keep_the_stream_whole() {
+    let mut lab = Lab::new();
+    let mut next = nanopos_id::xorshift64(0x5EED_BA7C);
+    let words = [
+        "record on",
+        "record off",
+        "record burst 1",
+        "record burst 7",
+        "record burst 60",
+        "status",
+        "excite prbs 1",
+        "tune ekf r 2e-6",
+        "bogus",
+    ];
+    let mut watch = RecordWatch::default();
+    let (mut after_off, mut refused) = (0, 0);
+    lab.link.clear();
+    for _ in 0..3000 {
+        let batch: Vec<&str> = (0..1 + next() % 4).map(|_| words[(next() % words.len() as u64) as usize]).collect();
+        let reply = lab.send(&batch.iter().map(|l| format!("{l}\n")).collect::<String>());
+        let verdicts: Vec<&str> = reply.lines().filter(|l| l.starts_with("ok") || l.starts_with("error: ")).collect();
+        assert_eq!(verdicts.len(), batch.len(), "{batch:?}: {reply}");
+        for (k, (line, verdict)) in batch.iter().zip(&verdicts).enumerate() {
+            if k > 0 && batch[k - 1] == "record off" && line.starts_with("record ") && *line != "record off" {
+                assert!(verdict.starts_with("ok record"), "{batch:?}: {reply}");
+                after_off += 1;
+            }
+            refused += verdict.starts_with("error: record") as usize;
+        }
+        for _ in 0..next() % 100 {
+            let o = lab.sample();
+            watch.saw(&lab, &o, false);
+        }
+        let frames = lab.drain_recording();
+        lab.link.push_str(&frames);
+        watch.feed(&lab.link, || format!("{batch:?}"));
+        lab.link.clear();
+    }
+    lab.send("record off\n");
+    let frames = lab.drain_recording();
+    lab.link.push_str(&frames);
+    watch.feed(&lab.link, String::new);
+    assert!(watch.inside.is_none(), "the last recording ended");
+    println!(
+        "{} recordings, {} samples ({} checked against the interrupt's codes); {after_off} asked for right after a \
+         `record off` in the same batch, {refused} refused while one ran",
+        watch.ended, watch.samples, watch.checked
+    );
+    assert!(after_off > 50 && refused > 50 && watch.ended > 500, "the cases do not cover the batches");
+}
+
 #[test]
 fn a_recording_the_link_cannot_drain_stops_instead_of_leaving_a_gap() {
     let mut lab = Lab::new();
