@@ -295,10 +295,13 @@ impl Controller {
         }
         let max_step = l.max_slew_v_per_s / fs;
         if r.step_v > max_step {
+            // In V/s too, the unit `limits` takes: the slew limit that would pass it.
             writeln!(
                 reply,
-                "note: the excitation steps by up to {} V a sample, beyond the slew limit's {} V: it will be ramped",
+                "note: the excitation steps by up to {} V a sample ({} V/s), beyond the slew limit's {} V: it will be \
+                 ramped",
                 Num(r.step_v, 6),
+                Num(r.step_v * fs, 6),
                 Num(max_step, 6)
             )?;
         }

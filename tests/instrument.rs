@@ -563,7 +563,8 @@ fn the_output_is_clamped_and_slew_limited_as_configured_at_run_time() {
         [
             "note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 V): the clamp \
              stops the output there",
-            "note: the excitation steps by up to 2 V a sample, beyond the slew limit's 0.00879 V: it will be ramped"
+            "note: the excitation steps by up to 2 V a sample (20000 V/s), beyond the slew limit's 0.00879 V: it \
+             will be ramped"
         ]
     );
     assert_eq!(verdict(&reply), "ok limits -10 V to 10 V, 87.9 V/s");
@@ -2040,7 +2041,8 @@ fn the_triangles_steepest_step_is_judged_against_the_slew_limit() {
     let r = lab.send("excite triangle 1 100\n");
     assert!(
         notes(&r).contains(
-            &"note: the excitation steps by up to 0.0471587 V a sample, beyond the slew limit's 0.03 V: it will be ramped"
+            &"note: the excitation steps by up to 0.0471587 V a sample (471.587 V/s), beyond the slew limit's 0.03 V: \
+              it will be ramped"
                 .to_string()
         ),
         "{r}"
@@ -2064,7 +2066,10 @@ fn the_triangles_steepest_step_is_judged_against_the_slew_limit() {
 fn the_multisines_steepest_step_is_judged_against_the_slew_limit() {
     let mut lab = Lab::new();
     let note = |limit: &str| {
-        format!("note: the excitation steps by up to 0.555887 V a sample, beyond the slew limit's {limit} V: it will be ramped")
+        format!(
+            "note: the excitation steps by up to 0.555887 V a sample (5558.87 V/s), beyond the slew limit's {limit} V: \
+             it will be ramped"
+        )
     };
     let limited = |lab: &mut Lab| {
         lab.run(3000);
@@ -2108,7 +2113,8 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         ("excite sine 3 100 5\n", &[SINE]),
         (
             "excite prbs 1.5\n",
-            &["note: the excitation steps by up to 3 V a sample, beyond the slew limit's 2.5 V: it will be ramped"],
+            &["note: the excitation steps by up to 3 V a sample (30000 V/s), beyond the slew limit's 2.5 V: it will be \
+               ramped"],
         ),
         ("excite multisine 1 200 800 7\n", &[]),
         (
@@ -2121,7 +2127,8 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
             "limits -0.5 0.5 1000\n",
             &[
                 "note: the excitation spans -1 V to 1 V, beyond the clamp's -0.5 V to 0.5 V: the clamp will clip it",
-                "note: the excitation steps by up to 2 V a sample, beyond the slew limit's 0.1 V: it will be ramped",
+                "note: the excitation steps by up to 2 V a sample (20000 V/s), beyond the slew limit's 0.1 V: it will be \
+                 ramped",
             ],
         ),
         (
