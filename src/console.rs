@@ -213,6 +213,12 @@ impl Controller {
         s.design(&self.board)
     }
 
+    /// A recording was started and its end line has not gone out (the console still owes the stream its frames or
+    /// its end).
+    pub fn recording_open(&self) -> bool {
+        self.stream != Stream::Closed
+    }
+
     /// The recording stopped (`record off`, a burst's end, or an overflow), and its end line went out.
     pub fn record_ended(&mut self) {
         self.stream = Stream::Closed;
@@ -718,11 +724,6 @@ impl Controller {
                         "record: a recording runs (or its end line has not gone out): record off first",
                     ));
                 }
-                self.stream = match (r, self.stream) {
-                    (Recording::Off, Stream::Closed) => Stream::Closed,
-                    (Recording::Off, _) => Stream::Closing,
-                    _ => Stream::Running,
-                };
                 change.record = Some(match r {
                     Recording::Off => Some(0),
                     Recording::On => None,
@@ -736,6 +737,12 @@ impl Controller {
                     Recording::On => writeln!(reply, "ok record on")?,
                     Recording::Burst(n) => writeln!(reply, "ok record burst {n}")?,
                 }
+                // Once the command is taken (its change is what the console posts).
+                self.stream = match (r, self.stream) {
+                    (Recording::Off, Stream::Closed) => Stream::Closed,
+                    (Recording::Off, _) => Stream::Closing,
+                    _ => Stream::Running,
+                };
             }
         }
         Ok(Some(change))

@@ -28,8 +28,6 @@ pub struct Lab {
     /// line found the recording stopped (its last frames and end line, which go out before the line's reply). The
     /// others are the caller's to take, where the console task would send them: [`Lab::drain_recording`].
     pub link: String,
-    /// A recording started and its end line has not gone out (the firmware's console keeps the same flag).
-    recording: bool,
 }
 
 impl Default for Lab {
@@ -57,7 +55,7 @@ impl Lab {
         let board = SimBoard::new(board_settings);
         let ctl = Controller::new(settings, board.description(), true).expect("the paper's settings design");
         let isr = Instrument::new(ctl.config(), &ctl.tuning());
-        Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new(), recording: false }
+        Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new() }
     }
 
     /// The board's and the pipeline's settings of [`Lab::with_stage`]: the paper's experiment ([`Scenario::Prbs`]
@@ -80,7 +78,7 @@ impl Lab {
         for parsed in line.read(bytes, false, usize::MAX) {
             // As the firmware: a recording that stopped ends before the line, its last frames and end line on the
             // link ahead of the reply.
-            if self.recording && !self.isr.record_status().active {
+            if self.ctl.recording_open() && !self.isr.record_status().active {
                 let tail = self.drain_recording();
                 self.link.push_str(&tail);
             }
@@ -115,7 +113,6 @@ impl Lab {
             }
         };
         if let Some(c) = change {
-            self.recording |= c.record.is_some_and(|r| r != Some(0));
             // Nothing else posts, and each change is applied at once: the slot is free.
             assert!(self.isr.post(c).is_ok(), "a change was left pending");
             self.isr.sample(&mut self.board);
@@ -175,8 +172,7 @@ impl Lab {
                 out.push_str(core::str::from_utf8(&frame[..len]).expect("frames are ASCII"));
                 continue;
             }
-            if !st.active && self.recording {
-                self.recording = false;
+            if !st.active && self.ctl.recording_open() {
                 // In the console's reply buffer, as the firmware writes it (the longest end line is 70 bytes).
                 let mut end = TextBuf::<REPLY_BYTES>::default();
                 let _ = write_record_end(&st, &mut end);

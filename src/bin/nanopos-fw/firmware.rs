@@ -217,11 +217,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     let mut line = LineBuffer::default();
     let mut reply = TextBuf::<REPLY_BYTES>::default();
     let mut bytes = [0u8; CONSOLE_RX_BYTES];
-    let mut stream = RecordStream {
-        recording: false,
-        frame: [0u8; FRAME_MAX_BYTES],
-        samples: [RawSample::default(); FRAME_SAMPLES],
-    };
+    let mut stream = RecordStream { frame: [0u8; FRAME_MAX_BYTES], samples: [RawSample::default(); FRAME_SAMPLES] };
     loop {
         // Commands: whatever arrived, or nothing within 2 ms (the recording needs draining every 4.8 ms). All of the
         // receive buffer is taken at once, with the receive errors noted so far, under the lock (a copy of at most
@@ -242,7 +238,7 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
         for parsed in line.read(&bytes[..n], error, CONSOLE_RX_BYTES) {
             // A recording that stopped (`record off` earlier in this batch, a burst's end, an overflow) ends before
             // the line: its last frames and end line go out first, and a `record on` starts a new one.
-            if stream.recording && with_task(|t| !t.instrument.record_status().active).unwrap_or(false) {
+            if ctl.recording_open() && with_task(|t| !t.instrument.record_status().active).unwrap_or(false) {
                 stream.send(&mut tx, &mut ctl, &mut reply).await;
             }
             reply.clear();
@@ -259,7 +255,6 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
                 if let Some(cfg) = &c.config {
                     SAFE_CODE.store(cfg.safe_code() as u16, Ordering::Relaxed);
                 }
-                stream.recording |= c.record.is_some_and(|r| r != Some(0));
                 post(&mut change).await;
             }
             // The reply in parts (`status` a line at a time), each sent before the next is written.
@@ -289,10 +284,9 @@ async fn console(uart: BufferedUart<'static>, mut ctl: Controller) {
     }
 }
 
-/// The recording's side of the console: whether a recording's end line is still to go out, and its buffers.
+/// The recording's side of the console: its buffers (whether a recording's end line is still to go out is the
+/// controller's: [`Controller::recording_open`]).
 struct RecordStream {
-    /// A recording started and its end line has not gone out.
-    recording: bool,
     frame: [u8; FRAME_MAX_BYTES],
     samples: [RawSample; FRAME_SAMPLES],
 }
@@ -301,7 +295,7 @@ impl RecordStream {
     /// Send what the recording has: whole frames while it runs; the rest, and the end line (which `ctl` learns of),
     /// once it stopped. The end line is written through `reply`.
     async fn send(&mut self, tx: &mut impl Write, ctl: &mut Controller, reply: &mut TextBuf<REPLY_BYTES>) {
-        while self.recording {
+        while ctl.recording_open() {
             let samples = &mut self.samples;
             let Some((first, n, status)) = with_task(|t| {
                 let st = t.instrument.record_status();
@@ -321,7 +315,6 @@ impl RecordStream {
                 reply.clear();
                 let _ = write_record_end(&status, reply);
                 let _ = tx.write_all(reply.as_bytes()).await;
-                self.recording = false;
                 ctl.record_ended();
             }
             if n == 0 {
