@@ -76,9 +76,6 @@ static WRAPS: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new
 
 /// SYST_CSR's TICKINT: SysTick's exception on each wrap.
 const SYST_CSR_TICKINT: u32 = 1 << 1;
-/// SCB_ICSR's PENDSTSET (read: SysTick's exception pending) and PENDSTCLR (write: clear it).
-const ICSR_PENDSTSET: u32 = 1 << 26;
-const ICSR_PENDSTCLR: u32 = 1 << 25;
 
 /// Calls the closure behind `ctx` (the timed call: its body and its prologue and epilogue are what is counted).
 unsafe extern "C" fn trampoline<F: FnMut()>(ctx: *mut F) {
@@ -261,9 +258,9 @@ impl Clock {
     /// [`Clock::count_long`] with the handler's instructions left in, and the wraps.
     fn count_long_raw<R>(&self, mut f: impl FnMut() -> R) -> (R, u32, u32) {
         use core::sync::atomic::Ordering::Relaxed;
-        // SAFETY: SysTick's and the SCB's registers, always mapped; nothing else uses SysTick while this runs.
+        // SAFETY: SysTick's registers, always mapped; nothing else uses SysTick while this runs.
         // Writing the current value restarts the count from the reload value and clears COUNTFLAG.
-        let (syst, scb) = unsafe { (&*SYST::PTR, &*cortex_m::peripheral::SCB::PTR) };
+        let syst = unsafe { &*SYST::PTR };
         unsafe { syst.cvr.write(0) };
         WRAPS.store(0, Relaxed);
         unsafe { syst.csr.modify(|v| v | SYST_CSR_TICKINT) };
@@ -274,9 +271,8 @@ impl Clock {
         // A wrap in the few instructions after the last reading (the count has gone up since): counted by the
         // handler if it came before its exception was turned off, else left pending.
         if t2 > t1 {
-            if scb.icsr.read() & ICSR_PENDSTSET != 0 {
-                // SAFETY: clears the pending SysTick exception only.
-                unsafe { scb.icsr.write(ICSR_PENDSTCLR) };
+            if cortex_m::peripheral::SCB::is_pendst_pending() {
+                cortex_m::peripheral::SCB::clear_pendst();
             } else {
                 wraps -= 1;
             }
