@@ -704,6 +704,18 @@ mod tests {
         assert!(e.0.ends_with("bytes.csv:3: not text (invalid UTF-8)"), "{}", e.0);
     }
 
+    /// A field quoted in a message shows what a terminal would not as escapes: a carriage return in it had sent the
+    /// cursor back over the message's start.
+    #[test]
+    fn a_field_quoted_in_a_message_shows_its_control_characters() {
+        let path = file("cr.csv", "t,u\n0,1\n0.0001,1\r5\n");
+        let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
+        assert!(e.0.ends_with("cr.csv:3: column 'u': '1\\r5' is not a number"), "{}", e.0);
+        let path = file("quote.csv", "t,u\n0,\"1\"\"\n");
+        let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
+        assert!(e.0.ends_with("quote.csv:2: column 'u': '1\"' is not a number"), "{}", e.0);
+    }
+
     #[test]
     fn the_last_time_is_read_from_the_end() {
         let read = |text: &str| Reader::open(&file("tail.csv", text), &["u"], &[], Time::Required).unwrap().last_time();

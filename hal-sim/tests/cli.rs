@@ -643,6 +643,25 @@ fn decode_reads_the_unchecked_v1_format_and_reports_frames_lost_at_the_end() {
     assert!(stderr.contains("192 samples (0.0192 s at 10000 Hz) from board sample 0 (t = 0 s) written to cut-1.csv"));
 }
 
+/// A capture an editor saved again (a byte-order mark before its first line, CRLF line ends) decodes as it came.
+#[test]
+fn decode_reads_a_capture_an_editor_saved() {
+    let dir = tempfile::tempdir().unwrap();
+    // From the header on, as a capture started before `record on` has it.
+    let good = capture(200, 0);
+    let good = &good[good.find('#').unwrap()..];
+    let saved = format!("\u{feff}{}", good.replace('\n', "\r\n"));
+    for (name, text) in [("good", good), ("saved", saved.as_str())] {
+        std::fs::write(dir.path().join(format!("{name}.txt")), text).unwrap();
+        let out =
+            nanopos_sim(&["decode", "--input", &format!("{name}.txt"), "--out", &format!("{name}.csv")], dir.path());
+        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+    assert_eq!(read("saved.csv"), read("good.csv"));
+    assert_eq!(read("good.csv").lines().count(), 201);
+}
+
 #[test]
 fn decode_refuses_damage_and_gaps_naming_the_line() {
     let good = capture(200, 0);

@@ -250,6 +250,8 @@ pub fn run(
         // checksums.
         let text = String::from_utf8_lossy(&bytes);
         let line = text.strip_suffix('\n').unwrap_or(&text).trim_end_matches('\r');
+        // A byte-order mark an editor saved the capture with (as a spreadsheet's CSV has, see `csv`).
+        let line = if line_no == 1 { line.strip_prefix('\u{feff}').unwrap_or(line) } else { line };
         // A header: of this format (v2, checked), of the first (v1), or a line that starts as one and is neither
         // (its version damaged in transfer, or a later format's): counted all the same, so that `--recording N`
         // keeps its number for the recordings after it.
@@ -394,7 +396,7 @@ pub fn run(
                 return fail(format!(
                     "{name}:{l}: the recording header comes after '{}': the capture's lines carry something before \
                      the board's (a terminal's timestamps?), which decode does not read: capture without it",
-                    clip(&prefix.escape_debug().to_string(), 40)
+                    clip(&prefix, 40)
                 ));
             }
             return fail(format!("{name}: no recording in the capture (no '{HEADER_PREFIX}' header line){}", {

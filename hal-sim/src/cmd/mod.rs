@@ -50,12 +50,19 @@ pub fn show(x: f64) -> String {
 }
 
 /// Text from the input as a message quotes it: whole up to `max` characters, else its first `max` and how long it
-/// is (a field of ten million digits made a ten-megabyte error line).
+/// is (a field of ten million digits made a ten-megabyte error line); characters a terminal would not show as
+/// themselves escaped as Rust writes them (`\r`, `\u{feff}`: a carriage return inside a field sent the cursor back
+/// over the message's start).
 pub fn clip(text: &str, max: usize) -> String {
-    match text.char_indices().nth(max) {
-        None => text.to_string(),
-        Some((cut, _)) => format!("{}... ({} characters)", &text[..cut], text.chars().count()),
-    }
+    let (shown, more) = match text.char_indices().nth(max) {
+        None => (text, String::new()),
+        Some((cut, _)) => (&text[..cut], format!("... ({} characters)", text.chars().count())),
+    };
+    let escaped: String = shown
+        .chars()
+        .map(|c| if matches!(c, '\'' | '"' | '\\') { c.to_string() } else { c.escape_debug().to_string() })
+        .collect();
+    escaped + &more
 }
 
 /// `x` to three significant digits, as a note gives a figure.
