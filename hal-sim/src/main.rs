@@ -208,7 +208,10 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 amplitude_v: amplitude,
                 out: &out,
             };
-            simulate::run(&args).map(|_| ())
+            for note in simulate::run(&args)?.notes {
+                eprintln!("nanopos-sim: note: {note}");
+            }
+            Ok(())
         }
         Command::Identify {
             input,

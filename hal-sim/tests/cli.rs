@@ -55,6 +55,49 @@ fn simulated_rows(dir: &Path, duration: &str, extra: &[&str], name: &str) -> Vec
     text.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect()
 }
 
+/// `simulate` says what its file holds that was not asked for: a fault the firmware's pipeline latched, which stopped
+/// the excitation (mains pickup of 49 um on the probe's 50 um range), and an excitation too small to move the DAC.
+#[test]
+fn simulate_notes_a_fault_and_an_excitation_the_dac_cannot_show() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |extra: &[&str], name: &str| {
+        let mut args = vec!["simulate", "--scenario", "prbs", "--duration", "1", "--out", name];
+        args.extend_from_slice(extra);
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let text = std::fs::read_to_string(dir.path().join(name)).unwrap();
+        let u: Vec<f64> = text.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
+        (String::from_utf8_lossy(&out.stderr).into_owned(), u)
+    };
+    let (stderr, u) = run(&["--hum", "50:49000"], "hum.csv");
+    let note = "nanopos-sim: note: the firmware's pipeline latched a fault (over_range) at t = ";
+    let at = stderr.find(note).unwrap_or_else(|| panic!("{stderr}")) + note.len();
+    let (t, rest) = stderr[at..].split_once(" s (line ").unwrap();
+    let line: usize = rest.split_once(' ').unwrap().0.parse().unwrap();
+    assert!(
+        rest.contains(
+            "it stopped the excitation there, as the board's does until `start`: u is the safe value from \
+                       the next line on"
+        ),
+        "{stderr}"
+    );
+    // Line 1 is the header: row `line - 2` is the fault's, and its time is the note's.
+    let row = line - 2;
+    assert_eq!(t, format!("{}.{:04}", row / 10_000, row % 10_000));
+    assert!(u[..=row].iter().any(|&v| v != 0.0) && u[row + 1..].iter().all(|&v| v == 0.0), "row {row}");
+    assert!(row > 1000 && row + 1000 < u.len(), "within the run, not at its ends: row {row}");
+
+    let (stderr, u) = run(&["--amplitude", "0.002"], "small.csv");
+    let note = "nanopos-sim: note: u never moved from 0 V: the excitation's 0.002 V is under half the DAC's step of \
+                0.0048828125 V, to which the command is rounded (the board's `excite` says so too)";
+    assert!(stderr.contains(note) && u.iter().all(|&v| v == 0.0), "{stderr}");
+    // One code moves it, and nothing is noted.
+    let (stderr, u) = run(&["--amplitude", "0.003"], "code.csv");
+    assert!(!stderr.contains("note") && u.iter().any(|&v| v != 0.0), "{stderr}");
+    let (stderr, _) = run(&["--amplitude", "0"], "zero.csv");
+    assert!(!stderr.contains("note"), "{stderr}");
+}
+
 /// `--hysteresis` and `--creep` change the stage, not the command: the same `t` and `u` columns, another `y`.
 #[test]
 fn simulate_adds_the_piezos_hysteresis_and_creep_on_request() {

@@ -43,8 +43,18 @@ pub struct SimulateArgs<'a> {
     pub out: &'a Path,
 }
 
-/// Run it; returns the number of rows written.
-pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
+/// What `simulate` wrote.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Simulated {
+    /// Rows written (samples).
+    pub rows: u64,
+    /// What the file holds that was not asked for: the firmware's pipeline stopped the excitation at a fault, or the
+    /// excitation was too small to move the DAC.
+    pub notes: Vec<String>,
+}
+
+/// Run it.
+pub fn run(args: &SimulateArgs) -> Result<Simulated, CliError> {
     if !(args.duration_s.is_finite() && args.duration_s > 0.0) {
         return fail(format!("--duration {}: must be a positive number of seconds", show(args.duration_s)));
     }
@@ -84,11 +94,19 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     let mut fmt = ryu::Buffer::new();
     let mut truth_text = String::new();
     let mut truth_of = None;
+    // The first sample a fault latched at (the pipeline stops the excitation, as the board's does), and whether the
+    // command ever moved from the first sample's.
+    let mut first_fault = None;
+    let (mut u_first, mut u_moved) = (None, false);
     let mut write_all = |out: &mut OutputFile| -> std::io::Result<()> {
         let w = out.writer();
         w.write_all(b"t,u,y,a0,a1,b0\n")?;
         for k in 0..samples {
-            let (r, _) = sim.step();
+            let (r, o) = sim.step();
+            if first_fault.is_none() && !o.faults.is_empty() {
+                first_fault = Some((k, r.t_s, o.faults));
+            }
+            u_moved |= *u_first.get_or_insert(r.u_v) != r.u_v;
             if truth_of != Some(r.truth) {
                 truth_text = format!("{},{},{}\n", r.truth.a0, r.truth.a1, r.truth.b0);
                 truth_of = Some(r.truth);
@@ -109,7 +127,28 @@ pub fn run(args: &SimulateArgs) -> Result<u64, CliError> {
     progress.finish();
     result.map_err(|e| out.write_error(e))?;
     out.commit()?;
-    Ok(samples)
+    let mut notes = Vec::new();
+    if let Some((k, t_s, faults)) = first_fault {
+        notes.push(format!(
+            "the firmware's pipeline latched a fault ({}) at t = {} s (line {} of {}): it stopped the excitation \
+             there, as the board's does until `start`: u is the safe value from the next line on",
+            faults.names().collect::<Vec<_>>().join(", "),
+            time.text(k, t_s),
+            k + 2,
+            args.out.display()
+        ));
+    }
+    let amplitude_v = pipeline.excitation.amplitude_v;
+    if !u_moved && amplitude_v > 0.0 && first_fault.is_none_or(|(k, _, _)| k > 0) {
+        notes.push(format!(
+            "u never moved from {} V: the excitation's {} V is under half the DAC's step of {} V, to which the \
+             command is rounded (the board's `excite` says so too)",
+            show(u_first.unwrap_or(0.0)),
+            show(amplitude_v),
+            show(sim.config.command_lsb_v)
+        ));
+    }
+    Ok(Simulated { rows: samples, notes })
 }
 
 /// Writes the time column. When the sample period is a power of ten (1e-4 s at 10 kHz) the time of sample `k` is
@@ -123,6 +162,13 @@ impl TimeColumn {
     fn new(period_s: f64) -> Self {
         let decimals = (0..=9u32).find(|&d| (period_s * 10f64.powi(d as i32) - 1.0).abs() < 1e-12);
         TimeColumn { decimals }
+    }
+
+    /// Sample `k`'s time as the column has it (for a message).
+    fn text(&self, k: u64, t_s: f64) -> String {
+        let mut bytes = Vec::new();
+        self.write(&mut bytes, k, t_s).expect("a Vec takes every byte");
+        String::from_utf8_lossy(bytes.strip_suffix(b",").unwrap_or(&bytes)).into_owned()
     }
 
     fn write(&self, w: &mut impl Write, k: u64, t_s: f64) -> std::io::Result<()> {
