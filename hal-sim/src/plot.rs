@@ -94,6 +94,19 @@ pub fn svg(r: &Identified) -> Result<String, String> {
     Ok(text)
 }
 
+/// Refuse a plot file named for another image format (`fig.png` would have held SVG text that no PNG viewer opens); a
+/// name without an extension (`/dev/stdout`) is taken.
+pub fn check_name(path: &std::path::Path) -> Result<(), CliError> {
+    match path.extension().map(|e| e.to_string_lossy()) {
+        Some(ext) if !ext.eq_ignore_ascii_case("svg") => Err(CliError(format!(
+            "--plot {}: the plot is SVG: name it .svg (an image viewer would not open SVG text in a .{ext} file; a \
+             browser opens the .svg, and e.g. `rsvg-convert fig.svg -o fig.png` converts it)",
+            path.display()
+        ))),
+        _ => Ok(()),
+    }
+}
+
 /// Write the plot through an [`crate::cmd::OutputFile`] (prepared, not yet committed).
 pub fn write(mut f: crate::cmd::OutputFile, r: &Identified) -> Result<crate::cmd::OutputFile, CliError> {
     let text = svg(r).map_err(|e| CliError(format!("{}: cannot draw: {e}", f.path().display())))?;

@@ -250,6 +250,8 @@ fn identify_says_when_a_window_reaches_beyond_the_record() {
                 to 1.9999 s\n";
     assert_eq!(identify("1.5:2.0002"), note);
     assert!(identify("1.5:30").contains("window 1.5:30 reaches beyond the record (0 to 1.9999 s)"));
+    // A window's numbers as the other messages write them: not 1e300 in 301 digits.
+    assert!(identify("1.5:1e300").contains("window 1.5:1e300 reaches beyond the record (0 to 1.9999 s)"));
 }
 
 /// An output that names a device or a pipe is written to it as a stream, not replaced by a file renamed over it

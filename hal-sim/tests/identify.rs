@@ -652,6 +652,27 @@ fn the_plot_of_estimates_held_far_from_the_truth_is_drawn() {
     assert!(svg.starts_with("<svg") && svg.contains("b0 (um/s^2 V): error against the truth, %"));
 }
 
+/// The plot is SVG: a `--plot` named for another image format is refused before the run (a `fig.png` held SVG text
+/// no PNG viewer opens); `.SVG` and a name without an extension are taken.
+#[test]
+fn a_plot_named_for_another_format_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "1");
+    let out = nanopos_sim(&["identify", "--input", "run.csv", "--plot", "fig.png"], d);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let want =
+        "nanopos-sim: --plot fig.png: the plot is SVG: name it .svg (an image viewer would not open SVG text in \
+                a .png file; a browser opens the .svg, and e.g. `rsvg-convert fig.svg -o fig.png` converts it)";
+    assert_eq!((out.status.code(), stderr.trim_end()), (Some(2), want));
+    assert!(out.stdout.is_empty() && !d.join("fig.png").exists());
+    for name in ["fig.SVG", "fig"] {
+        let out = nanopos_sim(&["identify", "--input", "run.csv", "--summary", "s.json", "--plot", name], d);
+        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
+        assert!(std::fs::read_to_string(d.join(name)).unwrap().starts_with("<svg"), "{name}");
+    }
+}
+
 /// A record no stage could produce (an unstable plant, `a0 = -1e4`, under a PRBS: the reading grows to 1e21 um in
 /// 0.5 s) drives estimates where the derived quantities have no value (the hybrid EKF's `a0 < 0`: no `f0`): the
 /// summary says `null`, and stays JSON (it wrote `NaN`). (The record this test used, the probe pinned at 1e30 um,

@@ -72,6 +72,13 @@ pub struct Window {
     pub t1: f64,
 }
 
+/// As `--window` takes it, `T0:T1`, each number as a message writes it ([`show`]).
+impl std::fmt::Display for Window {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}:{}", show(self.t0), show(self.t1))
+    }
+}
+
 impl std::str::FromStr for Window {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -491,9 +498,7 @@ fn identify_blocks<T: Real>(
             let whose = if defaulted { "default " } else { "" };
             let advice = if defaulted { ": give --window T0:T1, or a longer record" } else { "" };
             return fail(format!(
-                "{source}: {whose}window {}:{} holds no estimate (the record covers {} to {} s; {rows_at}){advice}",
-                show(w.t0),
-                show(w.t1),
+                "{source}: {whose}window {w} holds no estimate (the record covers {} to {} s; {rows_at}){advice}",
                 show(t_first),
                 show(t_last)
             ));
@@ -859,6 +864,7 @@ pub fn run(args: &IdentifyArgs) -> Result<Identified, CliError> {
     let outputs = [("--out", args.out), ("--summary", args.summary), ("--plot", args.plot), ("--health", args.health)];
     let outputs: Vec<_> = outputs.into_iter().filter_map(|(option, p)| Some((option, p?))).collect();
     super::check_distinct(&inputs, &outputs)?;
+    args.plot.map(crate::plot::check_name).transpose()?;
     // The outputs are opened (under their temporary names) before the run, so that a directory that is not there
     // or not writable is said at once, not after the whole record.
     let open = |p: Option<&Path>| p.map(OutputFile::create).transpose();
@@ -947,9 +953,7 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         // A window is half open, `[t0, t1)`: one that ends a sample after the last covers it all.
         if w.t0 < first - 0.5 * dt || w.t1 > last + 1.5 * dt {
             notes.push(format!(
-                "window {}:{} reaches beyond the record ({} to {} s): its figures are of {} to {} s",
-                w.t0,
-                w.t1,
+                "window {w} reaches beyond the record ({} to {} s): its figures are of {} to {} s",
                 show(first),
                 show(last),
                 show(w.t0.max(first)),
@@ -962,9 +966,8 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         let still = moved == 0.0;
         if still {
             notes.push(format!(
-                "window {}:{}: y does not change over it: there is nothing to identify from (a stuck probe, or a \
+                "window {w}: y does not change over it: there is nothing to identify from (a stuck probe, or a \
                  column that is not the reading?)",
-                w.t0, w.t1
             ));
         }
         // A reading that moves less than any probe resolves, or farther than any nanopositioning stage: most likely
@@ -982,10 +985,8 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 )
             };
             notes.push(format!(
-                "window {}:{}: y moves {} nm RMS over it, {bound}: is y in um? (identify reads it so; {what} the \
+                "window {w}: y moves {} nm RMS over it, {bound}: is y in um? (identify reads it so; {what} the \
                  stage's motion reads {scale})",
-                w.t0,
-                w.t1,
                 sig(moved)
             ));
         }
@@ -994,11 +995,9 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         if let Some(b) = best_fit(figs).filter(|&b| figs[b].offset_nm.abs() > OFFSET_MIN * figs[b].rmse_nm) {
             let f = &figs[b];
             notes.push(format!(
-                "window {}:{}: the reading sits {} nm off {}'s model throughout (the probe's zero, the stage's \
+                "window {w}: the reading sits {} nm off {}'s model throughout (the probe's zero, the stage's \
                  position, or drift: model (1) has no constant), which its validation RMSE of {} nm includes; about \
                  that offset it is {} nm, and the estimators are compared about it",
-                w.t0,
-                w.t1,
                 sig(f.offset_nm),
                 r.names[b],
                 sig(f.rmse_nm),
@@ -1009,11 +1008,9 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
         let weak = |b: &usize| figs[*b].model_rms_nm * RESPONSE_MIN < figs[*b].reading_rms_nm;
         if let Some(b) = best_fit(figs).filter(weak).filter(|_| !unit) {
             notes.push(format!(
-                "window {}:{}: the best model ({}'s) responds to the input with {} nm RMS, under a third of the \
+                "window {w}: the best model ({}'s) responds to the input with {} nm RMS, under a third of the \
                  reading's {} nm: the reading barely follows the input. Is the probe connected and seeing the stage, \
                  and the input large enough?",
-                w.t0,
-                w.t1,
                 r.names[b],
                 sig(figs[b].model_rms_nm),
                 sig(figs[b].reading_rms_nm)
@@ -1029,21 +1026,17 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             let wt = 2.0 * std::f64::consts::PI * f0 * dt;
             if r.names.contains(&"ekf") && wt > nanopos_id::instrument::FAST_RESONANCE_WT {
                 notes.push(format!(
-                    "window {}:{}: the resonance, {f0:.0} Hz ({}'s mean), is at w T = {wt:.2} of the record's sample \
+                    "window {w}: the resonance, {f0:.0} Hz ({}'s mean), is at w T = {wt:.2} of the record's sample \
                      rate, where {}",
-                    w.t0,
-                    w.t1,
                     r.names[by],
                     nanopos_id::instrument::FAST_RESONANCE_EFFECT
                 ));
             }
             if let Some(ratio) = r.prefilter.off_resonance(f0) {
                 notes.push(format!(
-                    "window {}:{}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): \
+                    "window {w}: the pre-filter's f_p ({} Hz) is {:.3} times the resonance ({:.0} Hz, {}'s mean): \
                      the estimates can come out biased by several %; give --tuning a pre-filter near the resonance \
                      (prefilter = [F_LC, F_P, ZETA])",
-                    w.t0,
-                    w.t1,
                     show(r.prefilter.f_p_hz),
                     ratio,
                     f0,
@@ -1052,33 +1045,27 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             }
         }
         if let Some(note) = slow_input_note(r, figs).or_else(|| strong_input_note(r, figs)) {
-            notes.push(format!("window {}:{}: {note}", w.t0, w.t1));
+            notes.push(format!("window {w}: {note}"));
         }
         for (name, f) in r.names.iter().zip(figs) {
             if f.starved > 0.1 {
                 notes.push(format!(
-                    "{name} was held by the excitation monitor for {:.0} % of window {}:{} (the input too weak, or a \
+                    "{name} was held by the excitation monitor for {:.0} % of window {w} (the input too weak, or a \
                      single sinusoid): its means there are of held values",
                     100.0 * f.starved,
-                    w.t0,
-                    w.t1
                 ));
             }
             if f.held > 0.1 {
                 notes.push(format!(
-                    "{name}'s parameters were held for {:.0} % of window {}:{} (its model had no continuous \
+                    "{name}'s parameters were held for {:.0} % of window {w} (its model had no continuous \
                      equivalent: not yet converged): its means there are of the last parameters it could report",
                     100.0 * f.held,
-                    w.t0,
-                    w.t1
                 ));
             }
             let m = &f.mean;
             if !(m.a0 > 0.0 && m.a0.is_finite() && m.a1.is_finite() && m.b0.is_finite()) {
                 notes.push(format!(
-                    "{name}'s means over window {}:{} are not of a stage (a0 {}, a1 {}, b0 {}): it diverged",
-                    w.t0,
-                    w.t1,
+                    "{name}'s means over window {w} are not of a stage (a0 {}, a1 {}, b0 {}): it diverged",
                     sig(m.a0),
                     sig(m.a1),
                     sig(m.b0)
@@ -1087,29 +1074,26 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
                 let (best_name, best_nm) = (r.names[best], sig(figs[best].fit_nm));
                 notes.push(if f.fit_nm.is_finite() {
                     format!(
-                        "{name}'s model fits window {}:{} {} times worse than {best_name}'s (validation RMSE {} nm \
+                        "{name}'s model fits window {w} {} times worse than {best_name}'s (validation RMSE {} nm \
                          against {best_nm}): its estimates there are not to be trusted (not yet converged, or \
                          diverged)",
-                        w.t0,
-                        w.t1,
                         sig(f.fit_nm / figs[best].fit_nm),
                         sig(f.fit_nm),
                     )
                 } else {
                     format!(
-                        "{name}'s model does not fit window {}:{} at all: its validation is not finite (the model \
+                        "{name}'s model does not fit window {w} at all: its validation is not finite (the model \
                          with its means runs away), against {best_name}'s RMSE of {best_nm} nm: its estimates there \
                          are not to be trusted (not yet converged, or diverged)",
-                        w.t0, w.t1,
                     )
                 });
             }
             if f.resets > 0 {
                 notes.push(format!(
                     "{name} met a non-finite value (or an innovation beyond a metre, or no relock within 5 s) and \
-                     went back to its initial parameters {} times in window {}:{} (a tuning that does not suit this \
+                     went back to its initial parameters {} times in window {w} (a tuning that does not suit this \
                      record, or a glitch in it): its means there are of runs that diverged",
-                    f.resets, w.t0, w.t1
+                    f.resets
                 ));
             }
         }
