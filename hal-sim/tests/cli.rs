@@ -728,7 +728,7 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     let no_frames: Vec<&str> = lines.iter().filter(|l| !l.starts_with('R')).copied().collect();
     // Every line behind a terminal's timestamp.
     let stamped: Vec<String> = lines.iter().map(|l| format!("[12:00:00.123] {l}")).collect();
-    let cases: [(String, &[&str], &str); 17] = [
+    let cases: [(String, &[&str], &str); 18] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
@@ -739,6 +739,8 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
              the board's (a terminal's timestamps?), which decode does not read: capture without it",
         ),
         (good.clone(), &["--recording", "2"], "recording 2 asked for, the capture holds 1"),
+        // Not taken for the first.
+        (good.clone(), &["--recording", "0"], "--recording 0: recordings are counted from 1 (the capture's first is 1)"),
         // A header changed in transfer: its CRC no longer matches.
         (good.replace("rate_hz=10000", "rate_hz=10800"), &[], "cap.txt:2: recording header damaged in transfer"),
         // In the format without the CRC (v1), a header is read as it is: what cannot be read is named.

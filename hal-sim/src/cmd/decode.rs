@@ -203,6 +203,9 @@ pub fn run(
     damage: Damage,
 ) -> Result<(Recording, Vec<Option<std::path::PathBuf>>), CliError> {
     let name = input.display().to_string();
+    if which == 0 {
+        return fail("--recording 0: recordings are counted from 1 (the capture's first is 1)");
+    }
     match damage {
         Damage::Skip if std::fs::metadata(out).is_ok_and(|m| !m.is_file()) => {
             return fail(format!(
