@@ -231,7 +231,8 @@ impl core::fmt::Display for ParseError {
             ParseError::TooLong => write!(f, "line longer than {MAX_LINE} bytes"),
             ParseError::Damaged => write!(f, "bytes of this line were lost on the link: send it again"),
             ParseError::NotAscii { at, byte } => {
-                write!(f, "byte {at} is not printable ASCII")?;
+                // Counted from 1, as the words are (`byte 0` read as a NUL byte).
+                write!(f, "byte {} is not printable ASCII", at + 1)?;
                 // UTF-8 pasted from a document: a minus sign (U+2212), a non-breaking space, a typographic quote.
                 if (0xC2..=0xF4).contains(byte) {
                     f.write_str(", the start of a Unicode character (a pasted minus sign or non-breaking space?)")?;
@@ -847,7 +848,7 @@ mod tests {
         assert_eq!(std::format!("{}", ParseError::Damaged), "bytes of this line were lost on the link: send it again");
         assert_eq!(
             std::format!("{}", parse("limits \u{2212}5 5 100".as_bytes()).unwrap_err()),
-            "byte 7 is not printable ASCII, the start of a Unicode character (a pasted minus sign or \
+            "byte 8 is not printable ASCII, the start of a Unicode character (a pasted minus sign or \
              non-breaking space?)"
         );
     }

@@ -73,7 +73,7 @@ fn the_session_ends_cleanly_whatever_it_was_sent() {
     let replies: Vec<&str> = link.lines().filter(|l| l.starts_with("ok ") || l.starts_with("error: ")).collect();
     assert_eq!(
         replies,
-        ["ok record on", "error: line longer than 96 bytes", "error: byte 0 is not printable ASCII", "ok record off"],
+        ["ok record on", "error: line longer than 96 bytes", "error: byte 1 is not printable ASCII", "ok record off"],
         "{link}"
     );
     assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples="), "{link}");
