@@ -60,6 +60,35 @@ fn a_console_session_is_the_boards_and_its_recording_decodes() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// A script whose last line has no line end: the line is ended and run, with a note, and a recording still running
+/// is stopped after it (the `record off` had been joined to the unended line, refused, and the session never ended).
+#[test]
+fn a_last_line_without_its_end_is_run_and_the_session_ends() {
+    let mut child = spawn_console(&[]);
+    child.stdin.take().expect("stdin").write_all(b"record on\nexcite off").expect("type");
+    let t0 = std::time::Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        if t0.elapsed().as_secs() > 30 {
+            child.kill().ok();
+            panic!("the session did not end within 30 s of its input's end");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().expect("output");
+    let (link, log) = (String::from_utf8(out.stdout).unwrap(), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{log}");
+    assert_eq!(
+        log,
+        "nanopos-sim: note: the input's last line has no line end: ended there (the board's console waits for one)\n"
+    );
+    let replies: Vec<&str> = link.lines().filter(|l| l.starts_with("ok ") || l.starts_with("error: ")).collect();
+    assert_eq!(replies, ["ok record on", "ok excite off (running)", "ok record off"], "{link}");
+    assert!(link.lines().last().unwrap().starts_with("# nanopos-record end samples="), "{link}");
+    // Ended by its line end: no note.
+    let out = console(&[], b"excite off\r\n");
+    assert!(out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 /// At the input's end a recording `record on` started is stopped, as the user would, and ended; bytes no terminal
 /// should send get their errors; `--status-every` logs the status on standard error.
 #[test]

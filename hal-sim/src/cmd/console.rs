@@ -15,9 +15,9 @@
 //! estimators converge while it sleeps. `--status-every S` writes the `status` reply every `S` s to standard error,
 //! where the firmware's defmt log would go.
 //!
-//! At the end of the input (Ctrl-D, or a script's end) the session ends: a burst recording runs to its end first, a
-//! recording `record on` started is stopped (`record off`, its reply written), and the recording's end line goes
-//! out. Every line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
+//! At the end of the input (Ctrl-D, or a script's end) the session ends: a last line without its line end is ended
+//! (with a note on standard error: the board would wait for it), a burst recording runs to its end, a recording
+//! `record on` started is stopped (`record off`, its reply written), and the recording's end line goes out. Every line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
 
 use super::CliError;
 use crate::lab::Lab;
@@ -132,6 +132,8 @@ pub fn run(
     let start = Instant::now();
     let mut samples = 0u64;
     let mut ended = false;
+    // The last byte received: whether the input ends inside a line.
+    let mut last_byte = None;
     loop {
         // What arrived: every line it completes is executed (its change applied by one sample) and answered. The
         // input's end, or an interruption once what arrived is taken, ends the session.
@@ -139,12 +141,24 @@ pub fn run(
         loop {
             match received.try_recv() {
                 Ok(bytes) => {
+                    last_byte = bytes.last().copied().or(last_byte);
                     lab.send_bytes(&bytes);
                 }
                 Err(mpsc::TryRecvError::Empty) if !interrupted => break,
                 Err(_) => {
                     if !ended {
                         ended = true;
+                        // A script whose last line has no line end: the line is ended, as its author meant (the
+                        // board would wait for the end; a `record off` below would have been joined to it, refused,
+                        // and the session never ended).
+                        if last_byte.is_some_and(|b| b != b'\n' && b != b'\r') {
+                            log.write_all(
+                                b"nanopos-sim: note: the input's last line has no line end: ended there (the board's \
+                                  console waits for one)\n",
+                            )
+                            .map_err(log_error)?;
+                            lab.send("\n");
+                        }
                         // A recording until stopped would never end: stopped as the user would.
                         let st = lab.isr.record_status();
                         if st.active && st.remaining.is_none() {
