@@ -140,11 +140,26 @@ pub fn resolve(arg: &str) -> Result<TuningArg, CliError> {
     Ok(TuningArg { file: Some(path.to_path_buf()), ..parse(arg, &text)? })
 }
 
+/// A TOML reader's message as ours read: a number as [`show`] writes it (serde writes `1e-300` in 300 digits), a whole
+/// number asked for in words (`expected u32`: `substeps = 4.5`).
+fn readable(msg: &str) -> String {
+    const FLOAT: &str = "floating point `";
+    let mut msg = msg.replace("expected u32", "expected a whole number");
+    if let Some(start) = msg.find(FLOAT).map(|i| i + FLOAT.len()) {
+        if let Some(len) = msg[start..].find('`') {
+            if let Ok(x) = msg[start..start + len].parse::<f64>() {
+                msg.replace_range(start..start + len, &show(x));
+            }
+        }
+    }
+    msg
+}
+
 /// Parse a tuning file's text (`name` for messages): its syntax, keys, types and preset now, its values at
 /// [`TuningArg::at`].
 pub fn parse(name: &str, text: &str) -> Result<TuningArg, CliError> {
     let file: File = toml::from_str(text).map_err(|e| {
-        let msg = e.message().replace('\n', " ");
+        let msg = readable(&e.message().replace('\n', " "));
         let at = e.span().map(|s| format!(":{}", 1 + text[..s.start].matches('\n').count())).unwrap_or_default();
         CliError(format!("{name}{at}: {msg}"))
     })?;
@@ -231,7 +246,9 @@ mod tests {
             ("initial = [5e5, 70, -6e6]\n", "t.toml: initial = -6000000: must be a positive number"),
             ("[ekf]\nq = [1, 1, 1, 0, 1]\n", "t.toml: [ekf] q = 0: must be a positive number"),
             ("spike_ratio = 70000\n", "t.toml: spike_ratio = 70000: a whole number from 0 (off) to 65535"),
-            ("spike_ratio = 2.5\n", "t.toml:1:"),
+            ("spike_ratio = 2.5\n", "t.toml:1: invalid type: floating point `2.5`, expected a whole number"),
+            // Not 1e-300 in 300 digits.
+            ("[ekf]\nsubsteps = 1e-300\n", "t.toml:2: invalid type: floating point `1e-300`, expected a whole number"),
             ("spike_ratio = -1\n", "t.toml:1:"),
         ];
         for (text, want) in cases {
