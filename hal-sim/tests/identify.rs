@@ -949,6 +949,9 @@ fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
     for word in ["prbs", "triangle", "f32", "f64", "truth", "rls", "ekf", "hekf", "arx", "RMSE"] {
         assert!(table.contains(word), "{word}");
     }
+    // The windows as they are, 1.5-2 s and 3.5-4 s (they were printed rounded, as 2-2 and 4-4).
+    assert!(table.lines().nth(1).unwrap().starts_with("prbs      f64  truth       1.5-2   "), "{table}");
+    assert!(table.lines().nth(2).unwrap().starts_with("prbs      f64  truth       3.5-4   "), "{table}");
     for f in ["prbs-summary.json", "triangle-summary.json"] {
         assert!(dir.path().join("res").join(f).exists(), "{f}");
     }

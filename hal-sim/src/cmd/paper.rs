@@ -14,7 +14,7 @@
 //! once (the one-hour run peaked at 4.6 GB when the records were held whole).
 
 use super::identify::{identify_streamed, summary_json, Identified};
-use super::{fail, CliError, OutputFile};
+use super::{fail, show, CliError, OutputFile};
 use crate::bank::{Tuning, NAMES};
 use crate::sim::{Scenario, Simulation};
 use nanopos_id::estimator::Unfiltered;
@@ -158,8 +158,12 @@ pub fn table(runs: &[PaperRun]) -> String {
             for (w, _, truth) in &r.windows {
                 let rmse = truth.expect("simulated runs carry the truth").rmse_nm;
                 s += &format!(
-                    "{:9} {prec}  {:9} {:>5.0}-{:<5.0} {:>30} {rmse:8.2}\n",
-                    run.input, "truth", w.t0, w.t1, ""
+                    "{:9} {prec}  {:9} {:>5}-{:<5} {:>30} {rmse:8.2}\n",
+                    run.input,
+                    "truth",
+                    show(w.t0),
+                    show(w.t1),
+                    ""
                 );
             }
             for (col, name) in r.names.iter().enumerate() {
@@ -171,10 +175,10 @@ pub fn table(runs: &[PaperRun]) -> String {
                     let (m, tr) = (figs[col].mean, truth.expect("simulated runs carry the truth").mean);
                     let e = |a: f64, b: f64| 100.0 * (a / b - 1.0);
                     s += &format!(
-                        "{:9} {prec}  {name:9} {:>5.0}-{:<5.0} {:+8.3}% {:+8.3}% {:+8.3}% {:8.2} {:>9} {:>9}\n",
+                        "{:9} {prec}  {name:9} {:>5}-{:<5} {:+8.3}% {:+8.3}% {:+8.3}% {:8.2} {:>9} {:>9}\n",
                         run.input,
-                        w.t0,
-                        w.t1,
+                        show(w.t0),
+                        show(w.t1),
                         e(m.a0, tr.a0),
                         e(m.a1, tr.a1),
                         e(m.b0, tr.b0),
