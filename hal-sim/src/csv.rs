@@ -128,8 +128,7 @@ impl Reader {
 
     fn open_in(path: &Path, names: &[&str], optional: &[&str], time: Time, chunks: Chunks) -> Result<Reader, CliError> {
         let shown = path.display().to_string();
-        let file = std::fs::File::open(path)
-            .map_err(|e| CliError(format!("{shown}: cannot open: {}", crate::cmd::io_reason(&e))))?;
+        let file = crate::cmd::open_input(path)?;
         let file_len = file.metadata().map_or(0, |m| m.len());
         let mut r = Reader {
             path: path.to_path_buf(),

@@ -804,6 +804,7 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
         (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
+        (&["identify", "--input", "-"], "-: cannot open: No such file or directory (standard input is /dev/stdin here, not -)"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
         (
             &["identify", "--input", "ms.csv"],

@@ -219,7 +219,7 @@ pub fn run(
         Damage::Refuse => super::check_distinct(&[("--input", input)], &[("--out", out)])?,
     }
     let cannot_read = |e: std::io::Error| CliError(format!("{name}: cannot read: {}", io_reason(&e)));
-    let mut reader = std::io::BufReader::with_capacity(1 << 20, std::fs::File::open(input).map_err(cannot_read)?);
+    let mut reader = std::io::BufReader::with_capacity(1 << 20, super::open_input(input)?);
     let which = which.max(1);
     // The chosen recording, once its header is read, and where its samples go.
     let (mut found, mut chosen): (usize, Option<(Recording, Sink)>) = (0, None);

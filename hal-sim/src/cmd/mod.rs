@@ -459,6 +459,19 @@ pub fn check_distinct(inputs: &[(&str, &Path)], outputs: &[(&str, &Path)]) -> Re
     Ok(())
 }
 
+/// Open an input file, or say why not as the other messages do: `-`, which many tools read as standard input, is a
+/// file name here, and a missing `-` says where standard input is.
+pub fn open_input(path: &Path) -> Result<File, CliError> {
+    File::open(path).map_err(|e| {
+        let stdin = if path == Path::new("-") && e.kind() == std::io::ErrorKind::NotFound {
+            " (standard input is /dev/stdin here, not -)"
+        } else {
+            ""
+        };
+        CliError(format!("{}: cannot open: {}{stdin}", path.display(), io_reason(&e)))
+    })
+}
+
 /// An I/O error's reason without Rust's " (os error N)" suffix.
 pub fn io_reason(e: &std::io::Error) -> String {
     let s = e.to_string();
