@@ -17,7 +17,8 @@
 //!
 //! At the end of the input (Ctrl-D, or a script's end) the session ends: a last line without its line end is ended
 //! (with a note on standard error: the board would wait for it), a burst recording runs to its end, a recording
-//! `record on` started is stopped (`record off`, its reply written), and the recording's end line goes out. Every line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
+//! `record on` started is stopped (`record off`, its reply written), and the recording's end line goes out. Every
+//! line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
 
 use super::CliError;
 use crate::lab::Lab;

@@ -220,7 +220,6 @@ pub fn run(
     }
     let cannot_read = |e: std::io::Error| CliError(format!("{name}: cannot read: {}", io_reason(&e)));
     let mut reader = std::io::BufReader::with_capacity(1 << 20, super::open_input(input)?);
-    let which = which.max(1);
     // The chosen recording, once its header is read, and where its samples go.
     let (mut found, mut chosen): (usize, Option<(Recording, Sink)>) = (0, None);
     let mut frame = [RawSample::default(); FRAME_SAMPLES];
