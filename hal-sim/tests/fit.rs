@@ -190,6 +190,7 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
     write(d, "jump.csv", "t,u,y\n0,1,2\n0.1,1,3\n0.2,1,4\n0.35,1,5\n");
     write(d, "still.csv", "t,u,y\n0,1,2\n0,1,3\n");
     write(d, "short.csv", "t,u,y\n0,1,2\n0.1,1,3\n0.2,1,4\n");
+    write(d, "one.csv", "t,u,y\n0,1,2\n");
     write(d, "ragged.csv", "t,u,y\n0,1,2\n0.1,1\n");
     write(d, "empty.csv", "");
     // A record rich enough for 2,2,1 (a random binary input through a damped resonance), which a weighting that
@@ -219,7 +220,14 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
         (&["fit", "--input", "inf.csv", "--arx", "1,1,1"], "inf.csv:3: column 'y'"),
         (&["fit", "--input", "jump.csv", "--arx", "1,1,1"], "jump.csv:5: time 0.35 breaks the uniform sampling"),
         (&["fit", "--input", "still.csv", "--arx", "1,1,1"], "still.csv:3: time 0 does not advance"),
-        (&["fit", "--input", "short.csv", "--arx", "2,2,1"], "short.csv: too few rows"),
+        (
+            &["fit", "--input", "short.csv", "--arx", "2,2,1"],
+            "short.csv: too few rows: 3 samples give 1 regression row with full history, 4 parameters need at least 4",
+        ),
+        (
+            &["fit", "--input", "one.csv", "--arx", "1,1,1"],
+            "one.csv: too few rows: 1 sample gives 0 regression rows with full history, 2 parameters need at least 2",
+        ),
         (&["fit", "--input", "ragged.csv", "--arx", "1,1,1"], "ragged.csv:3: 2 fields, the header has 3"),
         (&["fit", "--input", "empty.csv", "--arx", "1,1,1"], "empty.csv: empty file"),
         (
