@@ -165,7 +165,8 @@ fn no_run(name: &str, which: usize, r: &Recording, end_samples: Option<u64>, lin
             format!("{name}: recording {which} has no frame before its end line (its frames lost in the capture)")
         }
         (_, _, n) => format!(
-            "{name}: recording {which} has no intact frame: {n} lines of it damaged in transfer, the first: {}",
+            "{name}: recording {which} has no intact frame: {} of it damaged in transfer, the first: {}",
+            super::count(n as u64, "line", "lines"),
             r.damage[0]
         ),
     }
@@ -363,9 +364,9 @@ pub fn run(
                     r.refuse_or_skip(
                         damage,
                         format!(
-                            "{name}:{line_no}: frame starts at sample {index}, expected {e}: {} samples missing \
-                             (lines lost in the capture)",
-                            index - e
+                            "{name}:{line_no}: frame starts at sample {index}, expected {e}: {} missing (lines lost \
+                             in the capture)",
+                            super::count(index - e, "sample", "samples")
                         ),
                     )?;
                 }

@@ -1091,9 +1091,9 @@ pub fn health_notes(r: &Identified) -> Vec<String> {
             if f.resets > 0 {
                 notes.push(format!(
                     "{name} met a non-finite value (or an innovation beyond a metre, or no relock within 5 s) and \
-                     went back to its initial parameters {} times in window {w} (a tuning that does not suit this \
+                     went back to its initial parameters {} in window {w} (a tuning that does not suit this \
                      record, or a glitch in it): its means there are of runs that diverged",
-                    f.resets
+                    super::count(f.resets, "time", "times")
                 ));
             }
         }

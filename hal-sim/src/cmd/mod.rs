@@ -65,6 +65,12 @@ pub fn clip(text: &str, max: usize) -> String {
     escaped + &more
 }
 
+/// `n` and the noun for it, singular for one: `count(1, "time", "times")` is `1 time`.
+pub fn count(n: impl Into<u64>, one: &str, many: &str) -> String {
+    let n = n.into();
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
 /// `x` to three significant digits, as a note gives a figure.
 pub fn sig(x: f64) -> String {
     if x == 0.0 || !x.is_finite() {
@@ -513,5 +519,28 @@ impl Progress {
         if self.enabled {
             eprint!("\r{}\r", " ".repeat(self.label.len() + 6));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A message's count reads as English: one of a thing, and none or many of things.
+    #[test]
+    fn a_count_of_one_is_singular() {
+        assert_eq!(count(1u32, "time", "times"), "1 time");
+        assert_eq!(count(0u32, "time", "times"), "0 times");
+        assert_eq!(count(48u64, "sample", "samples"), "48 samples");
+    }
+
+    /// What a message quotes from the input: control characters escaped, quotes as they are, long text cut.
+    #[test]
+    fn a_quote_shows_what_a_terminal_would_hide() {
+        assert_eq!(clip("1\r5", 40), "1\\r5");
+        assert_eq!(clip("\u{feff}t", 40), "\\u{feff}t");
+        assert_eq!(clip("\"1\"'", 40), "\"1\"'");
+        assert_eq!(clip("−5", 40), "−5");
+        assert_eq!(clip("abcdef", 3), "abc... (6 characters)");
     }
 }
