@@ -65,7 +65,8 @@ enum Command {
         /// Window means and validation RMSE, JSON.
         #[arg(long)]
         summary: Option<PathBuf>,
-        /// Every estimate against time (and the truth when present), SVG.
+        /// Every estimate against time (and the truth when present), SVG: a name ending .svg, or one without an
+        /// extension.
         #[arg(long)]
         plot: Option<PathBuf>,
         /// Health at 100 Hz: t,estimator,state,rejected,changes,resets,repairs,innovation_rms_um (counts since the
@@ -93,7 +94,8 @@ enum Command {
         /// Length of each run, s (payload removed at half).
         #[arg(long, default_value_t = 200.0, allow_negative_numbers = true)]
         duration: f64,
-        /// Where to write each input's SUMMARY.json.
+        /// Where to write each input's summary and plot (prbs-summary.json, prbs.svg, triangle-summary.json,
+        /// triangle.svg).
         #[arg(long, default_value = "paper-out")]
         out_dir: PathBuf,
     },
