@@ -429,7 +429,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         for (i, &resets) in news.resets.iter().enumerate() {
             if resets > 0 {
                 defmt::warn!(
-                    "{=str}: {=u32} numeric resets in the last 0.1 s (non-finite values, each time back to the initial parameters): the tuning does not suit this stage or input",
+                    "{=str}: numeric resets in the last 0.1 s: {=u32} (non-finite values, each time back to the initial parameters): the tuning does not suit this stage or input",
                     ESTIMATOR_NAMES[i],
                     resets
                 );
@@ -437,7 +437,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         }
         if news.spikes > 0 {
             defmt::warn!(
-                "spike gate: {=u32} probe readings replaced in the last 0.1 s (spikes={=u32}), each out of line with the readings before it by far more than the stage moves in a sample: glitches at the ADC's input, which the estimators did not see; many mean a noisy or loose connection",
+                "spike gate: probe readings replaced in the last 0.1 s: {=u32} (spikes={=u32}), each out of line with the readings before it by far more than the stage moves in a sample: glitches at the ADC's input, which the estimators did not see; many mean a noisy or loose connection",
                 news.spikes,
                 c.spikes
             );
@@ -447,7 +447,7 @@ async fn telemetry(mut watchdog: IndependentWatchdog<'static, IWDG>) {
         }
         if news.limiting {
             defmt::warn!(
-                "output limits changed {=u32} commands in the last 0.1 s, and in the 0.1 s before (limited={=u32}): the excitation is clipped or slew-limited, a distorted input that can bias the estimates by a few %",
+                "commands the output limits changed in the last 0.1 s: {=u32}, and some in the 0.1 s before (limited={=u32}): the excitation is clipped or slew-limited, a distorted input that can bias the estimates by a few %",
                 news.limited,
                 c.limited
             );
