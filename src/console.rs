@@ -685,6 +685,17 @@ impl Controller {
                 })?;
                 return self.retune(t, &[(key, values)], resonance, reply, "").map(Some);
             }
+            Command::LimitsInUse => {
+                let [low, high] = self.clamp_v();
+                write_limits(reply, &self.settings.limits)?;
+                writeln!(
+                    reply,
+                    " (the clamp in force, within the DAC's reach: {} V to {} V)",
+                    Num(low, 6),
+                    Num(high, 6)
+                )?;
+                return Ok(None);
+            }
             Command::Limits { min_v, max_v, slew_v_per_s } => {
                 let mut s = self.settings;
                 s.limits.min_v = min_v as f64;
@@ -706,14 +717,8 @@ impl Controller {
                     )?;
                 }
                 self.fit_note(reply)?;
-                let l = &s.limits;
-                writeln!(
-                    reply,
-                    "ok limits {} V to {} V, {} V/s",
-                    Num(l.min_v, 6),
-                    Num(l.max_v, 6),
-                    Num(l.max_slew_v_per_s, 6)
-                )?;
+                write_limits(reply, &s.limits)?;
+                writeln!(reply)?;
             }
             Command::Record(r) => {
                 if self.board.probe.max_code > 0xFFFF || self.board.amplifier.max_code > 0xFFFF {
@@ -969,6 +974,11 @@ impl fmt::Display for Refusal {
             Refusal::Reply => f.write_str("reply too long for the buffer"),
         }
     }
+}
+
+/// `ok limits MIN V to MAX V, SLEW V/s`, without the line end: `limits`' verdict, setting them or asking.
+fn write_limits(w: &mut dyn Write, l: &crate::pipeline::OutputLimits) -> fmt::Result {
+    write!(w, "ok limits {} V to {} V, {} V/s", Num(l.min_v, 6), Num(l.max_v, 6), Num(l.max_slew_v_per_s, 6))
 }
 
 /// `ok tune KEY = V...`, without the line end.

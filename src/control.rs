@@ -14,7 +14,7 @@
 //! | `reset EST,...` / `freeze EST,...` / `adapt EST,...` | reset, freeze or unfreeze estimators (`all` for every one) |
 //! | `tuning prbs` / `tuning triangle` | the paper's tuning for that input (Q2 / Q1) |
 //! | `tune initial B0 A1 A0` / `tune spike_ratio N` / `tune SECTION KEY VALUE...` | one tuning value, the keys of [`crate::estimators::tuning`] (`tune ekf q 1e-12 1e-6 1.5e9 0.25 5e8`); without values, report it |
-//! | `limits MIN_V MAX_V SLEW_V_PER_S` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0 here; the design refuses one under [`crate::pipeline::OutputLimits::min_slew_v_per_s`]) |
+//! | `limits MIN_V MAX_V SLEW_V_PER_S` / `limits` | output clamp (within -10..=10 V, MIN < MAX) and slew limit (> 0 here; the design refuses one under [`crate::pipeline::OutputLimits::min_slew_v_per_s`]); without values, report them and the clamp in force |
 //! | `record off` / `record on` / `record burst N` | stream raw samples: off, continuously, or the next N (1..=1 000 000) |
 
 use crate::estimators::TuningKey;
@@ -33,7 +33,7 @@ reset | freeze | adapt all | EST...
 tuning prbs | triangle
 tune initial B0 A1 A0 | initial EST | stage EST | prefilter F_LC F_P ZETA | spike_ratio N
 tune rls | ekf | arx KEY [VALUE...] (no KEY: the keys; no VALUE: the value in use)
-limits MIN_V MAX_V SLEW_V_PER_S
+limits [MIN_V MAX_V SLEW_V_PER_S]
 record off | on | burst N
 ";
 
@@ -171,6 +171,8 @@ pub enum Command {
         /// Its new values, if any.
         values: Option<[f64; 5]>,
     },
+    /// The output clamp and slew limit in use (`limits` without values).
+    LimitsInUse,
     /// Output clamp and slew limit.
     Limits {
         /// Lowest command, V.
@@ -449,6 +451,7 @@ pub fn parse(line: &[u8]) -> Result<Command, ParseError> {
             };
             Command::Tune { key, values }
         }
+        "limits" if words.is_done() => Command::LimitsInUse,
         "limits" => {
             let min_v = words.number("the lowest command in V, -10 to 10", volts)?;
             let max_v =
@@ -658,6 +661,11 @@ mod tests {
         assert_eq!(p("adapt ekf"), Ok(Command::Adapt(EstimatorSet(2))));
         assert_eq!(p("tuning triangle"), Ok(Command::Tuning(TuningPreset::Triangle)));
         assert_eq!(p("limits -5 5 1000"), Ok(Command::Limits { min_v: -5.0, max_v: 5.0, slew_v_per_s: 1000.0 }));
+        assert_eq!(p("limits"), Ok(Command::LimitsInUse));
+        assert_eq!(
+            p("limits -5"),
+            Err(ParseError::Missing { word: 3, expected: "the highest command in V, above the lowest, at most 10" })
+        );
         assert_eq!(p("record burst 20000"), Ok(Command::Record(Recording::Burst(20000))));
         assert_eq!(p("record on"), Ok(Command::Record(Recording::On)));
         assert_eq!(

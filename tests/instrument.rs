@@ -533,7 +533,19 @@ fn an_excitation_runs_about_an_offset_and_a_constant_holds_the_stage() {
 #[test]
 fn the_output_is_clamped_and_slew_limited_as_configured_at_run_time() {
     let mut lab = Lab::new();
+    // `limits` alone reports the limits in use and the clamp they make within the DAC's reach (there was no way to
+    // ask: `status` does not give them), and changes nothing.
+    let cfg = *lab.isr.config();
+    assert_eq!(
+        lab.send("limits\n"),
+        "ok limits -10 V to 10 V, 25000 V/s (the clamp in force, within the DAC's reach: -8.78418 V to 8.78418 V)\n"
+    );
+    assert_eq!(lab.isr.config(), &cfg);
     assert_eq!(verdict(&lab.send("limits -0.4 0.6 500\n")), "ok limits -0.4 V to 0.6 V, 500 V/s");
+    assert_eq!(
+        verdict(&lab.send("limits\n")),
+        "ok limits -0.4 V to 0.6 V, 500 V/s (the clamp in force, within the DAC's reach: -0.4 V to 0.6 V)"
+    );
     let lsb = 20.0 / 4096.0;
     let out = lab.run(5000);
     let (lo, hi) = out.iter().fold((f32::MAX, f32::MIN), |(a, b), o| (a.min(o.u_v), b.max(o.u_v)));
