@@ -2664,6 +2664,11 @@ fn random_session(seed: u64, length: u64, keep_stream: bool) -> (RecordWatch, St
         if last.starts_with("ok") {
             accepted += 1;
             since_change = 0;
+            // A query changes nothing: `limits` alone (its verdict names the clamp in force), `status`, `help`.
+            if last.contains("(the clamp in force") || last.starts_with("ok status") || last == "ok help" {
+                let config = format!("{:?}", lab.isr.config());
+                assert_eq!(config, config_before, "{line:?}: {reply}\n{}", recent(&session));
+            }
             // A new tuning restarts the estimators its reply names, frozen ones staying frozen (a tuning that left
             // them adapting fails this), and the others run on: their counts go on from where they were (a restart
             // starts them from zero; one whose counts are all zero, as the RLS's mostly are, is not told apart).
