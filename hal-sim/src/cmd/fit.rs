@@ -188,10 +188,10 @@ pub fn run(
     let (n, solved) = if offset { (n + 1, with_c.solve()) } else { (n, ls.solve()) };
     if rows < n {
         return fail(format!(
-            "{}: too few rows: {samples} {} {rows} regression {}{}, {n} parameters need at least {n}",
+            "{}: too few rows: {} {}{}, {n} parameters need at least {n}",
             path.display(),
-            if samples == 1 { "sample gives" } else { "samples give" },
-            if rows == 1 { "row" } else { "rows" },
+            super::count(samples as u64, "sample gives", "samples give"),
+            super::count(rows as u64, "regression row", "regression rows"),
             if zero_initial { "" } else { " with full history" }
         ));
     }
