@@ -135,7 +135,7 @@ enum Command {
         disturbances: hal_sim::cmd::Disturbances,
     },
     /// The board's console commands that give it a tuning (a file decode wrote, or one for identify --tuning), one
-    /// a line on standard output: send them one at a time, each after the last one's verdict.
+    /// a line on standard output: send them one at a time, each after the last one's verdict (`send` does).
     Commands {
         /// A preset (prbs, triangle) or a TOML file, as identify's --tuning reads it.
         #[arg(long)]
@@ -157,6 +157,28 @@ enum Command {
         /// its own file, OUT with -1, -2, ... before the extension (without it, damage or a gap is an error).
         #[arg(long)]
         segments: bool,
+    },
+    /// Send a script of console lines to the board over its serial port, each after the last one's verdict (the
+    /// console drops what arrives while its buffer is full); the replies on standard output, the recording's stream
+    /// in --capture.
+    Send {
+        /// The board's serial port: the ST-LINK's virtual COM port (/dev/ttyACM0 on Linux).
+        #[arg(long)]
+        port: PathBuf,
+        /// The script: a command a line (`sleep S` waits S seconds; blank lines and # comments skipped)
+        /// [default: standard input].
+        #[arg(long)]
+        input: Option<PathBuf>,
+        /// Everything the board sends, as it arrives, for decode (standard output then leaves out the recording's
+        /// lines).
+        #[arg(long)]
+        capture: Option<PathBuf>,
+        /// Seconds a line waits for its verdict (and a recording's end for the next of its stream).
+        #[arg(long, value_name = "S", default_value_t = 2.0, allow_negative_numbers = true)]
+        timeout: f64,
+        /// The link's baud rate: the firmware's by default.
+        #[arg(long, default_value_t = 921_600)]
+        baud: u32,
     },
 }
 
@@ -366,6 +388,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             hal_sim::cmd::write_stdout(&commands.lines.iter().map(|l| format!("{l}\n")).collect::<String>())
         }
+        Command::Send { port, input, capture, timeout, baud } => send(port, input, capture, timeout, baud, interrupted),
         Command::Fit { input, arx, zero_initial, weight, offset } => {
             let fit = hal_sim::cmd::fit::run(&input, arx, zero_initial, weight, offset)?;
             for note in &fit.notes {
@@ -374,6 +397,67 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             hal_sim::cmd::write_stdout(&format!("{}\n", fit.to_json()))
         }
     }
+}
+
+/// `send`: the options checked, the files and the port opened, the session run.
+fn send(
+    port: PathBuf,
+    input: Option<PathBuf>,
+    capture: Option<PathBuf>,
+    timeout: f64,
+    baud: u32,
+    interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
+) -> Result<(), CliError> {
+    use hal_sim::cmd::send::{self, SendOptions};
+    use hal_sim::cmd::{check_distinct, io_reason, open_input};
+    use std::io::{BufRead, BufReader};
+    if !(timeout.is_finite() && (0.1..=3600.0).contains(&timeout)) {
+        return Err(CliError(format!("--timeout {}: expected seconds, 0.1 to 3600", hal_sim::cmd::show(timeout))));
+    }
+    let inputs: Vec<(&str, &std::path::Path)> = input.iter().map(|p| ("--input", p.as_path())).collect();
+    let outputs: Vec<(&str, &std::path::Path)> = capture.iter().map(|p| ("--capture", p.as_path())).collect();
+    check_distinct(&inputs, &outputs)?;
+    let (mut script, script_name): (Box<dyn BufRead>, String) = match &input {
+        Some(path) => (Box::new(BufReader::new(open_input(path)?)), path.display().to_string()),
+        None => (Box::new(std::io::stdin().lock()), "standard input".into()),
+    };
+    if input.is_none() && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+        eprintln!(
+            "nanopos-sim: the lines typed go to the board on {}, each after the last one's verdict; Ctrl-D ends (a \
+             recording started is taken to its end)",
+            port.display()
+        );
+    }
+    #[cfg(target_os = "linux")]
+    let mut link = send::SerialLink::open(&port, baud)?;
+    #[cfg(not(target_os = "linux"))]
+    let mut link: Box<dyn send::Link> = {
+        let _ = baud;
+        return Err(CliError(format!("--port {}: the serial port is set up on Linux only", port.display())));
+    };
+    // The capture is the board's data: written as it arrives, kept whatever happens after.
+    let mut capture_file = match &capture {
+        Some(path) => Some(
+            std::fs::File::create(path)
+                .map_err(|e| CliError(format!("--capture {}: cannot create: {}", path.display(), io_reason(&e))))?,
+        ),
+        None => None,
+    };
+    let options = SendOptions { timeout: std::time::Duration::from_secs_f64(timeout), interrupted };
+    let mut out = std::io::stdout().lock();
+    let result = send::run(
+        &mut script,
+        &script_name,
+        &mut link,
+        &mut out,
+        capture_file.as_mut().map(|f| f as &mut dyn std::io::Write),
+        &options,
+    );
+    let sent = result?;
+    for note in &sent.notes {
+        eprintln!("nanopos-sim: note: {note}");
+    }
+    Ok(())
 }
 
 fn main() -> ExitCode {
@@ -400,8 +484,8 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    // The console ends its session at the first Ctrl-C; everything else stops at once, its outputs removed.
-    let interrupted = matches!(cli.command, Command::Console { .. })
+    // The console and send end their session at the first Ctrl-C; everything else stops at once, its outputs removed.
+    let interrupted = matches!(cli.command, Command::Console { .. } | Command::Send { .. })
         .then(|| std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false)));
     hal_sim::cmd::handle_ctrl_c(interrupted.clone());
     match run(cli, interrupted) {

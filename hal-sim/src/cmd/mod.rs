@@ -7,6 +7,7 @@ pub mod decode;
 pub mod fit;
 pub mod identify;
 pub mod paper;
+pub mod send;
 pub mod simulate;
 
 use std::fmt;

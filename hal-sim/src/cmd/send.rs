@@ -1,0 +1,447 @@
+//! `nanopos-sim send --port DEVICE [--input SCRIPT] [--capture FILE] [--timeout S] [--baud N]`: a script of console
+//! lines to the board, each sent after the last one's verdict, and what the board sends back to standard output (or,
+//! for the recording's stream, to a capture file that `decode` reads).
+//!
+//! The board's console takes a line at a time: its receive buffer holds 128 bytes, and what arrives while it is full
+//! (during a long reply, or a `tune` being designed) is dropped (the README's "Run-time control"). So each line goes
+//! out only once the reply to the one before has ended, with its verdict: a line starting `ok` or `error:`.
+//!
+//! The script, a line per command (the README's commands; what `nanopos-sim commands` writes):
+//! - blank lines and lines starting with `#` are skipped;
+//! - `sleep S` waits S seconds (0 to 86 400), receiving all the while (the estimators converge, a recording streams);
+//! - every other line is sent as it is, trimmed of the spaces around it, ended by `\n`; the board checks it.
+//!
+//! It stops at the first line the board refuses (`error: ...`; a refused command changes nothing, and the lines after
+//! it may have counted on it) and at a line that gets no verdict within `--timeout` (2 s: the longest command, `excite
+//! multisine`, takes about 3 ms; a line lost whole on the link gets none), naming the script's line; the exit code is
+//! then 2 and the lines after it are not sent.
+//!
+//! A recording it started is taken to its end: at the script's end (or a refusal, or Ctrl-C) a `record on` still
+//! running is stopped with `record off` (as `nanopos-sim console` does at its input's end), a burst runs to its last
+//! sample, and `send` waits for the recording's end line (`# nanopos-record end ...`) as long as the stream keeps
+//! coming. With `--capture FILE` every byte received goes to FILE as it arrives (kept whatever happens after: it is
+//! the board's data), and standard output has the rest: the lines sent (after `> `) and the replies, without the
+//! recording's lines; without it, standard output has everything.
+//!
+//! Before the first line `send` sends Ctrl-U, which clears whatever a terminal left typed on the board's line (the
+//! console answers nothing to it), and drops what arrives in the next 0.2 s (the end of a reply to someone else's
+//! command), with a note when something did.
+//!
+//! The link is a [`Link`]: the serial port ([`SerialLink`], Linux) on the command line, a channel to the simulated
+//! console in the tests.
+
+use super::{clip, io_reason, CliError};
+use nanopos_id::control::{parse, Command, Recording};
+use nanopos_id::record::{END_TAG, HEADER_TAG, HEADER_TAG_V1, TUNING_TAG};
+use std::io::{BufRead, Write};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The board's console link, as `send` uses it.
+pub trait Link {
+    /// What arrived, into `buf`: waits at most about 0.1 s, and gives 0 when nothing did.
+    fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize>;
+    /// Send all of `bytes`.
+    fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()>;
+}
+
+/// How long `send` drops what arrives after its Ctrl-U, before the first line.
+const SETTLE: Duration = Duration::from_millis(200);
+
+/// The longest `sleep`, s: a day.
+const MAX_SLEEP_S: f64 = 86_400.0;
+
+/// Ctrl-U: the board's console clears the line typed so far.
+const CLEAR_LINE: u8 = 0x15;
+
+/// The command line's options.
+pub struct SendOptions {
+    /// How long a line may wait for its verdict, and the recording's stream for its next bytes at the end.
+    pub timeout: Duration,
+    /// Set (by a Ctrl-C handler) to send no further line: a recording started is taken to its end, as at the script's
+    /// end.
+    pub interrupted: Option<Arc<AtomicBool>>,
+}
+
+/// What a session did.
+#[derive(Debug, Default, PartialEq)]
+pub struct Sent {
+    /// Lines the board answered `ok` (`sleep` and comments not counted).
+    pub accepted: usize,
+    /// For standard error: what the user should know that is not an error.
+    pub notes: Vec<String>,
+}
+
+/// The received stream, line by line: to standard output and the capture, its verdicts and the recording's
+/// header and end line told apart.
+struct Stream<'a> {
+    out: &'a mut dyn Write,
+    capture: Option<&'a mut dyn Write>,
+    /// The received line not yet ended.
+    partial: Vec<u8>,
+    /// A recording's header has arrived and its end line not yet.
+    recording: bool,
+}
+
+/// What [`Stream::pump`] waits for.
+enum Until {
+    /// A verdict, until this instant.
+    Verdict(Instant),
+    /// The recording's end line, while the stream goes on: each arrival gives it this long again.
+    RecordingEnd(Duration),
+    /// Nothing: receive until this instant (a Ctrl-C cuts it short).
+    Time(Instant),
+}
+
+/// A line of the recording's stream (header, tuning line, frame, end line), which a capture takes instead of
+/// standard output.
+fn is_recording_line(line: &str) -> bool {
+    let frame = line.len() > 13 && line.starts_with('R') && line[1..13].bytes().all(|b| b.is_ascii_hexdigit());
+    frame || line.starts_with("# nanopos-record") || line.starts_with(TUNING_TAG)
+}
+
+/// The last line of a reply: `ok`, `ok ...` or `error: ...`.
+fn is_verdict(line: &str) -> bool {
+    line == "ok" || line.starts_with("ok ") || line.starts_with("error:")
+}
+
+impl Stream<'_> {
+    fn write_out(&mut self, bytes: &[u8]) -> Result<(), CliError> {
+        self.out.write_all(bytes).map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
+    }
+
+    /// Take what the link delivers until `until` is met. Returns the verdict's line for [`Until::Verdict`], an
+    /// empty line for the recording's end, `None` when the time ran out first.
+    fn pump(
+        &mut self,
+        link: &mut dyn Link,
+        until: Until,
+        interrupted: &dyn Fn() -> bool,
+    ) -> Result<Option<String>, CliError> {
+        let mut buf = [0u8; 4096];
+        let mut deadline = match until {
+            Until::Verdict(t) | Until::Time(t) => t,
+            Until::RecordingEnd(idle) => Instant::now() + idle,
+        };
+        let mut found = None;
+        loop {
+            if let Until::RecordingEnd(_) = until {
+                if !self.recording {
+                    return Ok(Some(String::new()));
+                }
+            }
+            if found.is_some() {
+                return Ok(found);
+            }
+            if Instant::now() >= deadline || matches!(until, Until::Time(_)) && interrupted() {
+                return Ok(None);
+            }
+            let n =
+                link.receive(&mut buf).map_err(|e| CliError(format!("the link: cannot read: {}", io_reason(&e))))?;
+            if n == 0 {
+                continue;
+            }
+            if let Until::RecordingEnd(idle) = until {
+                deadline = Instant::now() + idle;
+            }
+            if let Some(capture) = self.capture.as_mut() {
+                capture
+                    .write_all(&buf[..n])
+                    .and_then(|()| capture.flush())
+                    .map_err(|e| CliError(format!("--capture: cannot write: {}", io_reason(&e))))?;
+            }
+            for &b in &buf[..n] {
+                self.partial.push(b);
+                if b != b'\n' {
+                    continue;
+                }
+                let bytes = std::mem::take(&mut self.partial);
+                let line = String::from_utf8_lossy(&bytes);
+                let text = line.trim_end_matches(['\r', '\n']);
+                let recording_line = is_recording_line(text);
+                if text.starts_with(HEADER_TAG) || text.starts_with(HEADER_TAG_V1) {
+                    self.recording = true;
+                } else if text.starts_with(END_TAG) {
+                    self.recording = false;
+                }
+                if !(recording_line && self.capture.is_some()) {
+                    self.write_out(&bytes)?;
+                }
+                if matches!(until, Until::Verdict(_)) && !recording_line && is_verdict(text) && found.is_none() {
+                    found = Some(text.to_string());
+                }
+            }
+            self.out.flush().map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))?;
+        }
+    }
+
+    /// What arrived of a line that never ended, to standard output, so that nothing received is lost from it.
+    fn finish(&mut self) -> Result<(), CliError> {
+        if !self.partial.is_empty() {
+            let mut bytes = std::mem::take(&mut self.partial);
+            bytes.push(b'\n');
+            self.write_out(&bytes)?;
+        }
+        self.out.flush().map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
+    }
+}
+
+/// A script's line, as `send` takes it.
+#[derive(Debug, PartialEq)]
+enum ScriptLine<'a> {
+    /// Blank, or a comment.
+    Skip,
+    /// `sleep S`.
+    Sleep(Duration),
+    /// A line for the board.
+    Send(&'a [u8]),
+}
+
+/// Read a script's line (without its line end).
+fn script_line(raw: &[u8]) -> Result<ScriptLine<'_>, String> {
+    let line = raw.trim_ascii();
+    if line.is_empty() || line.starts_with(b"#") {
+        return Ok(ScriptLine::Skip);
+    }
+    let mut words = line.split(|b| b.is_ascii_whitespace()).filter(|w| !w.is_empty());
+    if words.next() != Some(b"sleep".as_slice()) {
+        return Ok(ScriptLine::Send(line));
+    }
+    let seconds = match (words.next(), words.next()) {
+        (Some(s), None) => std::str::from_utf8(s).ok().and_then(|s| s.parse::<f64>().ok()),
+        _ => None,
+    };
+    match seconds {
+        Some(s) if (0.0..=MAX_SLEEP_S).contains(&s) => Ok(ScriptLine::Sleep(Duration::from_secs_f64(s))),
+        _ => Err(format!("expected sleep S, the seconds to wait (0 to {MAX_SLEEP_S})")),
+    }
+}
+
+/// Run the session: `script` (named `script_name` in messages) line by line over `link`; what the board sends to
+/// `out`, its recording's lines to `capture` instead when given (every byte of the stream, as it arrives).
+pub fn run<'a>(
+    script: &mut dyn BufRead,
+    script_name: &str,
+    link: &mut dyn Link,
+    out: &'a mut dyn Write,
+    capture: Option<&'a mut dyn Write>,
+    options: &SendOptions,
+) -> Result<Sent, CliError> {
+    let interrupted = || options.interrupted.as_ref().is_some_and(|i| i.load(Ordering::Relaxed));
+    let link_error = |e: std::io::Error| CliError(format!("the link: cannot write: {}", io_reason(&e)));
+    let mut sent = Sent::default();
+    // What arrives before the first line is not a reply to the script: dropped, not shown.
+    link.transmit(&[CLEAR_LINE]).map_err(link_error)?;
+    let mut stale = Vec::new();
+    let mut settle = Stream { out: &mut stale, capture: None, partial: Vec::new(), recording: false };
+    settle.pump(link, Until::Time(Instant::now() + SETTLE), &|| false)?;
+    let dropped = settle.partial.len();
+    let dropped = dropped + stale.len();
+    if dropped > 0 {
+        sent.notes.push(format!(
+            "the board was sending before the script began ({}; a reply, or a recording left running): dropped",
+            super::count(dropped as u64, "byte", "bytes")
+        ));
+    }
+    let mut stream = Stream { out, capture, partial: Vec::new(), recording: false };
+    // The recording the script started, if it asked for one until stopped.
+    let mut record_on = false;
+    let mut outcome = Ok(());
+    let mut raw = Vec::new();
+    for n in 1.. {
+        if interrupted() {
+            sent.notes.push(format!("interrupted before {script_name} line {n}: the lines from there not sent"));
+            break;
+        }
+        raw.clear();
+        match script.read_until(b'\n', &mut raw) {
+            Ok(0) => break,
+            Ok(_) => {}
+            Err(e) => {
+                outcome = Err(CliError(format!("{script_name}: line {n}: cannot read: {}", io_reason(&e))));
+                break;
+            }
+        }
+        let text = raw.strip_suffix(b"\n").unwrap_or(&raw);
+        let text = text.strip_suffix(b"\r").unwrap_or(text);
+        let shown = || clip(&String::from_utf8_lossy(text.trim_ascii()), 100);
+        let line = match script_line(text) {
+            Ok(line) => line,
+            Err(why) => {
+                outcome = Err(CliError(format!("{script_name}: line {n}: '{}': {why}", shown())));
+                break;
+            }
+        };
+        match line {
+            ScriptLine::Skip => {}
+            ScriptLine::Sleep(d) => {
+                stream.pump(link, Until::Time(Instant::now() + d), &interrupted)?;
+            }
+            ScriptLine::Send(cmd) => {
+                stream.write_out(&[&b"> "[..], cmd, b"\n"].concat())?;
+                link.transmit(&[cmd, &b"\n"[..]].concat()).map_err(link_error)?;
+                match stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)? {
+                    Some(verdict) if verdict.starts_with("error:") => {
+                        outcome = Err(CliError(format!(
+                            "{script_name}: line {n}: '{}': refused by the board ({}): the lines after it not sent",
+                            shown(),
+                            clip(&verdict, 200)
+                        )));
+                        break;
+                    }
+                    Some(_) => {
+                        sent.accepted += 1;
+                        if let Ok(Command::Record(r)) = parse(cmd) {
+                            record_on = r == Recording::On;
+                        }
+                    }
+                    None => {
+                        outcome = Err(CliError(format!(
+                            "{script_name}: line {n}: '{}': no verdict from the board within {} s (a board running \
+                             the firmware answers every line: check the port and the baud rate; a line lost whole \
+                             on the link gets none, so ask `status` what it did): the lines after it not sent",
+                            shown(),
+                            super::show(options.timeout.as_secs_f64())
+                        )));
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    // A recording the script started is taken to its end, whatever ended the script.
+    if stream.recording {
+        if record_on || interrupted() {
+            sent.notes.push("a recording was still running at the end: stopped with record off".into());
+            stream.write_out(b"> record off\n")?;
+            link.transmit(b"record off\n").map_err(link_error)?;
+        }
+        if stream.pump(link, Until::RecordingEnd(options.timeout), &|| false)?.is_none() {
+            let why = format!(
+                "the recording's end line did not come: nothing arrived for {} s (what did is kept)",
+                super::show(options.timeout.as_secs_f64())
+            );
+            outcome = outcome.and(Err(CliError(why)));
+        }
+    }
+    stream.finish()?;
+    outcome.map(|()| sent)
+}
+
+/// The board's serial port, raw, 8N1, no flow control, reads returning after at most 0.1 s.
+#[cfg(target_os = "linux")]
+pub struct SerialLink(std::fs::File);
+
+#[cfg(target_os = "linux")]
+impl SerialLink {
+    /// The baud rates `--baud` takes (the firmware's: 921 600).
+    pub const BAUDS: [u32; 8] = [9_600, 19_200, 38_400, 57_600, 115_200, 230_400, 460_800, 921_600];
+
+    /// Open `path` (`/dev/ttyACM0`, the ST-LINK's virtual COM port) at `baud`, dropping what it had received.
+    pub fn open(path: &std::path::Path, baud: u32) -> Result<Self, CliError> {
+        use nix::sys::termios::{self, BaudRate, ControlFlags, FlushArg, SetArg, SpecialCharacterIndices};
+        use std::os::unix::fs::OpenOptionsExt;
+        let rate = match baud {
+            9_600 => BaudRate::B9600,
+            19_200 => BaudRate::B19200,
+            38_400 => BaudRate::B38400,
+            57_600 => BaudRate::B57600,
+            115_200 => BaudRate::B115200,
+            230_400 => BaudRate::B230400,
+            460_800 => BaudRate::B460800,
+            921_600 => BaudRate::B921600,
+            _ => {
+                let known: Vec<String> = Self::BAUDS.iter().map(u32::to_string).collect();
+                return Err(CliError(format!("--baud {baud}: expected one of {}", known.join(", "))));
+            }
+        };
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(nix::fcntl::OFlag::O_NOCTTY.bits())
+            .open(path)
+            .map_err(|e| {
+                let hint = if e.kind() == std::io::ErrorKind::PermissionDenied {
+                    " (a serial port is usually open to the group dialout: sudo usermod -aG dialout $USER, then log in \
+                     again)"
+                } else {
+                    ""
+                };
+                CliError(format!("--port {}: cannot open: {}{hint}", path.display(), io_reason(&e)))
+            })?;
+        let set_up = |what: &str, e: nix::Error| {
+            let why = if e == nix::Error::ENOTTY {
+                "not a serial port (a terminal device is needed, such as /dev/ttyACM0)".to_string()
+            } else {
+                io_reason(&std::io::Error::from(e))
+            };
+            CliError(format!("--port {}: cannot {what}: {why}", path.display()))
+        };
+        let mut t = termios::tcgetattr(&file).map_err(|e| set_up("read its settings", e))?;
+        termios::cfmakeraw(&mut t);
+        t.control_flags |= ControlFlags::CLOCAL | ControlFlags::CREAD;
+        t.control_flags &= !(ControlFlags::CSTOPB | ControlFlags::PARENB | ControlFlags::CRTSCTS);
+        t.control_chars[SpecialCharacterIndices::VMIN as usize] = 0;
+        t.control_chars[SpecialCharacterIndices::VTIME as usize] = 1;
+        termios::cfsetspeed(&mut t, rate).map_err(|e| set_up("set its baud rate", e))?;
+        termios::tcsetattr(&file, SetArg::TCSANOW, &t).map_err(|e| set_up("set it up", e))?;
+        termios::tcflush(&file, FlushArg::TCIFLUSH).map_err(|e| set_up("drop what it had received", e))?;
+        Ok(SerialLink(file))
+    }
+}
+
+#[cfg(target_os = "linux")]
+impl Link for SerialLink {
+    fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        use std::io::Read;
+        match self.0.read(buf) {
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => Ok(0),
+            other => other,
+        }
+    }
+
+    fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.0.write_all(bytes).and_then(|()| self.0.flush())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn script_lines_are_read_as_documented() {
+        assert_eq!(script_line(b""), Ok(ScriptLine::Skip));
+        assert_eq!(script_line(b"   \t"), Ok(ScriptLine::Skip));
+        assert_eq!(script_line(b"# a comment"), Ok(ScriptLine::Skip));
+        assert_eq!(script_line(b"  status  "), Ok(ScriptLine::Send(b"status")));
+        assert_eq!(script_line(b"sleep 1.5"), Ok(ScriptLine::Sleep(Duration::from_millis(1500))));
+        assert_eq!(script_line(b"sleep  0"), Ok(ScriptLine::Sleep(Duration::ZERO)));
+        assert_eq!(script_line(b"sleepy"), Ok(ScriptLine::Send(b"sleepy")));
+        for bad in [&b"sleep"[..], b"sleep -1", b"sleep 1e9", b"sleep nan", b"sleep 1 2", b"sleep x"] {
+            assert!(script_line(bad).is_err(), "{}", String::from_utf8_lossy(bad));
+        }
+    }
+
+    #[test]
+    fn verdicts_and_recording_lines_are_told_apart() {
+        for v in ["ok", "ok excite prbs 1 V", "error: word 2: expected ..."] {
+            assert!(is_verdict(v), "{v}");
+        }
+        for v in ["okay", "note: the clamp will clip it", "est ekf a0=7.06e6", "R00000000a3f2 AAAA 1c0f"] {
+            assert!(!is_verdict(v), "{v}");
+        }
+        for r in [
+            "R00000000a3f2 AAAA 1c0f",
+            "# nanopos-record v2 rate_hz=10000 crc=29b1",
+            "# nanopos-record end samples=1 overflow=0 crc=3faa",
+            "# nanopos-tuning at=1000 ekf q 3d719799812dea11 crc=0000",
+        ] {
+            assert!(is_recording_line(r), "{r}");
+        }
+        for r in ["Restarted", "R", "ok", "est rls a0=1"] {
+            assert!(!is_recording_line(r), "{r}");
+        }
+    }
+}

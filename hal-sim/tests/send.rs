@@ -1,0 +1,259 @@
+//! `nanopos-sim send`: a script sent to the firmware's console a line at a time, each after its verdict, and the
+//! recording's stream captured, against the simulated board's console (`nanopos-sim console`: in process through a
+//! channel, and as a process on a pseudo-terminal, the serial port's kind of device).
+
+use hal_sim::cmd::console::{self, ConsoleArgs};
+use hal_sim::cmd::send::{self, Link, SendOptions, Sent};
+use hal_sim::cmd::CliError;
+use std::io::Write;
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// The simulated console's link, from `send`'s side: what it transmits is the console's input, what the console
+/// writes arrives through the channel.
+struct ConsoleLink {
+    to_console: Option<mpsc::Sender<Vec<u8>>>,
+    from_console: mpsc::Receiver<Vec<u8>>,
+    pending: Vec<u8>,
+}
+
+impl Link for ConsoleLink {
+    fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if self.pending.is_empty() {
+            match self.from_console.recv_timeout(Duration::from_millis(100)) {
+                Ok(bytes) => self.pending = bytes,
+                Err(_) => return Ok(0),
+            }
+        }
+        let n = buf.len().min(self.pending.len());
+        buf[..n].copy_from_slice(&self.pending[..n]);
+        self.pending.drain(..n);
+        Ok(n)
+    }
+
+    fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        let _ = self.to_console.as_ref().expect("the console's input is open").send(bytes.to_vec());
+        Ok(())
+    }
+}
+
+/// The console's input, from the channel: its end once the sender is gone.
+struct FromChannel(mpsc::Receiver<Vec<u8>>);
+
+impl std::io::Read for FromChannel {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        match self.0.recv() {
+            Ok(bytes) => {
+                // The link's sends are a line or a byte: always within the console's 256-byte reads.
+                assert!(bytes.len() <= buf.len(), "a send longer than the console's read");
+                buf[..bytes.len()].copy_from_slice(&bytes);
+                Ok(bytes.len())
+            }
+            Err(_) => Ok(0),
+        }
+    }
+}
+
+/// The console's output, into the channel.
+struct ToChannel(mpsc::Sender<Vec<u8>>);
+
+impl Write for ToChannel {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        if !bytes.is_empty() {
+            let _ = self.0.send(bytes.to_vec());
+        }
+        Ok(bytes.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// What a session against the simulated console gave: `send`'s result, its standard output and the capture.
+struct Session {
+    result: Result<Sent, CliError>,
+    out: String,
+    capture: String,
+}
+
+/// `script` sent by `send` (with a capture, and a 2 s timeout) to a console session on the simulated board.
+fn session(script: &str) -> Session {
+    let (writer, reader) = mpsc::channel();
+    let reader = FromChannel(reader);
+    let (tx, rx) = mpsc::channel();
+    let board = std::thread::spawn(move || {
+        let mut link = ToChannel(tx);
+        console::run(ConsoleArgs::default(), reader, &mut link, &mut std::io::sink()).expect("the console runs")
+    });
+    let mut link = ConsoleLink { to_console: Some(writer), from_console: rx, pending: Vec::new() };
+    let (mut out, mut capture) = (Vec::new(), Vec::new());
+    let options = SendOptions { timeout: Duration::from_secs(2), interrupted: None };
+    let result = send::run(
+        &mut script.as_bytes(),
+        "script.txt",
+        &mut link,
+        &mut out,
+        Some(&mut capture as &mut dyn Write),
+        &options,
+    );
+    // The input's end ends the console's session.
+    link.to_console = None;
+    board.join().expect("the console's session ends");
+    Session { result, out: String::from_utf8(out).unwrap(), capture: String::from_utf8(capture).unwrap() }
+}
+
+fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
+}
+
+/// Comments, blank lines and `sleep` stay on the host; each command is answered before the next goes; the replies
+/// on standard output, the recording's lines only in the capture, which `decode` reads whole.
+#[test]
+fn a_script_goes_a_line_at_a_time_and_its_recording_is_captured() {
+    let s = session(
+        "# the triangle's tuning, then a burst\r\ntuning triangle\n\n  status  \nrecord burst 300\nsleep 0.1\nlimits\n",
+    );
+    let sent = s.result.unwrap_or_else(|e| panic!("{e}\n{}", s.out));
+    assert_eq!(sent.accepted, 4, "{}", s.out);
+    assert!(sent.notes.is_empty(), "{:?}", sent.notes);
+    let sent_lines: Vec<&str> = s.out.lines().filter(|l| l.starts_with("> ")).collect();
+    assert_eq!(sent_lines, ["> tuning triangle", "> status", "> record burst 300", "> limits"], "{}", s.out);
+    // Each line's verdict comes before the next line is sent.
+    let lines: Vec<&str> = s.out.lines().collect();
+    for (k, l) in lines.iter().enumerate().filter(|(_, l)| l.starts_with("> ")).skip(1) {
+        let before =
+            lines[..k].iter().rev().find(|l| l.starts_with("> ") || l.starts_with("ok") || l.starts_with("error:"));
+        assert!(
+            before.is_some_and(|b| b.starts_with("ok")),
+            "{l} sent before the verdict of the line before:\n{}",
+            s.out
+        );
+    }
+    assert_eq!(s.out.lines().filter(|l| l.starts_with("est ")).count(), 4, "status' lines: {}", s.out);
+    assert!(s.out.lines().last().unwrap().starts_with("ok limits -10 V to 10 V"), "{}", s.out);
+    assert!(!s.out.contains("nanopos-record") && !s.out.lines().any(|l| l.starts_with('R')), "{}", s.out);
+    assert!(s.capture.contains("# nanopos-record end samples=300 overflow=0 "), "{}", s.capture);
+    assert!(s.capture.contains("ok tuning triangle"), "the capture has every byte received");
+
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cap.txt"), &s.capture).unwrap();
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(dir.path().join("run.csv")).unwrap().lines().count(), 301);
+}
+
+/// A refused line stops the script: the message names it and the board's reason, and nothing after it is sent.
+#[test]
+fn a_refused_line_stops_the_script_and_is_named() {
+    let s = session("status\ntune ekf q 1\nstart\n");
+    let e = s.result.expect_err("the board refuses line 2").0;
+    assert!(e.starts_with("script.txt: line 2: 'tune ekf q 1': refused by the board (error: "), "{e}");
+    assert!(e.ends_with("the lines after it not sent"), "{e}");
+    assert!(!s.out.contains("> start"), "{}", s.out);
+    assert!(s.out.lines().last().unwrap().starts_with("error: "), "{}", s.out);
+}
+
+/// A script that ends with a recording running stops it, as the simulated console does at its input's end, and
+/// waits for the end line; a `sleep` that does not read as one is refused before anything after it is sent.
+#[test]
+fn a_recording_left_running_is_stopped_and_a_bad_sleep_refused() {
+    let s = session("record on\nsleep 0.25\n");
+    let sent = s.result.unwrap_or_else(|e| panic!("{e}\n{}", s.out));
+    assert_eq!(sent.notes, ["a recording was still running at the end: stopped with record off"]);
+    assert!(
+        s.out.contains("> record off\n") && s.out.lines().last().unwrap().starts_with("ok record off"),
+        "{}",
+        s.out
+    );
+    let end = s.capture.lines().find(|l| l.starts_with("# nanopos-record end samples=")).expect("the end line");
+    let samples: u64 = end["# nanopos-record end samples=".len()..].split(' ').next().unwrap().parse().unwrap();
+    assert!((2_000..10_000).contains(&samples), "{end}");
+
+    let s = session("status\nsleep soon\nstart\n");
+    let e = s.result.expect_err("line 2 is not a sleep").0;
+    assert_eq!(e, "script.txt: line 2: 'sleep soon': expected sleep S, the seconds to wait (0 to 86400)");
+    assert!(!s.out.contains("> start"), "{}", s.out);
+}
+
+/// A link that never answers: the first line's wait ends at the timeout, with a message that names the line and
+/// what to check.
+#[test]
+fn a_line_without_a_verdict_ends_the_script_at_the_timeout() {
+    struct Silent(Vec<u8>);
+    impl Link for Silent {
+        fn receive(&mut self, _: &mut [u8]) -> std::io::Result<usize> {
+            std::thread::sleep(Duration::from_millis(10));
+            Ok(0)
+        }
+        fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+            self.0.extend_from_slice(bytes);
+            Ok(())
+        }
+    }
+    let mut link = Silent(Vec::new());
+    let options = SendOptions { timeout: Duration::from_millis(300), interrupted: None };
+    let start = Instant::now();
+    let e = send::run(&mut &b"status\nstart\n"[..], "script.txt", &mut link, &mut Vec::new(), None, &options)
+        .expect_err("no verdict")
+        .0;
+    assert!(start.elapsed() < Duration::from_secs(2), "{:?}", start.elapsed());
+    assert!(e.starts_with("script.txt: line 1: 'status': no verdict from the board within 0.3 s"), "{e}");
+    assert_eq!(link.0, b"\x15status\n", "Ctrl-U first, then line 1 alone");
+}
+
+/// The command line on a pseudo-terminal (the kind of device a serial port is), with `nanopos-sim console` at its
+/// other end; and the port's errors.
+#[cfg(target_os = "linux")]
+#[test]
+fn send_talks_to_the_console_through_a_serial_device() {
+    use nix::fcntl::{fcntl, FcntlArg, FdFlag};
+    use nix::sys::termios;
+    let pty = nix::pty::openpty(None, None).expect("a pseudo-terminal");
+    // Not inherited by the processes this test (and the tests beside it) start: a console holding the port's side
+    // open would never see its input end.
+    for fd in [&pty.master, &pty.slave] {
+        fcntl(fd, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).unwrap();
+    }
+    let mut raw = termios::tcgetattr(&pty.slave).unwrap();
+    termios::cfmakeraw(&mut raw);
+    termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &raw).unwrap();
+    let port = nix::unistd::ttyname(&pty.slave).unwrap();
+    let mut board = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .arg("console")
+        .stdin(Stdio::from(pty.master.try_clone().unwrap()))
+        .stdout(Stdio::from(pty.master))
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("run nanopos-sim console");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("script.txt"), "excite prbs 0.5\nrecord burst 500\n").unwrap();
+    let port_arg = port.to_str().unwrap();
+    let out = nanopos_sim(
+        &["send", "--port", port_arg, "--input", "script.txt", "--capture", "cap.txt", "--baud", "115200"],
+        dir.path(),
+    );
+    // The session ends when no one holds the port's other side open.
+    drop(pty.slave);
+    board.wait().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("> excite prbs 0.5\nok excite prbs 0.5 V (running)\n> record burst 500\n"), "{stdout}");
+    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(dir.path().join("run.csv")).unwrap().lines().count(), 501);
+
+    for (args, message) in [
+        (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: cannot read its settings: not a serial port"),
+        (&["--port", "nowhere"], "nanopos-sim: --port nowhere: cannot open: No such file or directory"),
+        (&["--port", port_arg, "--baud", "12345"], "nanopos-sim: --baud 12345: expected one of 9600, 19200,"),
+        (&["--port", port_arg, "--timeout", "0"], "nanopos-sim: --timeout 0: expected seconds, 0.1 to 3600"),
+        (&["--port", port_arg, "--input", "script.txt", "--capture", "script.txt"], "the same file as --input"),
+    ] {
+        let out = nanopos_sim(&[&["send"][..], args].concat(), dir.path());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains(message) && stderr.lines().count() == 1, "{args:?}: {stderr}");
+    }
+}
