@@ -8,7 +8,8 @@ use hal_sim::cmd::CliError;
 use std::io::Write;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 /// The simulated console's link, from `send`'s side: what it transmits is the console's input, what the console
@@ -80,6 +81,11 @@ struct Session {
 
 /// `script` sent by `send` (with a capture, and a 2 s timeout) to a console session on the simulated board.
 fn session(script: &str) -> Session {
+    session_with(script, SendOptions { timeout: Duration::from_secs(2), interrupted: None })
+}
+
+/// [`session`] with `options`.
+fn session_with(script: &str, options: SendOptions) -> Session {
     let (writer, reader) = mpsc::channel();
     let reader = FromChannel(reader);
     let (tx, rx) = mpsc::channel();
@@ -89,7 +95,6 @@ fn session(script: &str) -> Session {
     });
     let mut link = ConsoleLink { to_console: Some(writer), from_console: rx, pending: Vec::new() };
     let (mut out, mut capture) = (Vec::new(), Vec::new());
-    let options = SendOptions { timeout: Duration::from_secs(2), interrupted: None };
     let result = send::run(
         &mut script.as_bytes(),
         "script.txt",
@@ -161,7 +166,7 @@ fn a_refused_line_stops_the_script_and_is_named() {
 fn a_recording_left_running_is_stopped_and_a_bad_sleep_refused() {
     let s = session("record on\nsleep 0.25\n");
     let sent = s.result.unwrap_or_else(|e| panic!("{e}\n{}", s.out));
-    assert_eq!(sent.notes, ["a recording was still running at the end: stopped with record off"]);
+    assert_eq!(sent.notes, ["the recording still running at the end: stopped with record off"]);
     assert!(
         s.out.contains("> record off\n") && s.out.lines().last().unwrap().starts_with("ok record off"),
         "{}",
@@ -175,6 +180,32 @@ fn a_recording_left_running_is_stopped_and_a_bad_sleep_refused() {
     let e = s.result.expect_err("line 2 is not a sleep").0;
     assert_eq!(e, "script.txt: line 2: 'sleep soon': expected sleep S, the seconds to wait (0 to 86400)");
     assert!(!s.out.contains("> start"), "{}", s.out);
+}
+
+/// A Ctrl-C (the flag its handler sets) cuts a `sleep` short, sends no further line, and stops a burst the script
+/// started, whose end line `send` still waits for.
+#[test]
+fn an_interruption_stops_the_script_and_its_burst() {
+    let flag = Arc::new(AtomicBool::new(false));
+    let setter = Arc::clone(&flag);
+    std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(600));
+        setter.store(true, Ordering::Relaxed);
+    });
+    let start = Instant::now();
+    let options = SendOptions { timeout: Duration::from_secs(2), interrupted: Some(flag) };
+    let s = session_with("record burst 1000000\nsleep 100\nstatus\n", options);
+    let sent = s.result.unwrap_or_else(|e| panic!("{e}\n{}", s.out));
+    assert!(start.elapsed() < Duration::from_secs(10), "{:?}", start.elapsed());
+    assert_eq!(
+        sent.notes,
+        [
+            "interrupted: script.txt line 3 and those after it not sent",
+            "the recording interrupted: stopped with record off"
+        ]
+    );
+    assert!(!s.out.contains("> status") && s.out.contains("> record off\nok record off"), "{}", s.out);
+    assert!(s.capture.contains("# nanopos-record end samples="), "{}", s.capture);
 }
 
 /// A link that never answers: the first line's wait ends at the timeout, with a message that names the line and

@@ -90,7 +90,7 @@ enum Until {
     Verdict(Instant),
     /// The recording's end line, while the stream goes on: each arrival gives it this long again.
     RecordingEnd(Duration),
-    /// Nothing: receive until this instant (a Ctrl-C cuts it short).
+    /// Nothing: receive until this instant.
     Time(Instant),
 }
 
@@ -112,7 +112,8 @@ impl Stream<'_> {
     }
 
     /// Take what the link delivers until `until` is met. Returns the verdict's line for [`Until::Verdict`], an
-    /// empty line for the recording's end, `None` when the time ran out first.
+    /// empty line for the recording's end, `None` when the time ran out first or, but for a verdict's wait (bounded
+    /// by the timeout), `interrupted` said so.
     fn pump(
         &mut self,
         link: &mut dyn Link,
@@ -134,7 +135,7 @@ impl Stream<'_> {
             if found.is_some() {
                 return Ok(found);
             }
-            if Instant::now() >= deadline || matches!(until, Until::Time(_)) && interrupted() {
+            if Instant::now() >= deadline || !matches!(until, Until::Verdict(_)) && interrupted() {
                 return Ok(None);
             }
             let n =
@@ -250,10 +251,6 @@ pub fn run<'a>(
     let mut outcome = Ok(());
     let mut raw = Vec::new();
     for n in 1.. {
-        if interrupted() {
-            sent.notes.push(format!("interrupted before {script_name} line {n}: the lines from there not sent"));
-            break;
-        }
         raw.clear();
         match script.read_until(b'\n', &mut raw) {
             Ok(0) => break,
@@ -262,6 +259,10 @@ pub fn run<'a>(
                 outcome = Err(CliError(format!("{script_name}: line {n}: cannot read: {}", io_reason(&e))));
                 break;
             }
+        }
+        if interrupted() {
+            sent.notes.push(format!("interrupted: {script_name} line {n} and those after it not sent"));
+            break;
         }
         let text = raw.strip_suffix(b"\n").unwrap_or(&raw);
         let text = text.strip_suffix(b"\r").unwrap_or(text);
@@ -310,19 +311,29 @@ pub fn run<'a>(
             }
         }
     }
-    // A recording the script started is taken to its end, whatever ended the script.
-    if stream.recording {
-        if record_on || interrupted() {
-            sent.notes.push("a recording was still running at the end: stopped with record off".into());
+    // A recording the script started is taken to its end, whatever ended the script: one until stopped is stopped,
+    // a burst runs to its last sample unless a Ctrl-C stops it too.
+    let mut stopped = false;
+    while stream.recording {
+        if !stopped && (record_on || interrupted()) {
+            stopped = true;
+            let why = if record_on { "still running at the end" } else { "interrupted" };
+            sent.notes.push(format!("the recording {why}: stopped with record off"));
             stream.write_out(b"> record off\n")?;
             link.transmit(b"record off\n").map_err(link_error)?;
+            // Its verdict, then the recording's last frames and end line (or they came first).
+            stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)?;
+            continue;
         }
-        if stream.pump(link, Until::RecordingEnd(options.timeout), &|| false)?.is_none() {
+        // A first Ctrl-C during a burst ends this wait, to stop it above.
+        let stop_it = || !stopped && interrupted();
+        if stream.pump(link, Until::RecordingEnd(options.timeout), &stop_it)?.is_none() && !stop_it() {
             let why = format!(
                 "the recording's end line did not come: nothing arrived for {} s (what did is kept)",
                 super::show(options.timeout.as_secs_f64())
             );
             outcome = outcome.and(Err(CliError(why)));
+            break;
         }
     }
     stream.finish()?;
