@@ -300,8 +300,9 @@ pub fn run<'a>(
                     None => {
                         outcome = Err(CliError(format!(
                             "{script_name}: line {n}: '{}': no verdict from the board within {} s (a board running \
-                             the firmware answers every line: check the port and the baud rate; a line lost whole \
-                             on the link gets none, so ask `status` what it did): the lines after it not sent",
+                             the firmware answers every line: check the port, the baud rate, and that no other \
+                             program, a terminal left open, reads the port too; a line lost whole on the link gets \
+                             none, so ask `status` what it did): the lines after it not sent",
                             shown(),
                             super::show(options.timeout.as_secs_f64())
                         )));
