@@ -352,6 +352,7 @@ impl SerialLink {
 
     /// Open `path` (`/dev/ttyACM0`, the ST-LINK's virtual COM port) at `baud`, dropping what it had received.
     pub fn open(path: &std::path::Path, baud: u32) -> Result<Self, CliError> {
+        use nix::fcntl::{fcntl, FcntlArg, OFlag};
         use nix::sys::termios::{self, BaudRate, ControlFlags, FlushArg, SetArg, SpecialCharacterIndices};
         use std::os::unix::fs::OpenOptionsExt;
         let rate = match baud {
@@ -371,7 +372,9 @@ impl SerialLink {
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
-            .custom_flags(nix::fcntl::OFlag::O_NOCTTY.bits())
+            // Without O_NONBLOCK the open of a port whose CLOCAL is off waits for the carrier (DCD), which a
+            // virtual COM port may never raise; CLOCAL is set below and the flag taken off.
+            .custom_flags((OFlag::O_NOCTTY | OFlag::O_NONBLOCK).bits())
             .open(path)
             .map_err(|e| {
                 let hint = if e.kind() == std::io::ErrorKind::PermissionDenied {
@@ -399,6 +402,8 @@ impl SerialLink {
         termios::cfsetspeed(&mut t, rate).map_err(|e| set_up("set its baud rate", e))?;
         termios::tcsetattr(&file, SetArg::TCSANOW, &t).map_err(|e| set_up("set it up", e))?;
         termios::tcflush(&file, FlushArg::TCIFLUSH).map_err(|e| set_up("drop what it had received", e))?;
+        // Reads wait again, for at most VTIME.
+        fcntl(&file, FcntlArg::F_SETFL(OFlag::empty())).map_err(|e| set_up("set it to wait for reads", e))?;
         Ok(SerialLink(file))
     }
 }
