@@ -1,5 +1,6 @@
 //! `nanopos-sim commands --tuning FILE|PRESET`: the console commands that give the board a tuning (a file `decode`
-//! wrote from a recording, or one written for `identify --tuning`), one per line, to send it one at a time.
+//! wrote from a recording, or one written for `identify --tuning`), one per line, to send it one at a time
+//! (`nanopos-sim send` does: [`super::send`]).
 //!
 //! The board loses its tuning when it resets; the recording carries it to the host (`decode` writes it beside the
 //! CSV) and these lines carry it back. They are `tuning PRESET` (the file's base: the console's `status` names it),
