@@ -19,6 +19,9 @@
 //! (with a note on standard error: the board would wait for it), a burst recording runs to its end, a recording
 //! `record on` started is stopped (`record off`, its reply written), and the recording's end line goes out. Every
 //! line gets its reply, a malformed one an `error:` reply, as on the board; the command exits 0.
+//!
+//! Unlike the board's, the link loses nothing: lines are taken however fast they come, where the board's 128-byte
+//! receive buffer drops what arrives while it is full (`nanopos-sim send` waits for each verdict, as the board needs).
 
 use super::CliError;
 use crate::lab::Lab;
