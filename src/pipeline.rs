@@ -834,9 +834,18 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
 
     /// One sample of a recording: `u_v` the command in effect over the sample period, `y_um` the reading at its
     /// start (the convention of `simulate`'s output and of the firmware's recording). The same spike gate, filters
-    /// and estimators as [`Pipeline::step`], without excitation, limits or fault checks.
+    /// and estimators as [`Pipeline::step`], without excitation, limits or fault checks. A pipeline of
+    /// [`crate::estimator::Unfiltered`], which has nothing to replay to, does not compile with it:
+    ///
+    /// ```compile_fail
+    /// use nanopos_id::estimator::{FilteredSample, Unfiltered};
+    /// use nanopos_id::pipeline::{Pipeline, PipelineConfig};
+    /// type Replay = fn(&mut Pipeline<f64, Unfiltered>, &PipelineConfig<f64>, f64, f64) -> FilteredSample<f64>;
+    /// let _: Replay = Pipeline::replay;
+    /// ```
     #[inline]
     pub fn replay(&mut self, cfg: &PipelineConfig<T>, u_v: T, y_um: T) -> FilteredSample<T> {
+        const { assert!(E::FILTERED, "replay feeds estimators: an Unfiltered pipeline has none") };
         let sample = self.filter(cfg, u_v, y_um);
         self.estimators.update(&sample);
         sample
