@@ -421,7 +421,8 @@ fn send(
         Some(path) => (Box::new(BufReader::new(open_input(path)?)), path.display().to_string()),
         None => (Box::new(std::io::stdin().lock()), "standard input".into()),
     };
-    if input.is_none() && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+    let typed = input.is_none() && std::io::IsTerminal::is_terminal(&std::io::stdin());
+    if typed {
         eprintln!(
             "nanopos-sim: the lines typed go to the board on {}, each after the last one's verdict; Ctrl-D ends (a \
              recording started is taken to its end)",
@@ -443,7 +444,7 @@ fn send(
         ),
         None => None,
     };
-    let options = SendOptions { timeout: std::time::Duration::from_secs_f64(timeout), interrupted };
+    let options = SendOptions { timeout: std::time::Duration::from_secs_f64(timeout), interrupted, echo: !typed };
     let mut out = std::io::stdout().lock();
     let result = send::run(
         &mut script,

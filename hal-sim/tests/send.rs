@@ -81,7 +81,7 @@ struct Session {
 
 /// `script` sent by `send` (with a capture, and a 2 s timeout) to a console session on the simulated board.
 fn session(script: &str) -> Session {
-    session_with(script, SendOptions { timeout: Duration::from_secs(2), interrupted: None })
+    session_with(script, SendOptions { timeout: Duration::from_secs(2), interrupted: None, echo: true })
 }
 
 /// [`session`] with `options`.
@@ -158,6 +158,10 @@ fn a_refused_line_stops_the_script_and_is_named() {
     assert!(e.ends_with("the lines after it not sent"), "{e}");
     assert!(!s.out.contains("> start"), "{}", s.out);
     assert!(s.out.lines().last().unwrap().starts_with("error: "), "{}", s.out);
+    // Typed at a terminal, the lines are not written again.
+    let s = session_with("status\n", SendOptions { timeout: Duration::from_secs(2), interrupted: None, echo: false });
+    assert_eq!(s.result.map(|sent| sent.accepted).ok(), Some(1));
+    assert!(s.out.starts_with("est rls ") && !s.out.contains("> "), "{}", s.out);
 }
 
 /// A script that ends with a recording running stops it, as the simulated console does at its input's end, and
@@ -193,7 +197,7 @@ fn an_interruption_stops_the_script_and_its_burst() {
         setter.store(true, Ordering::Relaxed);
     });
     let start = Instant::now();
-    let options = SendOptions { timeout: Duration::from_secs(2), interrupted: Some(flag) };
+    let options = SendOptions { timeout: Duration::from_secs(2), interrupted: Some(flag), echo: true };
     let s = session_with("record burst 1000000\nsleep 100\nstatus\n", options);
     let sent = s.result.unwrap_or_else(|e| panic!("{e}\n{}", s.out));
     assert!(start.elapsed() < Duration::from_secs(10), "{:?}", start.elapsed());
@@ -224,7 +228,7 @@ fn a_line_without_a_verdict_ends_the_script_at_the_timeout() {
         }
     }
     let mut link = Silent(Vec::new());
-    let options = SendOptions { timeout: Duration::from_millis(300), interrupted: None };
+    let options = SendOptions { timeout: Duration::from_millis(300), interrupted: None, echo: true };
     let start = Instant::now();
     let e = send::run(&mut &b"status\nstart\n"[..], "script.txt", &mut link, &mut Vec::new(), None, &options)
         .expect_err("no verdict")

@@ -62,6 +62,8 @@ pub struct SendOptions {
     /// Set (by a Ctrl-C handler) to send no further line: a recording started is taken to its end, as at the script's
     /// end.
     pub interrupted: Option<Arc<AtomicBool>>,
+    /// Write each line sent to the output, after `> ` (not for lines typed at a terminal, which shows them already).
+    pub echo: bool,
 }
 
 /// What a session did.
@@ -280,7 +282,9 @@ pub fn run<'a>(
                 stream.pump(link, Until::Time(Instant::now() + d), &interrupted)?;
             }
             ScriptLine::Send(cmd) => {
-                stream.write_out(&[&b"> "[..], cmd, b"\n"].concat())?;
+                if options.echo {
+                    stream.write_out(&[&b"> "[..], cmd, b"\n"].concat())?;
+                }
                 link.transmit(&[cmd, &b"\n"[..]].concat()).map_err(link_error)?;
                 match stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)? {
                     Some(verdict) if verdict.starts_with("error:") => {
@@ -320,7 +324,9 @@ pub fn run<'a>(
             stopped = true;
             let why = if record_on { "still running at the end" } else { "interrupted" };
             sent.notes.push(format!("the recording {why}: stopped with record off"));
-            stream.write_out(b"> record off\n")?;
+            if options.echo {
+                stream.write_out(b"> record off\n")?;
+            }
             link.transmit(b"record off\n").map_err(link_error)?;
             // Its verdict, then the recording's last frames and end line (or they came first).
             stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)?;
