@@ -178,7 +178,8 @@ fn a_recording_left_running_is_stopped_and_a_bad_sleep_refused() {
     );
     let end = s.capture.lines().find(|l| l.starts_with("# nanopos-record end samples=")).expect("the end line");
     let samples: u64 = end["# nanopos-record end samples=".len()..].split(' ').next().unwrap().parse().unwrap();
-    assert!((2_000..10_000).contains(&samples), "{end}");
+    // The sleep's 0.25 s at 10 kHz, give or take the console's lag behind the wall clock on a loaded machine.
+    assert!((2_000..40_000).contains(&samples), "{end}");
 
     let s = session("status\nsleep soon\nstart\n");
     let e = s.result.expect_err("line 2 is not a sleep").0;
