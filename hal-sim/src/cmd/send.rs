@@ -52,6 +52,9 @@ const SETTLE: Duration = Duration::from_millis(200);
 /// The longest `sleep`, s: a day.
 const MAX_SLEEP_S: f64 = 86_400.0;
 
+/// The longest line `send` holds before it shows it, bytes: far beyond the board's longest, a frame's 276.
+const MAX_RECEIVED_LINE: usize = 4096;
+
 /// Ctrl-U: the board's console clears the line typed so far.
 const CLEAR_LINE: u8 = 0x15;
 
@@ -99,7 +102,8 @@ enum Until {
 /// A line of the recording's stream (header, tuning line, frame, end line), which a capture takes instead of
 /// standard output.
 fn is_recording_line(line: &str) -> bool {
-    let frame = line.len() > 13 && line.starts_with('R') && line[1..13].bytes().all(|b| b.is_ascii_hexdigit());
+    let b = line.as_bytes();
+    let frame = b.len() > 13 && b[0] == b'R' && b[1..13].iter().all(u8::is_ascii_hexdigit);
     frame || line.starts_with("# nanopos-record") || line.starts_with(TUNING_TAG)
 }
 
@@ -156,7 +160,9 @@ impl Stream<'_> {
             }
             for &b in &buf[..n] {
                 self.partial.push(b);
-                if b != b'\n' {
+                // A line ends at its `\n`, or where it grew beyond any the board sends (bytes at the wrong baud
+                // rate): shown all the same.
+                if b != b'\n' && self.partial.len() < MAX_RECEIVED_LINE {
                     continue;
                 }
                 let bytes = std::mem::take(&mut self.partial);
@@ -463,7 +469,7 @@ mod tests {
         ] {
             assert!(is_recording_line(r), "{r}");
         }
-        for r in ["Restarted", "R", "ok", "est rls a0=1"] {
+        for r in ["Restarted", "R", "ok", "est rls a0=1", "Rxééééééé"] {
             assert!(!is_recording_line(r), "{r}");
         }
     }
