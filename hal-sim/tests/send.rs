@@ -239,6 +239,53 @@ fn a_line_without_a_verdict_ends_the_script_at_the_timeout() {
     assert_eq!(link.0, b"\x15status\n", "Ctrl-U first, then line 1 alone");
 }
 
+/// A board that answers the first line with what it is given, a chunk per read, whatever the line.
+struct Scripted(std::collections::VecDeque<Vec<u8>>, bool);
+
+impl Link for Scripted {
+    fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if !self.1 || self.0.is_empty() {
+            std::thread::sleep(Duration::from_millis(10));
+            return Ok(0);
+        }
+        let chunk = self.0.pop_front().unwrap_or_default();
+        buf[..chunk.len()].copy_from_slice(&chunk);
+        Ok(chunk.len())
+    }
+    fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.1 |= bytes.ends_with(b"\n");
+        Ok(())
+    }
+}
+
+/// A verdict is a reply's line, not a frame's that looks like one, nor one that came in pieces; bytes without a
+/// line end (a wrong baud rate's) are shown in lines of 4 KiB at most, every byte of them.
+#[test]
+fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
+    let chunks: Vec<&[u8]> = vec![
+        b"# nanopos-record v2 rate_hz=10000 crc=0000\nR000000000000 ok 0000\no",
+        b"k record on\nR000000000030 AAAA 0000\n",
+    ];
+    let mut link = Scripted(chunks.into_iter().map(<[u8]>::to_vec).collect(), false);
+    let (mut out, mut capture) = (Vec::new(), Vec::new());
+    let options = SendOptions { timeout: Duration::from_millis(500), interrupted: None, echo: false };
+    let capture_out = Some(&mut capture as &mut dyn Write);
+    // The recording is stopped at the end (the scripted board sends no end line: the wait ends at the timeout).
+    let e = send::run(&mut &b"record on\n"[..], "s", &mut link, &mut out, capture_out, &options).expect_err("no end");
+    assert!(e.0.starts_with("the recording's end line did not come"), "{e}");
+    assert_eq!(String::from_utf8(out).unwrap(), "ok record on\n");
+    assert!(capture.ends_with(b"ok record on\nR000000000030 AAAA 0000\n"));
+
+    let noise = vec![b'x'; 2_500];
+    let chunks = [&noise, &noise, &noise, &noise, &b"\nok\n".to_vec()];
+    let mut link = Scripted(chunks.into_iter().cloned().collect(), false);
+    let mut out = Vec::new();
+    let sent = send::run(&mut &b"status\n"[..], "s", &mut link, &mut out, None, &options).expect("ok");
+    assert_eq!(sent.accepted, 1);
+    let lines: Vec<usize> = String::from_utf8(out).unwrap().lines().map(str::len).collect();
+    assert_eq!(lines, [4096, 4096, 1808, 2]);
+}
+
 /// The command line on a pseudo-terminal (the kind of device a serial port is), with `nanopos-sim console` at its
 /// other end; and the port's errors.
 #[cfg(target_os = "linux")]

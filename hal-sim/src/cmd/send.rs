@@ -165,7 +165,10 @@ impl Stream<'_> {
                 if b != b'\n' && self.partial.len() < MAX_RECEIVED_LINE {
                     continue;
                 }
-                let bytes = std::mem::take(&mut self.partial);
+                let mut bytes = std::mem::take(&mut self.partial);
+                if b != b'\n' {
+                    bytes.push(b'\n');
+                }
                 let line = String::from_utf8_lossy(&bytes);
                 let text = line.trim_end_matches(['\r', '\n']);
                 let recording_line = is_recording_line(text);
