@@ -12,9 +12,10 @@
 //! - every other line is sent as it is, trimmed of the spaces around it, ended by `\n`; the board checks it.
 //!
 //! It stops at the first line the board refuses (`error: ...`; a refused command changes nothing, and the lines after
-//! it may have counted on it) and at a line that gets no verdict within `--timeout` (2 s: the longest command, `excite
-//! multisine`, takes about 3 ms; a line lost whole on the link gets none), naming the script's line; the exit code is
-//! then 2 and the lines after it are not sent.
+//! it may have counted on it) and at a line that gets no verdict within `--timeout` (2 s: the usual commands take 2 to
+//! 7 ms on the board and the slowest, a `tune` refused after the longest design, about 55 ms, by BENCHMARKS.md's
+//! estimate; a line lost whole on the link gets none), naming the script's line; the exit code is then 2 and the lines
+//! after it are not sent.
 //!
 //! A recording it started is taken to its end: at the script's end (or a refusal, or Ctrl-C) a `record on` still
 //! running is stopped with `record off` (as `nanopos-sim console` does at its input's end), a burst runs to its last
