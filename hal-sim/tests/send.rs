@@ -239,34 +239,50 @@ fn a_line_without_a_verdict_ends_the_script_at_the_timeout() {
     assert_eq!(link.0, b"\x15status\n", "Ctrl-U first, then line 1 alone");
 }
 
-/// A board that answers the first line with what it is given, a chunk per read, whatever the line.
-struct Scripted(std::collections::VecDeque<Vec<u8>>, bool);
+/// A board that sends `early` at once, and `answer` once a line has come, a chunk per read, whatever the line.
+#[derive(Default)]
+struct Scripted {
+    early: std::collections::VecDeque<Vec<u8>>,
+    answer: std::collections::VecDeque<Vec<u8>>,
+    asked: bool,
+}
+
+impl Scripted {
+    fn answering(chunks: &[&[u8]]) -> Self {
+        Scripted { answer: chunks.iter().map(|c| c.to_vec()).collect(), ..Scripted::default() }
+    }
+}
 
 impl Link for Scripted {
     fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        if !self.1 || self.0.is_empty() {
+        let next = match self.early.pop_front() {
+            Some(chunk) => Some(chunk),
+            None if self.asked => self.answer.pop_front(),
+            None => None,
+        };
+        let Some(chunk) = next else {
             std::thread::sleep(Duration::from_millis(10));
             return Ok(0);
-        }
-        let chunk = self.0.pop_front().unwrap_or_default();
+        };
         buf[..chunk.len()].copy_from_slice(&chunk);
         Ok(chunk.len())
     }
     fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.1 |= bytes.ends_with(b"\n");
+        self.asked |= bytes.ends_with(b"\n");
         Ok(())
     }
 }
 
-/// A verdict is a reply's line, not a frame's that looks like one, nor one that came in pieces; bytes without a
-/// line end (a wrong baud rate's) are shown in lines of 4 KiB at most, every byte of them.
+/// A verdict is a reply's line, found when it comes in pieces and among the recording's frames; bytes without a line
+/// end (a wrong baud rate's) are shown in lines of 4 KiB at most, every byte of them; what the board sent before the
+/// script is dropped with a note that says whether a recording was running.
 #[test]
 fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
     let chunks: Vec<&[u8]> = vec![
         b"# nanopos-record v2 rate_hz=10000 crc=0000\nR000000000000 ok 0000\no",
         b"k record on\nR000000000030 AAAA 0000\n",
     ];
-    let mut link = Scripted(chunks.into_iter().map(<[u8]>::to_vec).collect(), false);
+    let mut link = Scripted::answering(&chunks);
     let (mut out, mut capture) = (Vec::new(), Vec::new());
     let options = SendOptions { timeout: Duration::from_millis(500), interrupted: None, echo: false };
     let capture_out = Some(&mut capture as &mut dyn Write);
@@ -277,13 +293,25 @@ fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
     assert!(capture.ends_with(b"ok record on\nR000000000030 AAAA 0000\n"));
 
     let noise = vec![b'x'; 2_500];
-    let chunks = [&noise, &noise, &noise, &noise, &b"\nok\n".to_vec()];
-    let mut link = Scripted(chunks.into_iter().cloned().collect(), false);
+    let mut link = Scripted::answering(&[&noise, &noise, &noise, &noise, b"\nok\n"]);
     let mut out = Vec::new();
     let sent = send::run(&mut &b"status\n"[..], "s", &mut link, &mut out, None, &options).expect("ok");
     assert_eq!(sent.accepted, 1);
     let lines: Vec<usize> = String::from_utf8(out).unwrap().lines().map(str::len).collect();
     assert_eq!(lines, [4096, 4096, 1808, 2]);
+
+    // A board already recording, and one ending a reply to someone else: dropped for 0.2 s, and said which.
+    for (early, note) in [
+        (&b"R000000000030 AAAA 0000\n"[..], "a recording was running on the board before the script began (24 bytes"),
+        (b"ok status samples=1\n", "the board was sending before the script began (20 bytes; the end of a reply)"),
+    ] {
+        let mut link = Scripted::answering(&[b"ok status\n"]);
+        link.early.push_back(early.to_vec());
+        let mut out = Vec::new();
+        let sent = send::run(&mut &b"status\n"[..], "s", &mut link, &mut out, None, &options).expect("answered");
+        assert!(sent.notes.len() == 1 && sent.notes[0].starts_with(note), "{:?}", sent.notes);
+        assert_eq!(out, b"ok status\n", "what came before the script is not shown");
+    }
 }
 
 /// The command line on a pseudo-terminal (the kind of device a serial port is), with `nanopos-sim console` at its

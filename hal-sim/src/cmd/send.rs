@@ -251,9 +251,17 @@ pub fn run<'a>(
     settle.pump(link, Until::Time(Instant::now() + SETTLE), &|| false)?;
     let dropped = settle.partial.len();
     let dropped = dropped + stale.len();
-    if dropped > 0 {
+    let frames = String::from_utf8_lossy(&stale).lines().any(|l| l.starts_with('R') && is_recording_line(l));
+    if frames {
         sent.notes.push(format!(
-            "the board was sending before the script began ({}; a reply, or a recording left running): dropped",
+            "a recording was running on the board before the script began ({} of it dropped): its frames go on {}, \
+             without their header, until a record off",
+            super::count(dropped as u64, "byte", "bytes"),
+            if capture.is_some() { "into the capture" } else { "among the replies" }
+        ));
+    } else if dropped > 0 {
+        sent.notes.push(format!(
+            "the board was sending before the script began ({}; the end of a reply): dropped",
             super::count(dropped as u64, "byte", "bytes")
         ));
     }
