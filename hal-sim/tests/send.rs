@@ -368,3 +368,83 @@ fn send_talks_to_the_console_through_a_serial_device() {
         assert!(stderr.contains(message) && stderr.lines().count() == 1, "{args:?}: {stderr}");
     }
 }
+
+/// Random scripts of valid and invalid lines, `sleep`s, comments and recordings, sent to the simulated console: each
+/// line goes out only after the verdict of the one before; the script ends at its end or at the first refusal, which
+/// the message names by its line; every recording that started ends in the capture, and the lines sent and answered
+/// add up. To soak it: `SEND_SOAK_SEED=N SEND_SOAK_SCRIPTS=M cargo test --release -p hal-sim --test send random`.
+#[test]
+fn random_scripts_keep_the_promises_of_send() {
+    let from_env = |name: &str| std::env::var(name).ok().map(|v| v.parse().unwrap_or_else(|_| panic!("{name}={v}")));
+    let mut next = nanopos_id::xorshift64(from_env("SEND_SOAK_SEED").unwrap_or(0x5EED_5E4D));
+    let pool = [
+        "status",
+        "help",
+        "limits",
+        "limits -5 5 1000",
+        "excite prbs 0.5",
+        "excite triangle 1 10",
+        "excite multisine 1 200 800",
+        "excite off",
+        "start",
+        "stop",
+        "select ekf hekf",
+        "select all",
+        "reset all",
+        "freeze rls",
+        "adapt all",
+        "tuning triangle",
+        "tuning prbs",
+        "tune ekf substeps",
+        "record burst 150",
+        "record on",
+        "record off",
+        "sleep 0.03",
+        "# a comment",
+        "",
+        "frob",
+        "tune ekf q 1",
+        "excite prbs 11",
+    ];
+    for _ in 0..from_env("SEND_SOAK_SCRIPTS").unwrap_or(6) {
+        let lines: Vec<&str> = (0..next() % 12 + 1).map(|_| pool[(next() % pool.len() as u64) as usize]).collect();
+        let script = lines.iter().map(|l| format!("{l}\n")).collect::<String>();
+        let s = session(&script);
+        let context = || format!("script:\n{script}\noutput:\n{}\ncapture:\n{}", s.out, s.capture);
+        let out: Vec<&str> = s.out.lines().collect();
+        // Each line sent has its verdict before the next is sent.
+        let sent_at: Vec<usize> = (0..out.len()).filter(|&k| out[k].starts_with("> ")).collect();
+        for pair in sent_at.windows(2) {
+            let verdicts = out[pair[0]..pair[1]].iter().filter(|l| l.starts_with("ok") || l.starts_with("error:"));
+            assert_eq!(verdicts.count(), 1, "{}", context());
+        }
+        let commands: Vec<(usize, &str)> = lines
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#') && !l.starts_with("sleep"))
+            .map(|(k, l)| (k + 1, *l))
+            .collect();
+        // The lines sent: the script's commands up to the end or the refusal, then at most `send`'s own `record off`.
+        let script_sent = match &s.result {
+            Ok(sent) => {
+                assert_eq!(sent.accepted, commands.len(), "{}", context());
+                commands.len()
+            }
+            Err(e) => {
+                let refused = out.iter().position(|l| l.starts_with("error:")).expect("a refusal");
+                let n = out[..refused].iter().filter(|l| l.starts_with("> ")).count();
+                let (line, text) = commands[n - 1];
+                assert!(e.0.starts_with(&format!("script.txt: line {line}: '{text}': refused")), "{e}\n{}", context());
+                n
+            }
+        };
+        let own: Vec<&&str> = sent_at[script_sent.min(sent_at.len())..].iter().map(|&k| &out[k]).collect();
+        for (k, &text) in sent_at.iter().take(script_sent).zip(&commands) {
+            assert_eq!(&out[*k][2..], text.1, "{}", context());
+        }
+        assert!(own.is_empty() || own == [&"> record off"], "{}", context());
+        let headers = s.capture.lines().filter(|l| l.starts_with("# nanopos-record v2")).count();
+        let ends = s.capture.lines().filter(|l| l.starts_with("# nanopos-record end")).count();
+        assert_eq!(headers, ends, "every recording started ended: {}", context());
+    }
+}
