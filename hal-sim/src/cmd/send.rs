@@ -17,16 +17,18 @@
 //! estimate; a line lost whole on the link gets none), naming the script's line; the exit code is then 2 and the lines
 //! after it are not sent.
 //!
-//! A recording it started is taken to its end: at the script's end (or a refusal, or Ctrl-C) a `record on` still
-//! running is stopped with `record off` (as `nanopos-sim console` does at its input's end), a burst runs to its last
-//! sample, and `send` waits for the recording's end line (`# nanopos-record end ...`) as long as the stream keeps
+//! A recording it started is taken to its end: at the script's end (or a refusal) a `record on` still running is
+//! stopped with `record off` (as `nanopos-sim console` does at its input's end), a burst runs to its last sample (a
+//! Ctrl-C stops either), and `send` waits for the recording's end line (`# nanopos-record end ...`) as long as the stream keeps
 //! coming. With `--capture FILE` every byte received goes to FILE as it arrives (kept whatever happens after: it is
 //! the board's data), and standard output has the rest: the lines sent (after `> `) and the replies, without the
-//! recording's lines; without it, standard output has everything.
+//! recording's lines; without it, standard output has everything (a line that does not end within 4 KiB, noise at the
+//! wrong baud rate, in pieces of that length).
 //!
 //! Before the first line `send` sends Ctrl-U, which clears whatever a terminal left typed on the board's line (the
-//! console answers nothing to it), and drops what arrives in the next 0.2 s (the end of a reply to someone else's
-//! command), with a note when something did.
+//! console answers nothing to it), and drops what arrives in the next 0.2 s, with a note when something did: the end
+//! of a reply to someone else's command, or a recording left running, whose frames then go on without their header
+//! until a `record off`.
 //!
 //! The link is a [`Link`]: the serial port ([`SerialLink`], Linux) on the command line, a channel to the simulated
 //! console in the tests.
