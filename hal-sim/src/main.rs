@@ -133,6 +133,11 @@ enum Command {
         payload_off: Option<hal_sim::cmd::console::PayloadOff>,
         #[command(flatten)]
         disturbances: hal_sim::cmd::Disturbances,
+        /// The link on a pseudo-terminal instead of standard input and output, PATH a symbolic link to it: what
+        /// `send --port PATH` or a terminal program opens as the board's serial port (Linux; Ctrl-C ends the
+        /// session).
+        #[arg(long, value_name = "PATH")]
+        pty: Option<PathBuf>,
     },
     /// The board's console commands that give it a tuning (a file decode wrote, or one for identify --tuning), one
     /// a line on standard output: send them one at a time, each after the last one's verdict (`send` does).
@@ -363,7 +368,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             Ok(())
         }
-        Command::Console { status_every, stage, payload_off, disturbances } => {
+        Command::Console { status_every, stage, payload_off, disturbances, pty } => {
             let args = hal_sim::cmd::console::ConsoleArgs {
                 status_every_s: status_every,
                 stage,
@@ -371,6 +376,9 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
                 disturbances,
                 interrupted,
             };
+            if let Some(path) = pty {
+                return console_on_pty(args, &path);
+            }
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
                     "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (help lists \
@@ -396,6 +404,31 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             }
             hal_sim::cmd::write_stdout(&format!("{}\n", fit.to_json()))
         }
+    }
+}
+
+/// `console --pty PATH`: the session's link on a pseudo-terminal, until Ctrl-C.
+fn console_on_pty(args: hal_sim::cmd::console::ConsoleArgs, path: &std::path::Path) -> Result<(), CliError> {
+    #[cfg(target_os = "linux")]
+    {
+        let pty = hal_sim::cmd::console::Pty::open(path)?;
+        let cannot = |e: std::io::Error| CliError(format!("--pty: {}", hal_sim::cmd::io_reason(&e)));
+        let input = pty.master.try_clone().map_err(cannot)?;
+        let mut link = pty.master.try_clone().map_err(cannot)?;
+        eprintln!(
+            "nanopos-sim: the board's console on the simulated stage, 10 kHz, on {} ({}): nanopos-sim send --port {}, \
+             or a terminal program; Ctrl-C ends the session",
+            path.display(),
+            pty.device().display(),
+            path.display()
+        );
+        let mut log = std::io::stderr().lock();
+        hal_sim::cmd::console::run(args, input, &mut link, &mut log).map(|_| ())
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = args;
+        Err(CliError(format!("--pty {}: pseudo-terminals are set up on Linux only", path.display())))
     }
 }
 

@@ -448,3 +448,51 @@ fn random_scripts_keep_the_promises_of_send() {
         assert_eq!(headers, ends, "every recording started ended: {}", context());
     }
 }
+
+/// `console --pty PATH`: the simulated board's link on a pseudo-terminal that `send --port PATH` opens as it opens
+/// the board's port, up between the programs that open and close it, until Ctrl-C, which removes PATH; a PATH that is
+/// something else already is refused and left alone.
+#[cfg(target_os = "linux")]
+#[test]
+fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let board_path = dir.path().join("board");
+    let board = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .args(["console", "--pty", board_path.to_str().unwrap()])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run nanopos-sim console --pty");
+    let start = Instant::now();
+    while !board_path.exists() {
+        assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::fs::write(dir.path().join("a.txt"), "excite prbs 0.5\nrecord burst 400\n").unwrap();
+    std::fs::write(dir.path().join("b.txt"), "status\n").unwrap();
+    for (script, capture, expect) in [("a.txt", "a.cap", "ok record burst 400"), ("b.txt", "b.cap", "ok status")] {
+        let out = nanopos_sim(&["send", "--port", "board", "--input", script, "--capture", capture], dir.path());
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
+        assert!(stdout.lines().any(|l| l.starts_with(expect)), "{stdout}");
+    }
+    let out = nanopos_sim(&["decode", "--input", "a.cap", "--out", "a.csv"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(dir.path().join("a.csv")).unwrap().lines().count(), 401);
+
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(board.id() as i32), nix::sys::signal::Signal::SIGINT).unwrap();
+    let out = board.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("nanopos-sim send --port "), "{stderr}");
+    assert!(out.stdout.is_empty(), "the link is the pseudo-terminal, not standard output");
+    assert!(std::fs::symlink_metadata(&board_path).is_err(), "the link is removed at the end");
+
+    std::fs::write(&board_path, "mine").unwrap();
+    let out = nanopos_sim(&["console", "--pty", "board"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.starts_with("nanopos-sim: --pty board: is there already"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(&board_path).unwrap(), "mine");
+}

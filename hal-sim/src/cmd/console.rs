@@ -22,6 +22,8 @@
 //!
 //! Unlike the board's, the link loses nothing: lines are taken however fast they come, where the board's 128-byte
 //! receive buffer drops what arrives while it is full (`nanopos-sim send` waits for each verdict, as the board needs).
+//! With `--pty PATH` ([`Pty`], Linux) the link is a pseudo-terminal instead of standard input and output, which `send
+//! --port PATH` opens as it opens the board's port; the session then ends at Ctrl-C.
 
 use super::CliError;
 use crate::lab::Lab;
@@ -192,5 +194,69 @@ pub fn run(
         }
         let due = start + Duration::from_secs_f64(samples as f64 / rate_hz);
         std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+}
+
+/// `--pty PATH`: the session's link on a pseudo-terminal, PATH a symbolic link to its device, which `nanopos-sim send
+/// --port PATH` (or a terminal program) opens as it opens the board's virtual COM port: a script rehearsed on the
+/// simulated board as it will run on the real one.
+#[cfg(target_os = "linux")]
+pub struct Pty {
+    /// The link's side: what a program writes to the device is read here, and what is written here it reads.
+    pub master: std::fs::File,
+    /// The device's side, held open so that the link stays up between the programs that open it and close it.
+    _device: std::os::fd::OwnedFd,
+    /// The symbolic link, removed when the session ends.
+    path: std::path::PathBuf,
+}
+
+#[cfg(target_os = "linux")]
+impl Pty {
+    /// A pseudo-terminal set raw, as `send` sets a serial port, and `path` made a symbolic link to its device. A
+    /// `path` that is a symbolic link to a pseudo-terminal (a session before this one) is replaced; anything else
+    /// there is left alone and refused.
+    pub fn open(path: &std::path::Path) -> Result<Self, CliError> {
+        use nix::fcntl::{fcntl, FcntlArg, FdFlag};
+        use nix::sys::termios;
+        let shown = path.display();
+        let fail = |what: &str, e: nix::Error| {
+            CliError(format!("--pty {shown}: cannot {what}: {}", super::io_reason(&std::io::Error::from(e))))
+        };
+        if let Ok(m) = std::fs::symlink_metadata(path) {
+            let stale =
+                m.file_type().is_symlink() && std::fs::read_link(path).is_ok_and(|t| t.starts_with("/dev/pts/"));
+            if !stale {
+                return Err(CliError(format!(
+                    "--pty {shown}: is there already (only a link to a pseudo-terminal, a session's before, is \
+                     replaced): choose another name"
+                )));
+            }
+            std::fs::remove_file(path)
+                .map_err(|e| CliError(format!("--pty {shown}: cannot replace: {}", super::io_reason(&e))))?;
+        }
+        let pty = nix::pty::openpty(None, None).map_err(|e| fail("open a pseudo-terminal", e))?;
+        for fd in [&pty.master, &pty.slave] {
+            fcntl(fd, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).map_err(|e| fail("set up the pseudo-terminal", e))?;
+        }
+        let mut raw = termios::tcgetattr(&pty.slave).map_err(|e| fail("set up the pseudo-terminal", e))?;
+        termios::cfmakeraw(&mut raw);
+        termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &raw)
+            .map_err(|e| fail("set up the pseudo-terminal", e))?;
+        let device = nix::unistd::ttyname(&pty.slave).map_err(|e| fail("name the pseudo-terminal", e))?;
+        std::os::unix::fs::symlink(&device, path)
+            .map_err(|e| CliError(format!("--pty {shown}: cannot create: {}", super::io_reason(&e))))?;
+        Ok(Pty { master: std::fs::File::from(pty.master), _device: pty.slave, path: path.to_owned() })
+    }
+
+    /// The pseudo-terminal's device, which `path` links to.
+    pub fn device(&self) -> std::path::PathBuf {
+        std::fs::read_link(&self.path).unwrap_or_default()
+    }
+}
+
+#[cfg(target_os = "linux")]
+impl Drop for Pty {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
     }
 }
