@@ -314,61 +314,6 @@ fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
     }
 }
 
-/// The command line on a pseudo-terminal (the kind of device a serial port is), with `nanopos-sim console` at its
-/// other end; and the port's errors.
-#[cfg(target_os = "linux")]
-#[test]
-fn send_talks_to_the_console_through_a_serial_device() {
-    use nix::fcntl::{fcntl, FcntlArg, FdFlag};
-    use nix::sys::termios;
-    let pty = nix::pty::openpty(None, None).expect("a pseudo-terminal");
-    // Not inherited by the processes this test (and the tests beside it) start: a console holding the port's side
-    // open would never see its input end.
-    for fd in [&pty.master, &pty.slave] {
-        fcntl(fd, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).unwrap();
-    }
-    let mut raw = termios::tcgetattr(&pty.slave).unwrap();
-    termios::cfmakeraw(&mut raw);
-    termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &raw).unwrap();
-    let port = nix::unistd::ttyname(&pty.slave).unwrap();
-    let mut board = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .arg("console")
-        .stdin(Stdio::from(pty.master.try_clone().unwrap()))
-        .stdout(Stdio::from(pty.master))
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("run nanopos-sim console");
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("script.txt"), "excite prbs 0.5\nrecord burst 500\n").unwrap();
-    let port_arg = port.to_str().unwrap();
-    let out = nanopos_sim(
-        &["send", "--port", port_arg, "--input", "script.txt", "--capture", "cap.txt", "--baud", "115200"],
-        dir.path(),
-    );
-    // The session ends when no one holds the port's other side open.
-    drop(pty.slave);
-    board.wait().unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
-    assert!(stdout.contains("> excite prbs 0.5\nok excite prbs 0.5 V (running)\n> record burst 500\n"), "{stdout}");
-    let out = nanopos_sim(&["decode", "--input", "cap.txt", "--out", "run.csv"], dir.path());
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    assert_eq!(std::fs::read_to_string(dir.path().join("run.csv")).unwrap().lines().count(), 501);
-
-    for (args, message) in [
-        (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: cannot read its settings: not a serial port"),
-        (&["--port", "nowhere"], "nanopos-sim: --port nowhere: cannot open: No such file or directory"),
-        (&["--port", port_arg, "--baud", "12345"], "nanopos-sim: --baud 12345: expected one of 9600, 19200,"),
-        (&["--port", port_arg, "--timeout", "0"], "nanopos-sim: --timeout 0: expected seconds, 0.1 to 3600"),
-        (&["--port", port_arg, "--input", "script.txt", "--capture", "script.txt"], "the same file as --input"),
-    ] {
-        let out = nanopos_sim(&[&["send"][..], args].concat(), dir.path());
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
-        assert!(stderr.contains(message) && stderr.lines().count() == 1, "{args:?}: {stderr}");
-    }
-}
-
 /// Random scripts of valid and invalid lines, `sleep`s, comments and recordings, sent to the simulated console: each
 /// line goes out only after the verdict of the one before; the script ends at its end or at the first refusal, which
 /// the message names by its line; every recording that started ends in the capture, and the lines sent and answered
@@ -449,21 +394,34 @@ fn random_scripts_keep_the_promises_of_send() {
     }
 }
 
-/// `console --pty PATH`: the simulated board's link on a pseudo-terminal that `send --port PATH` opens as it opens
-/// the board's port, up between the programs that open and close it, until Ctrl-C, which removes PATH; a PATH that is
-/// something else already is refused and left alone.
+/// `console --pty PATH`: the simulated board's link on a pseudo-terminal (the kind of device a serial port is) that
+/// `send --port PATH` opens as it opens the board's port, up between the programs that open and close it, until
+/// Ctrl-C, which removes PATH; a PATH that is something else already is refused and left alone. And `send`'s option
+/// errors.
 #[cfg(target_os = "linux")]
 #[test]
 fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     let dir = tempfile::tempdir().unwrap();
     let board_path = dir.path().join("board");
-    let board = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .args(["console", "--pty", board_path.to_str().unwrap()])
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("run nanopos-sim console --pty");
+    /// The session, killed if the test fails before it ends it (a console on a pseudo-terminal runs until Ctrl-C).
+    struct Session(Option<std::process::Child>);
+    impl Drop for Session {
+        fn drop(&mut self) {
+            if let Some(mut child) = self.0.take() {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
+    let mut board = Session(Some(
+        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+            .args(["console", "--pty", board_path.to_str().unwrap()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("run nanopos-sim console --pty"),
+    ));
     let start = Instant::now();
     while !board_path.exists() {
         assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
@@ -471,8 +429,11 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     }
     std::fs::write(dir.path().join("a.txt"), "excite prbs 0.5\nrecord burst 400\n").unwrap();
     std::fs::write(dir.path().join("b.txt"), "status\n").unwrap();
-    for (script, capture, expect) in [("a.txt", "a.cap", "ok record burst 400"), ("b.txt", "b.cap", "ok status")] {
-        let out = nanopos_sim(&["send", "--port", "board", "--input", script, "--capture", capture], dir.path());
+    // The second at another baud rate, which a pseudo-terminal takes as a serial port does (and ignores).
+    for (script, baud, expect) in [("a.txt", "921600", "ok record burst 400"), ("b.txt", "115200", "ok status")] {
+        let capture = script.replace(".txt", ".cap");
+        let args = ["send", "--port", "board", "--input", script, "--capture", &capture, "--baud", baud];
+        let out = nanopos_sim(&args, dir.path());
         let stdout = String::from_utf8_lossy(&out.stdout);
         assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
         assert!(stdout.lines().any(|l| l.starts_with(expect)), "{stdout}");
@@ -481,13 +442,27 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(std::fs::read_to_string(dir.path().join("a.csv")).unwrap().lines().count(), 401);
 
-    nix::sys::signal::kill(nix::unistd::Pid::from_raw(board.id() as i32), nix::sys::signal::Signal::SIGINT).unwrap();
-    let out = board.wait_with_output().unwrap();
+    let child = board.0.take().expect("the session");
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(child.id() as i32), nix::sys::signal::Signal::SIGINT).unwrap();
+    let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(0), "{stderr}");
     assert!(stderr.contains("nanopos-sim send --port "), "{stderr}");
     assert!(out.stdout.is_empty(), "the link is the pseudo-terminal, not standard output");
     assert!(std::fs::symlink_metadata(&board_path).is_err(), "the link is removed at the end");
+
+    for (args, message) in [
+        (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: cannot read its settings: not a serial port"),
+        (&["--port", "nowhere"], "nanopos-sim: --port nowhere: cannot open: No such file or directory"),
+        (&["--port", "board", "--baud", "12345"], "nanopos-sim: --baud 12345: expected one of 9600, 19200,"),
+        (&["--port", "board", "--timeout", "0"], "nanopos-sim: --timeout 0: expected seconds, 0.1 to 3600"),
+        (&["--port", "board", "--input", "script.txt", "--capture", "script.txt"], "the same file as --input"),
+    ] {
+        let out = nanopos_sim(&[&["send"][..], args].concat(), dir.path());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains(message) && stderr.lines().count() == 1, "{args:?}: {stderr}");
+    }
 
     std::fs::write(&board_path, "mine").unwrap();
     let out = nanopos_sim(&["console", "--pty", "board"], dir.path());
