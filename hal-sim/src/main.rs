@@ -462,13 +462,7 @@ fn send(
             port.display()
         );
     }
-    #[cfg(target_os = "linux")]
-    let mut link = send::SerialLink::open(&port, baud)?;
-    #[cfg(not(target_os = "linux"))]
-    let mut link: Box<dyn send::Link> = {
-        let _ = baud;
-        return Err(CliError(format!("--port {}: the serial port is set up on Linux only", port.display())));
-    };
+    let mut link = send::open_port(&port, baud)?;
     // The capture is the board's data: written as it arrives, kept whatever happens after.
     let mut capture_file = match &capture {
         Some(path) => Some(
@@ -479,15 +473,8 @@ fn send(
     };
     let options = SendOptions { timeout: std::time::Duration::from_secs_f64(timeout), interrupted, echo: !typed };
     let mut out = std::io::stdout().lock();
-    let result = send::run(
-        &mut script,
-        &script_name,
-        &mut link,
-        &mut out,
-        capture_file.as_mut().map(|f| f as &mut dyn std::io::Write),
-        &options,
-    );
-    let sent = result?;
+    let capture = capture_file.as_mut().map(|f| f as &mut dyn std::io::Write);
+    let sent = send::run(&mut script, &script_name, link.as_mut(), &mut out, capture, &options)?;
     for note in &sent.notes {
         eprintln!("nanopos-sim: note: {note}");
     }

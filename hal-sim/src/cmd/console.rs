@@ -111,7 +111,7 @@ pub fn run(
             return Err(CliError(format!("--status-every {s}: at least 0.01 s")));
         }
     }
-    let link_error = |e: std::io::Error| CliError(format!("standard output: cannot write: {}", super::io_reason(&e)));
+    let link_error = super::stdout_error;
     let log_error = |e: std::io::Error| CliError(format!("standard error: cannot write: {}", super::io_reason(&e)));
     // The receive side on a thread of its own, so that the board runs on while nothing is typed.
     let (to_board, received) = mpsc::channel::<Vec<u8>>();

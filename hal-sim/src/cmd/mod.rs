@@ -405,9 +405,12 @@ impl Drop for OutputFile {
 /// the output, as `print!` loses it when the buffer is flushed at exit.
 pub fn write_stdout(text: &str) -> Result<(), CliError> {
     let mut out = std::io::stdout().lock();
-    out.write_all(text.as_bytes())
-        .and_then(|()| out.flush())
-        .map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
+    out.write_all(text.as_bytes()).and_then(|()| out.flush()).map_err(stdout_error)
+}
+
+/// A failed write to standard output, as every command reports it.
+pub fn stdout_error(e: std::io::Error) -> CliError {
+    CliError(format!("standard output: cannot write: {}", io_reason(&e)))
 }
 
 /// What a path names, to tell whether two paths are one file however they are spelled: an existing file by its device

@@ -33,7 +33,7 @@
 //! The link is a [`Link`]: the serial port ([`SerialLink`], Linux) on the command line, a channel to the simulated
 //! console in the tests.
 
-use super::{clip, io_reason, CliError};
+use super::{clip, io_reason, stdout_error, CliError};
 use nanopos_id::control::{parse, Command, Recording};
 use nanopos_id::record::{END_TAG, HEADER_TAG, HEADER_TAG_V1, TUNING_TAG};
 use std::io::{BufRead, Write};
@@ -102,12 +102,16 @@ enum Until {
     Time(Instant),
 }
 
+/// A frame of the recording: `R` and its first sample's 12 hex digits.
+fn is_frame(line: &str) -> bool {
+    let b = line.as_bytes();
+    b.len() > 13 && b[0] == b'R' && b[1..13].iter().all(u8::is_ascii_hexdigit)
+}
+
 /// A line of the recording's stream (header, tuning line, frame, end line), which a capture takes instead of
 /// standard output.
 fn is_recording_line(line: &str) -> bool {
-    let b = line.as_bytes();
-    let frame = b.len() > 13 && b[0] == b'R' && b[1..13].iter().all(u8::is_ascii_hexdigit);
-    frame || line.starts_with("# nanopos-record") || line.starts_with(TUNING_TAG)
+    is_frame(line) || line.starts_with("# nanopos-record") || line.starts_with(TUNING_TAG)
 }
 
 /// The last line of a reply: `ok`, `ok ...` or `error: ...`.
@@ -117,7 +121,7 @@ fn is_verdict(line: &str) -> bool {
 
 impl Stream<'_> {
     fn write_out(&mut self, bytes: &[u8]) -> Result<(), CliError> {
-        self.out.write_all(bytes).map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
+        self.out.write_all(bytes).map_err(stdout_error)
     }
 
     /// Take what the link delivers until `until` is met. Returns the verdict's line for [`Until::Verdict`], an
@@ -187,7 +191,7 @@ impl Stream<'_> {
                     found = Some(text.to_string());
                 }
             }
-            self.out.flush().map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))?;
+            self.out.flush().map_err(stdout_error)?;
         }
     }
 
@@ -198,7 +202,7 @@ impl Stream<'_> {
             bytes.push(b'\n');
             self.write_out(&bytes)?;
         }
-        self.out.flush().map_err(|e| CliError(format!("standard output: cannot write: {}", io_reason(&e))))
+        self.out.flush().map_err(stdout_error)
     }
 }
 
@@ -249,11 +253,13 @@ pub fn run<'a>(
     // What arrives before the first line is not a reply to the script: dropped, not shown.
     link.transmit(&[CLEAR_LINE]).map_err(link_error)?;
     let mut stale = Vec::new();
-    let mut settle = Stream { out: &mut stale, capture: None, partial: Vec::new(), recording: false };
-    settle.pump(link, Until::Time(Instant::now() + SETTLE), &|| false)?;
-    let dropped = settle.partial.len();
-    let dropped = dropped + stale.len();
-    let frames = String::from_utf8_lossy(&stale).lines().any(|l| l.starts_with('R') && is_recording_line(l));
+    let unended = {
+        let mut settle = Stream { out: &mut stale, capture: None, partial: Vec::new(), recording: false };
+        settle.pump(link, Until::Time(Instant::now() + SETTLE), &|| false)?;
+        settle.partial.len()
+    };
+    let dropped = stale.len() + unended;
+    let frames = String::from_utf8_lossy(&stale).lines().any(is_frame);
     if frames {
         sent.notes.push(format!(
             "a recording was running on the board before the script began ({} of it dropped): its frames go on {}, \
@@ -367,33 +373,47 @@ pub fn run<'a>(
     outcome.map(|()| sent)
 }
 
+/// The board's serial port `path` at `baud`, as [`SerialLink::open`] sets it up (on Linux; elsewhere an error that says
+/// so).
+pub fn open_port(path: &std::path::Path, baud: u32) -> Result<Box<dyn Link>, CliError> {
+    #[cfg(target_os = "linux")]
+    return Ok(Box::new(SerialLink::open(path, baud)?));
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = baud;
+        Err(CliError(format!("--port {}: the serial port is set up on Linux only", path.display())))
+    }
+}
+
 /// The board's serial port, raw, 8N1, no flow control, reads returning after at most 0.1 s.
 #[cfg(target_os = "linux")]
 pub struct SerialLink(std::fs::File);
 
 #[cfg(target_os = "linux")]
 impl SerialLink {
-    /// The baud rates `--baud` takes (the firmware's: 921 600).
-    pub const BAUDS: [u32; 8] = [9_600, 19_200, 38_400, 57_600, 115_200, 230_400, 460_800, 921_600];
+    /// The baud rates `--baud` takes (the firmware's: 921 600), with termios' names for them.
+    pub const BAUDS: [(u32, nix::sys::termios::BaudRate); 8] = {
+        use nix::sys::termios::BaudRate as B;
+        [
+            (9_600, B::B9600),
+            (19_200, B::B19200),
+            (38_400, B::B38400),
+            (57_600, B::B57600),
+            (115_200, B::B115200),
+            (230_400, B::B230400),
+            (460_800, B::B460800),
+            (921_600, B::B921600),
+        ]
+    };
 
     /// Open `path` (`/dev/ttyACM0`, the ST-LINK's virtual COM port) at `baud`, dropping what it had received.
     pub fn open(path: &std::path::Path, baud: u32) -> Result<Self, CliError> {
         use nix::fcntl::{fcntl, FcntlArg, OFlag};
-        use nix::sys::termios::{self, BaudRate, ControlFlags, FlushArg, SetArg, SpecialCharacterIndices};
+        use nix::sys::termios::{self, ControlFlags, FlushArg, SetArg, SpecialCharacterIndices};
         use std::os::unix::fs::OpenOptionsExt;
-        let rate = match baud {
-            9_600 => BaudRate::B9600,
-            19_200 => BaudRate::B19200,
-            38_400 => BaudRate::B38400,
-            57_600 => BaudRate::B57600,
-            115_200 => BaudRate::B115200,
-            230_400 => BaudRate::B230400,
-            460_800 => BaudRate::B460800,
-            921_600 => BaudRate::B921600,
-            _ => {
-                let known: Vec<String> = Self::BAUDS.iter().map(u32::to_string).collect();
-                return Err(CliError(format!("--baud {baud}: expected one of {}", known.join(", "))));
-            }
+        let Some(&(_, rate)) = Self::BAUDS.iter().find(|(b, _)| *b == baud) else {
+            let known: Vec<String> = Self::BAUDS.iter().map(|(b, _)| b.to_string()).collect();
+            return Err(CliError(format!("--baud {baud}: expected one of {}", known.join(", "))));
         };
         let file = std::fs::OpenOptions::new()
             .read(true)
