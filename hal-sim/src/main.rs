@@ -167,7 +167,8 @@ enum Command {
     /// console drops what arrives while its buffer is full); the replies on standard output, the recording's stream
     /// in --capture.
     Send {
-        /// The board's serial port: the ST-LINK's virtual COM port (/dev/ttyACM0 on Linux).
+        /// The board's serial port: the ST-LINK's virtual COM port (/dev/ttyACM0 on Linux, /dev/cu.usbmodem... on
+        /// macOS, COM5 or the like on Windows).
         #[arg(long)]
         port: PathBuf,
         /// The script: a command a line (`sleep S` waits S seconds; blank lines and # comments skipped)

@@ -7,7 +7,7 @@ use hal_sim::cmd::send::{self, Link, SendOptions, Sent};
 use hal_sim::cmd::CliError;
 use std::io::Write;
 use std::path::Path;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
@@ -401,6 +401,7 @@ fn random_scripts_keep_the_promises_of_send() {
 #[cfg(target_os = "linux")]
 #[test]
 fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
+    use std::process::Stdio;
     let dir = tempfile::tempdir().unwrap();
     let board_path = dir.path().join("board");
     /// The session, killed if the test fails before it ends it (a console on a pseudo-terminal runs until Ctrl-C).
@@ -438,6 +439,28 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
         assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
         assert!(stdout.lines().any(|l| l.starts_with(expect)), "{stdout}");
     }
+    // The port is this program's while it runs: a second `send` (or a terminal program opened after it) is refused,
+    // rather than taking some of the first one's replies.
+    std::fs::write(dir.path().join("c.txt"), "sleep 1\nstatus\n").unwrap();
+    let first = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .args(["send", "--port", "board", "--input", "c.txt"])
+        .current_dir(dir.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run nanopos-sim send");
+    std::thread::sleep(Duration::from_millis(400));
+    let second = nanopos_sim(&["send", "--port", "board", "--input", "b.txt"], dir.path());
+    let stderr = String::from_utf8_lossy(&second.stderr);
+    assert_eq!(second.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("--port board: cannot open: ") && stderr.contains("another program has it open"),
+        "{stderr}"
+    );
+    let first = first.wait_with_output().unwrap();
+    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    assert!(String::from_utf8_lossy(&first.stdout).lines().any(|l| l.starts_with("ok status")));
+
     let out = nanopos_sim(&["decode", "--input", "a.cap", "--out", "a.csv"], dir.path());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(std::fs::read_to_string(dir.path().join("a.csv")).unwrap().lines().count(), 401);
@@ -452,7 +475,7 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     assert!(std::fs::symlink_metadata(&board_path).is_err(), "the link is removed at the end");
 
     for (args, message) in [
-        (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: cannot read its settings: not a serial port"),
+        (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: not a serial port"),
         (&["--port", "nowhere"], "nanopos-sim: --port nowhere: cannot open: No such file or directory"),
         (&["--port", "board", "--baud", "12345"], "nanopos-sim: --baud 12345: expected one of 9600, 19200,"),
         (&["--port", "board", "--timeout", "0"], "nanopos-sim: --timeout 0: expected seconds, 0.1 to 3600"),

@@ -30,7 +30,7 @@
 //! of a reply to someone else's command, or a recording left running, whose frames then go on without their header
 //! until a `record off`.
 //!
-//! The link is a [`Link`]: the serial port ([`SerialLink`], Linux) on the command line, a channel to the simulated
+//! The link is a [`Link`]: the serial port ([`SerialLink`]) on the command line, a channel to the simulated
 //! console in the tests.
 
 use super::{clip, io_reason, stdout_error, CliError};
@@ -373,99 +373,112 @@ pub fn run<'a>(
     outcome.map(|()| sent)
 }
 
-/// The board's serial port `path` at `baud`, as [`SerialLink::open`] sets it up (on Linux; elsewhere an error that says
-/// so).
+/// The board's serial port `path` at `baud`: [`SerialLink::open`].
 pub fn open_port(path: &std::path::Path, baud: u32) -> Result<Box<dyn Link>, CliError> {
-    #[cfg(target_os = "linux")]
-    return Ok(Box::new(SerialLink::open(path, baud)?));
-    #[cfg(not(target_os = "linux"))]
-    {
-        let _ = baud;
-        Err(CliError(format!("--port {}: the serial port is set up on Linux only", path.display())))
-    }
+    Ok(Box::new(SerialLink::open(path, baud)?))
 }
 
-/// The board's serial port, raw, 8N1, no flow control, reads returning after at most 0.1 s.
-#[cfg(target_os = "linux")]
-pub struct SerialLink(std::fs::File);
+/// The board's serial port, raw, 8N1, no flow control, reads returning after at most 0.1 s: the `serialport` crate's,
+/// on Linux, macOS and Windows alike.
+pub struct SerialLink(Box<dyn serialport::SerialPort>);
 
-#[cfg(target_os = "linux")]
 impl SerialLink {
-    /// The baud rates `--baud` takes (the firmware's: 921 600), with termios' names for them.
-    pub const BAUDS: [(u32, nix::sys::termios::BaudRate); 8] = {
-        use nix::sys::termios::BaudRate as B;
-        [
-            (9_600, B::B9600),
-            (19_200, B::B19200),
-            (38_400, B::B38400),
-            (57_600, B::B57600),
-            (115_200, B::B115200),
-            (230_400, B::B230400),
-            (460_800, B::B460800),
-            (921_600, B::B921600),
-        ]
-    };
+    /// The baud rates `--baud` takes (the firmware's: 921 600): those every platform's serial driver and the
+    /// ST-LINK's virtual COM port have.
+    pub const BAUDS: [u32; 8] = [9_600, 19_200, 38_400, 57_600, 115_200, 230_400, 460_800, 921_600];
 
-    /// Open `path` (`/dev/ttyACM0`, the ST-LINK's virtual COM port) at `baud`, dropping what it had received.
+    /// How long a read waits for the first byte.
+    const READ_WAIT: Duration = Duration::from_millis(100);
+
+    /// Open `path` (`/dev/ttyACM0` on Linux, `/dev/cu.usbmodem...` on macOS, `COM5` on Windows: the ST-LINK's virtual
+    /// COM port) at `baud`, for this program alone, dropping what it had received. On Unix it is opened without
+    /// waiting for a carrier (`O_NONBLOCK`, then `CLOCAL`; a virtual COM port may never raise DCD) and locked against
+    /// other programs opening it after (`TIOCEXCL`, `flock`): a terminal program opened on it too would take some of
+    /// the replies.
     pub fn open(path: &std::path::Path, baud: u32) -> Result<Self, CliError> {
-        use nix::fcntl::{fcntl, FcntlArg, OFlag};
-        use nix::sys::termios::{self, ControlFlags, FlushArg, SetArg, SpecialCharacterIndices};
-        use std::os::unix::fs::OpenOptionsExt;
-        let Some(&(_, rate)) = Self::BAUDS.iter().find(|(b, _)| *b == baud) else {
-            let known: Vec<String> = Self::BAUDS.iter().map(|(b, _)| b.to_string()).collect();
+        use serialport::{ClearBuffer, DataBits, ErrorKind, FlowControl, Parity, StopBits};
+        if !Self::BAUDS.contains(&baud) {
+            let known: Vec<String> = Self::BAUDS.iter().map(|b| b.to_string()).collect();
             return Err(CliError(format!("--baud {baud}: expected one of {}", known.join(", "))));
-        };
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            // Without O_NONBLOCK the open of a port whose CLOCAL is off waits for the carrier (DCD), which a
-            // virtual COM port may never raise; CLOCAL is set below and the flag taken off.
-            .custom_flags((OFlag::O_NOCTTY | OFlag::O_NONBLOCK).bits())
-            .open(path)
-            .map_err(|e| {
-                let hint = if e.kind() == std::io::ErrorKind::PermissionDenied {
-                    " (a serial port is usually open to the group dialout: sudo usermod -aG dialout $USER, then log in \
-                     again)"
-                } else {
-                    ""
-                };
-                CliError(format!("--port {}: cannot open: {}{hint}", path.display(), io_reason(&e)))
-            })?;
-        let set_up = |what: &str, e: nix::Error| {
-            let why = if e == nix::Error::ENOTTY {
-                "not a serial port (a terminal device is needed, such as /dev/ttyACM0)".to_string()
-            } else {
-                io_reason(&std::io::Error::from(e))
+        }
+        let name = path.to_string_lossy();
+        let fail = |e: serialport::Error| {
+            let why = match e.kind() {
+                ErrorKind::Io(std::io::ErrorKind::PermissionDenied) if cfg!(target_os = "linux") => format!(
+                    "{} (a serial port is usually open to the group dialout: sudo usermod -aG dialout $USER, then log \
+                     in again)",
+                    e.description
+                ),
+                // Another program holds it (`TIOCEXCL` or `flock` on Unix; Windows opens a port once).
+                ErrorKind::NoDevice => format!("{} (another program has it open: close it first)", e.description),
+                _ => e.description,
             };
-            CliError(format!("--port {}: cannot {what}: {why}", path.display()))
+            CliError(format!("--port {}: cannot open: {why}", path.display()))
         };
-        let mut t = termios::tcgetattr(&file).map_err(|e| set_up("read its settings", e))?;
-        termios::cfmakeraw(&mut t);
-        t.control_flags |= ControlFlags::CLOCAL | ControlFlags::CREAD;
-        t.control_flags &= !(ControlFlags::CSTOPB | ControlFlags::PARENB | ControlFlags::CRTSCTS);
-        t.control_chars[SpecialCharacterIndices::VMIN as usize] = 0;
-        t.control_chars[SpecialCharacterIndices::VTIME as usize] = 1;
-        termios::cfsetspeed(&mut t, rate).map_err(|e| set_up("set its baud rate", e))?;
-        termios::tcsetattr(&file, SetArg::TCSANOW, &t).map_err(|e| set_up("set it up", e))?;
-        termios::tcflush(&file, FlushArg::TCIFLUSH).map_err(|e| set_up("drop what it had received", e))?;
-        // Reads wait again, for at most VTIME.
-        fcntl(&file, FcntlArg::F_SETFL(OFlag::empty())).map_err(|e| set_up("set it to wait for reads", e))?;
-        Ok(SerialLink(file))
+        let port = serialport::new(name, baud)
+            .data_bits(DataBits::Eight)
+            .parity(Parity::None)
+            .stop_bits(StopBits::One)
+            .flow_control(FlowControl::None)
+            .timeout(Self::READ_WAIT)
+            .open()
+            .map_err(|e| match is_terminal(path) {
+                // `/dev/null` or a file: an ioctl of terminals refused, which the error says only in the C
+                // library's words.
+                false => CliError(format!(
+                    "--port {}: not a serial port (a terminal device is needed, such as /dev/ttyACM0)",
+                    path.display()
+                )),
+                true => fail(e),
+            })?;
+        port.clear(ClearBuffer::Input).map_err(|e| {
+            CliError(format!("--port {}: cannot drop what it had received: {}", path.display(), e.description))
+        })?;
+        Ok(SerialLink(port))
     }
 }
 
-#[cfg(target_os = "linux")]
+/// Whether `path` is a terminal device, as a serial port is (`/dev/null` and files are not): opened as `serialport`
+/// opens it, without waiting for a carrier. True where it cannot be told (it does not open; or Windows, whose ports
+/// are not files): `serialport`'s error then says why it failed.
+fn is_terminal(path: &std::path::Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        let file = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOCTTY | libc::O_NONBLOCK).open(path);
+        file.map_or(true, |f| std::io::IsTerminal::is_terminal(&f))
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = path;
+        true
+    }
+}
+
 impl Link for SerialLink {
     fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        use std::io::Read;
+        use std::io::{ErrorKind, Read};
         match self.0.read(buf) {
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => Ok(0),
+            Err(e) if matches!(e.kind(), ErrorKind::Interrupted | ErrorKind::TimedOut) => Ok(0),
             other => other,
         }
     }
 
     fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.0.write_all(bytes).and_then(|()| self.0.flush())
+        // A write waits at most the read's 0.1 s for room; the port drains at the baud rate, so waiting again is
+        // right, up to a bound (9600 baud sends the longest line, 97 bytes, in 0.1 s).
+        let mut rest = bytes;
+        let mut waits = 0;
+        while !rest.is_empty() {
+            match self.0.write(rest) {
+                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+                Ok(n) => rest = &rest[n..],
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == std::io::ErrorKind::TimedOut && waits < 20 => waits += 1,
+                Err(e) => return Err(e),
+            }
+        }
+        self.0.flush()
     }
 }
 
