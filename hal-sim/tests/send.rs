@@ -493,4 +493,40 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.starts_with("nanopos-sim: --pty board: is there already"), "{stderr}");
     assert_eq!(std::fs::read_to_string(&board_path).unwrap(), "mine");
+
+    // The port going away under `send` (a board unplugged, an ST-LINK reset; here the session killed): an error that
+    // names the port and says so, exit code 2, and what was captured kept.
+    let gone_path = dir.path().join("gone");
+    let mut gone = Session(Some(
+        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+            .args(["console", "--pty", gone_path.to_str().unwrap()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("run nanopos-sim console --pty"),
+    ));
+    let start = Instant::now();
+    while !gone_path.exists() {
+        assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::fs::write(dir.path().join("d.txt"), "status\nsleep 10\nstatus\n").unwrap();
+    let send = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
+        .args(["send", "--port", "gone", "--input", "d.txt", "--capture", "d.cap"])
+        .current_dir(dir.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run nanopos-sim send");
+    std::thread::sleep(Duration::from_millis(800));
+    let mut gone_board = gone.0.take().expect("the session");
+    gone_board.kill().unwrap();
+    gone_board.wait().unwrap();
+    let out = send.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("--port gone: cannot read: ") && stderr.contains("the port went away"), "{stderr}");
+    let captured = std::fs::read_to_string(dir.path().join("d.cap")).unwrap();
+    assert!(captured.lines().any(|l| l.starts_with("ok status")), "{captured}");
 }

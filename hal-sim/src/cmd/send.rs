@@ -47,6 +47,10 @@ pub trait Link {
     fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize>;
     /// Send all of `bytes`.
     fn transmit(&mut self, bytes: &[u8]) -> std::io::Result<()>;
+    /// What the messages call it.
+    fn name(&self) -> String {
+        "the link".into()
+    }
 }
 
 /// How long `send` drops what arrives after its Ctrl-U, before the first line.
@@ -151,8 +155,9 @@ impl Stream<'_> {
             if Instant::now() >= deadline || !matches!(until, Until::Verdict(_)) && interrupted() {
                 return Ok(None);
             }
-            let n =
-                link.receive(&mut buf).map_err(|e| CliError(format!("the link: cannot read: {}", io_reason(&e))))?;
+            let n = link
+                .receive(&mut buf)
+                .map_err(|e| CliError(format!("{}: cannot read: {}", link.name(), io_reason(&e))))?;
             if n == 0 {
                 continue;
             }
@@ -248,7 +253,8 @@ pub fn run<'a>(
     options: &SendOptions,
 ) -> Result<Sent, CliError> {
     let interrupted = || options.interrupted.as_ref().is_some_and(|i| i.load(Ordering::Relaxed));
-    let link_error = |e: std::io::Error| CliError(format!("the link: cannot write: {}", io_reason(&e)));
+    let name = link.name();
+    let link_error = |e: std::io::Error| CliError(format!("{name}: cannot write: {}", io_reason(&e)));
     let mut sent = Sent::default();
     // What arrives before the first line is not a reply to the script: dropped, not shown.
     link.transmit(&[CLEAR_LINE]).map_err(link_error)?;
@@ -380,7 +386,11 @@ pub fn open_port(path: &std::path::Path, baud: u32) -> Result<Box<dyn Link>, Cli
 
 /// The board's serial port, raw, 8N1, no flow control, reads returning after at most 0.1 s: the `serialport` crate's,
 /// on Linux, macOS and Windows alike.
-pub struct SerialLink(Box<dyn serialport::SerialPort>);
+pub struct SerialLink {
+    port: Box<dyn serialport::SerialPort>,
+    /// As `--port` named it.
+    path: std::path::PathBuf,
+}
 
 impl SerialLink {
     /// The baud rates `--baud` takes (the firmware's: 921 600): those every platform's serial driver and the
@@ -434,7 +444,7 @@ impl SerialLink {
         port.clear(ClearBuffer::Input).map_err(|e| {
             CliError(format!("--port {}: cannot drop what it had received: {}", path.display(), e.description))
         })?;
-        Ok(SerialLink(port))
+        Ok(SerialLink { port, path: path.to_owned() })
     }
 }
 
@@ -455,12 +465,19 @@ fn is_terminal(path: &std::path::Path) -> bool {
     }
 }
 
+/// A read or write that failed once the port was open: the port went away, as a USB port does when the board is
+/// unplugged or its ST-LINK resets.
+fn went_away(e: std::io::Error) -> std::io::Error {
+    let why = io_reason(&e);
+    std::io::Error::new(e.kind(), format!("{why} (the port went away: the board unplugged, or its ST-LINK reset?)"))
+}
+
 impl Link for SerialLink {
     fn receive(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
         use std::io::{ErrorKind, Read};
-        match self.0.read(buf) {
+        match self.port.read(buf) {
             Err(e) if matches!(e.kind(), ErrorKind::Interrupted | ErrorKind::TimedOut) => Ok(0),
-            other => other,
+            other => other.map_err(went_away),
         }
     }
 
@@ -470,15 +487,19 @@ impl Link for SerialLink {
         let mut rest = bytes;
         let mut waits = 0;
         while !rest.is_empty() {
-            match self.0.write(rest) {
-                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+            match self.port.write(rest) {
+                Ok(0) => return Err(went_away(std::io::ErrorKind::WriteZero.into())),
                 Ok(n) => rest = &rest[n..],
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) if e.kind() == std::io::ErrorKind::TimedOut && waits < 20 => waits += 1,
-                Err(e) => return Err(e),
+                Err(e) => return Err(went_away(e)),
             }
         }
-        self.0.flush()
+        self.port.flush().map_err(went_away)
+    }
+
+    fn name(&self) -> String {
+        format!("--port {}", self.path.display())
     }
 }
 
