@@ -134,7 +134,7 @@ enum Command {
         #[command(flatten)]
         disturbances: hal_sim::cmd::Disturbances,
         /// The link on a pseudo-terminal instead of standard input and output, PATH a symbolic link to it: what
-        /// `send --port PATH` or a terminal program opens as the board's serial port (Linux; Ctrl-C ends the
+        /// `send --port PATH` or a terminal program opens as the board's serial port (Linux, macOS; Ctrl-C ends the
         /// session).
         #[arg(long, value_name = "PATH")]
         pty: Option<PathBuf>,
@@ -410,7 +410,7 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
 
 /// `console --pty PATH`: the session's link on a pseudo-terminal, until Ctrl-C.
 fn console_on_pty(args: hal_sim::cmd::console::ConsoleArgs, path: &std::path::Path) -> Result<(), CliError> {
-    #[cfg(target_os = "linux")]
+    #[cfg(unix)]
     {
         let pty = hal_sim::cmd::console::Pty::open(path)?;
         let cannot = |e: std::io::Error| CliError(format!("--pty: {}", hal_sim::cmd::io_reason(&e)));
@@ -426,10 +426,10 @@ fn console_on_pty(args: hal_sim::cmd::console::ConsoleArgs, path: &std::path::Pa
         let mut log = std::io::stderr().lock();
         hal_sim::cmd::console::run(args, input, &mut link, &mut log).map(|_| ())
     }
-    #[cfg(not(target_os = "linux"))]
+    #[cfg(not(unix))]
     {
         let _ = args;
-        Err(CliError(format!("--pty {}: pseudo-terminals are set up on Linux only", path.display())))
+        Err(CliError(format!("--pty {}: pseudo-terminals are set up on Linux and macOS only", path.display())))
     }
 }
 

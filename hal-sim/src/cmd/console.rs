@@ -22,8 +22,8 @@
 //!
 //! Unlike the board's, the link loses nothing: lines are taken however fast they come, where the board's 128-byte
 //! receive buffer drops what arrives while it is full (`nanopos-sim send` waits for each verdict, as the board needs).
-//! With `--pty PATH` ([`Pty`], Linux) the link is a pseudo-terminal instead of standard input and output, which `send
-//! --port PATH` opens as it opens the board's port; the session then ends at Ctrl-C.
+//! With `--pty PATH` ([`Pty`], Linux and macOS) the link is a pseudo-terminal instead of standard input and output,
+//! which `send --port PATH` opens as it opens the board's port; the session then ends at Ctrl-C.
 
 use super::CliError;
 use crate::lab::Lab;
@@ -200,7 +200,7 @@ pub fn run(
 /// `--pty PATH`: the session's link on a pseudo-terminal, PATH a symbolic link to its device, which `nanopos-sim send
 /// --port PATH` (or a terminal program) opens as it opens the board's virtual COM port: a script rehearsed on the
 /// simulated board as it will run on the real one.
-#[cfg(target_os = "linux")]
+#[cfg(unix)]
 pub struct Pty {
     /// The link's side: what a program writes to the device is read here, and what is written here it reads.
     pub master: std::fs::File,
@@ -210,7 +210,7 @@ pub struct Pty {
     path: std::path::PathBuf,
 }
 
-#[cfg(target_os = "linux")]
+#[cfg(unix)]
 impl Pty {
     /// A pseudo-terminal set raw, as `send` sets a serial port, and `path` made a symbolic link to its device. A
     /// `path` that is a symbolic link to a pseudo-terminal (a session before this one) is replaced; anything else
@@ -223,8 +223,7 @@ impl Pty {
             CliError(format!("--pty {shown}: cannot {what}: {}", super::io_reason(&std::io::Error::from(e))))
         };
         if let Ok(m) = std::fs::symlink_metadata(path) {
-            let stale =
-                m.file_type().is_symlink() && std::fs::read_link(path).is_ok_and(|t| t.starts_with("/dev/pts/"));
+            let stale = m.file_type().is_symlink() && std::fs::read_link(path).is_ok_and(|t| is_pseudo_terminal(&t));
             if !stale {
                 return Err(CliError(format!(
                     "--pty {shown}: is there already (only a link to a pseudo-terminal, a session's before, is \
@@ -254,7 +253,13 @@ impl Pty {
     }
 }
 
-#[cfg(target_os = "linux")]
+/// Whether `device` names a pseudo-terminal's device: `/dev/pts/N` on Linux, `/dev/ttysN` on macOS.
+#[cfg(unix)]
+fn is_pseudo_terminal(device: &std::path::Path) -> bool {
+    device.starts_with("/dev/pts/") || device.to_str().is_some_and(|d| d.starts_with("/dev/ttys"))
+}
+
+#[cfg(unix)]
 impl Drop for Pty {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);
