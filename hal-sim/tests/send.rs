@@ -113,6 +113,15 @@ fn nanopos_sim(args: &[&str], dir: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nanopos-sim")).args(args).current_dir(dir).output().expect("run nanopos-sim")
 }
 
+/// `nanopos-sim ARGS` in `dir`, started, its outputs piped.
+#[cfg(target_os = "linux")]
+fn nanopos_sim_started(args: &[&str], dir: &Path) -> std::process::Child {
+    use std::process::Stdio;
+    let mut command = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"));
+    command.args(args).current_dir(dir).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
+    command.spawn().expect("run nanopos-sim")
+}
+
 /// Comments, blank lines and `sleep` stay on the host; each command is answered before the next goes; the replies
 /// on standard output, the recording's lines only in the capture, which `decode` reads whole.
 #[test]
@@ -394,6 +403,35 @@ fn random_scripts_keep_the_promises_of_send() {
     }
 }
 
+/// `nanopos-sim console --pty PATH`, killed if the test fails before it ends it (it runs until Ctrl-C).
+#[cfg(target_os = "linux")]
+struct PtySession(Option<std::process::Child>);
+
+#[cfg(target_os = "linux")]
+impl PtySession {
+    /// The session started, once its link is there.
+    fn start(path: &Path) -> Self {
+        let session =
+            PtySession(Some(nanopos_sim_started(&["console", "--pty", path.to_str().unwrap()], Path::new("."))));
+        let start = Instant::now();
+        while !path.exists() {
+            assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        session
+    }
+}
+
+#[cfg(target_os = "linux")]
+impl Drop for PtySession {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.0.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
 /// `console --pty PATH`: the simulated board's link on a pseudo-terminal (the kind of device a serial port is) that
 /// `send --port PATH` opens as it opens the board's port, up between the programs that open and close it, until
 /// Ctrl-C, which removes PATH; a PATH that is something else already is refused and left alone. And `send`'s option
@@ -401,33 +439,9 @@ fn random_scripts_keep_the_promises_of_send() {
 #[cfg(target_os = "linux")]
 #[test]
 fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
-    use std::process::Stdio;
     let dir = tempfile::tempdir().unwrap();
     let board_path = dir.path().join("board");
-    /// The session, killed if the test fails before it ends it (a console on a pseudo-terminal runs until Ctrl-C).
-    struct Session(Option<std::process::Child>);
-    impl Drop for Session {
-        fn drop(&mut self) {
-            if let Some(mut child) = self.0.take() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
-    }
-    let mut board = Session(Some(
-        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-            .args(["console", "--pty", board_path.to_str().unwrap()])
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("run nanopos-sim console --pty"),
-    ));
-    let start = Instant::now();
-    while !board_path.exists() {
-        assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let mut board = PtySession::start(&board_path);
     std::fs::write(dir.path().join("a.txt"), "excite prbs 0.5\nrecord burst 400\n").unwrap();
     std::fs::write(dir.path().join("b.txt"), "status\n").unwrap();
     // The second at another baud rate, which a pseudo-terminal takes as a serial port does (and ignores).
@@ -442,13 +456,7 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     // The port is this program's while it runs: a second `send` (or a terminal program opened after it) is refused,
     // rather than taking some of the first one's replies.
     std::fs::write(dir.path().join("c.txt"), "sleep 1\nstatus\n").unwrap();
-    let first = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .args(["send", "--port", "board", "--input", "c.txt"])
-        .current_dir(dir.path())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("run nanopos-sim send");
+    let first = nanopos_sim_started(&["send", "--port", "board", "--input", "c.txt"], dir.path());
     std::thread::sleep(Duration::from_millis(400));
     let second = nanopos_sim(&["send", "--port", "board", "--input", "b.txt"], dir.path());
     let stderr = String::from_utf8_lossy(&second.stderr);
@@ -496,29 +504,9 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
 
     // The port going away under `send` (a board unplugged, an ST-LINK reset; here the session killed): an error that
     // names the port and says so, exit code 2, and what was captured kept.
-    let gone_path = dir.path().join("gone");
-    let mut gone = Session(Some(
-        Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-            .args(["console", "--pty", gone_path.to_str().unwrap()])
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("run nanopos-sim console --pty"),
-    ));
-    let start = Instant::now();
-    while !gone_path.exists() {
-        assert!(start.elapsed() < Duration::from_secs(10), "the link never appeared");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let mut gone = PtySession::start(&dir.path().join("gone"));
     std::fs::write(dir.path().join("d.txt"), "status\nsleep 10\nstatus\n").unwrap();
-    let send = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"))
-        .args(["send", "--port", "gone", "--input", "d.txt", "--capture", "d.cap"])
-        .current_dir(dir.path())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("run nanopos-sim send");
+    let send = nanopos_sim_started(&["send", "--port", "gone", "--input", "d.txt", "--capture", "d.cap"], dir.path());
     std::thread::sleep(Duration::from_millis(800));
     let mut gone_board = gone.0.take().expect("the session");
     gone_board.kill().unwrap();
