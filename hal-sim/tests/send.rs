@@ -422,6 +422,16 @@ impl PtySession {
     }
 }
 
+/// Wait until the capture `path` of a `send` holds a `status` verdict: its port is open, its script under way.
+#[cfg(target_os = "linux")]
+fn wait_for_verdict(path: &Path) {
+    let start = Instant::now();
+    while !std::fs::read_to_string(path).is_ok_and(|c| c.lines().any(|l| l.starts_with("ok status"))) {
+        assert!(start.elapsed() < Duration::from_secs(20), "no verdict in {}", path.display());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 #[cfg(target_os = "linux")]
 impl Drop for PtySession {
     fn drop(&mut self) {
@@ -455,9 +465,9 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     }
     // The port is this program's while it runs: a second `send` (or a terminal program opened after it) is refused,
     // rather than taking some of the first one's replies.
-    std::fs::write(dir.path().join("c.txt"), "sleep 1\nstatus\n").unwrap();
-    let first = nanopos_sim_started(&["send", "--port", "board", "--input", "c.txt"], dir.path());
-    std::thread::sleep(Duration::from_millis(400));
+    std::fs::write(dir.path().join("c.txt"), "status\nsleep 1\nstatus\n").unwrap();
+    let first = nanopos_sim_started(&["send", "--port", "board", "--input", "c.txt", "--capture", "c.cap"], dir.path());
+    wait_for_verdict(&dir.path().join("c.cap"));
     let second = nanopos_sim(&["send", "--port", "board", "--input", "b.txt"], dir.path());
     let stderr = String::from_utf8_lossy(&second.stderr);
     assert_eq!(second.status.code(), Some(2), "{stderr}");
@@ -507,7 +517,7 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
     let mut gone = PtySession::start(&dir.path().join("gone"));
     std::fs::write(dir.path().join("d.txt"), "status\nsleep 10\nstatus\n").unwrap();
     let send = nanopos_sim_started(&["send", "--port", "gone", "--input", "d.txt", "--capture", "d.cap"], dir.path());
-    std::thread::sleep(Duration::from_millis(800));
+    wait_for_verdict(&dir.path().join("d.cap"));
     let mut gone_board = gone.0.take().expect("the session");
     gone_board.kill().unwrap();
     gone_board.wait().unwrap();
