@@ -419,7 +419,12 @@ impl SerialLink {
                      in again)",
                     e.description
                 ),
-                // Another program holds it (`TIOCEXCL` or `flock` on Unix; Windows opens a port once).
+                // Another program holds it (`TIOCEXCL` or `flock` on Unix); on Windows, which opens a port once, also
+                // a port that is not there.
+                ErrorKind::NoDevice if cfg!(windows) => format!(
+                    "{} (no such port: see the Device Manager's Ports; or another program has it open: close it first)",
+                    e.description
+                ),
                 ErrorKind::NoDevice => format!("{} (another program has it open: close it first)", e.description),
                 _ => e.description,
             };
