@@ -168,9 +168,9 @@ enum Command {
     /// in --capture.
     Send {
         /// The board's serial port: the ST-LINK's virtual COM port (/dev/ttyACM0 on Linux, /dev/cu.usbmodem... on
-        /// macOS, COM5 or the like on Windows).
+        /// macOS, COM5 or the like on Windows) [default: the one ST-LINK plugged in].
         #[arg(long)]
-        port: PathBuf,
+        port: Option<PathBuf>,
         /// The script: a command a line (`sleep S` waits S seconds; blank lines and # comments skipped)
         /// [default: standard input].
         #[arg(long)]
@@ -435,7 +435,7 @@ fn console_on_pty(args: hal_sim::cmd::console::ConsoleArgs, path: &std::path::Pa
 
 /// `send`: the options checked, the files and the port opened, the session run.
 fn send(
-    port: PathBuf,
+    port: Option<PathBuf>,
     input: Option<PathBuf>,
     capture: Option<PathBuf>,
     timeout: f64,
@@ -454,6 +454,14 @@ fn send(
     let (mut script, script_name): (Box<dyn BufRead>, String) = match &input {
         Some(path) => (Box::new(BufReader::new(open_input(path)?)), path.display().to_string()),
         None => (Box::new(std::io::stdin().lock()), "standard input".into()),
+    };
+    let port = match port {
+        Some(port) => port,
+        None => {
+            let (port, what) = send::find_port()?;
+            eprintln!("nanopos-sim: the ST-LINK's virtual COM port: {} ({what})", port.display());
+            port
+        }
     };
     let typed = input.is_none() && std::io::IsTerminal::is_terminal(&std::io::stdin());
     if typed {

@@ -403,6 +403,26 @@ fn random_scripts_keep_the_promises_of_send() {
     }
 }
 
+/// Without `--port`, `send` takes the one ST-LINK plugged in, and says which; with none (this suite's machines), it
+/// names the serial ports it found instead.
+#[test]
+fn without_a_port_send_looks_for_the_stlink() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("empty.txt"), "").unwrap();
+    let out = nanopos_sim(&["send", "--input", "empty.txt", "--timeout", "0.5"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if stderr.contains("no ST-LINK virtual COM port is plugged in") {
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(
+            stderr.starts_with("nanopos-sim: no --port given, and no ST-LINK") && stderr.contains("(serial ports: ")
+        );
+        assert!(stderr.ends_with("connect the board's USB, or name its port with --port\n"), "{stderr}");
+    } else {
+        // A board on this machine: named before it is used.
+        assert!(stderr.starts_with("nanopos-sim: the ST-LINK's virtual COM port: "), "{stderr}");
+    }
+}
+
 /// `nanopos-sim console --pty PATH`, killed if the test fails before it ends it (it runs until Ctrl-C).
 #[cfg(target_os = "linux")]
 struct PtySession(Option<std::process::Child>);

@@ -379,6 +379,61 @@ pub fn run<'a>(
     outcome.map(|()| sent)
 }
 
+/// STMicroelectronics' USB vendor ID.
+const ST_VID: u16 = 0x0483;
+
+/// The USB product IDs of the ST-LINKs (V2-1, V3 and their variants: 0x374B, 0x374E, 0x374F, 0x3752-0x3757); an STM32's
+/// own USB serial port (0x5740) is not one.
+const STLINK_PIDS: std::ops::RangeInclusive<u16> = 0x3740..=0x375F;
+
+/// The ports among `ports` (what `serialport::available_ports` lists) that are an ST-LINK's virtual COM port, each
+/// with what to show of it. macOS lists each port twice, as `/dev/cu.*` and `/dev/tty.*`: the second (the dial-in
+/// device, whose open waits for a carrier) is left out.
+pub fn stlink_ports(ports: &[serialport::SerialPortInfo]) -> Vec<(String, String)> {
+    ports
+        .iter()
+        .filter(|p| !p.port_name.starts_with("/dev/tty."))
+        .filter_map(|p| match &p.port_type {
+            serialport::SerialPortType::UsbPort(usb) if usb.vid == ST_VID && STLINK_PIDS.contains(&usb.pid) => {
+                let product = usb.product.as_deref().unwrap_or("ST-LINK");
+                let serial = usb.serial_number.as_deref().map(|s| format!(", serial {s}")).unwrap_or_default();
+                Some((p.port_name.clone(), format!("{product}{serial}")))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+/// No `--port`: the one ST-LINK virtual COM port plugged in, and what to show of it.
+pub fn find_port() -> Result<(std::path::PathBuf, String), CliError> {
+    let unlisted = |why: &str| CliError(format!("no --port given, and the serial ports cannot be listed: {why}"));
+    // serialport lists Linux's ports from sysfs, and panics where it is not mounted (a minimal container).
+    if cfg!(target_os = "linux") && !std::path::Path::new("/sys/class/tty").is_dir() {
+        return Err(unlisted("no /sys/class/tty: name the port with --port"));
+    }
+    let ports = serialport::available_ports().map_err(|e| unlisted(&e.description))?;
+    let found = stlink_ports(&ports);
+    match found.as_slice() {
+        [(name, what)] => Ok((name.into(), what.clone())),
+        [] => {
+            let names: Vec<&str> = ports.iter().map(|p| p.port_name.as_str()).collect();
+            let listed = if names.is_empty() { "none".to_string() } else { names.join(", ") };
+            Err(CliError(format!(
+                "no --port given, and no ST-LINK virtual COM port is plugged in (serial ports: {listed}): connect the \
+                 board's USB, or name its port with --port"
+            )))
+        }
+        several => {
+            let listed: Vec<String> = several.iter().map(|(name, what)| format!("{name} ({what})")).collect();
+            Err(CliError(format!(
+                "no --port given, and {} ST-LINK virtual COM ports are plugged in ({}): choose one with --port",
+                several.len(),
+                listed.join("; ")
+            )))
+        }
+    }
+}
+
 /// The board's serial port `path` at `baud`: [`SerialLink::open`].
 pub fn open_port(path: &std::path::Path, baud: u32) -> Result<Box<dyn Link>, CliError> {
     Ok(Box::new(SerialLink::open(path, baud)?))
@@ -511,6 +566,39 @@ impl Link for SerialLink {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_stlinks_ports_are_told_from_the_others() {
+        use serialport::{SerialPortInfo, SerialPortType, UsbPortInfo};
+        let usb = |name: &str, vid, pid, product: Option<&str>, serial: Option<&str>| SerialPortInfo {
+            port_name: name.into(),
+            port_type: SerialPortType::UsbPort(UsbPortInfo {
+                vid,
+                pid,
+                serial_number: serial.map(Into::into),
+                manufacturer: Some("STMicroelectronics".into()),
+                product: product.map(Into::into),
+            }),
+        };
+        let ports = [
+            SerialPortInfo { port_name: "/dev/ttyS0".into(), port_type: SerialPortType::Unknown },
+            // An STM32's own USB serial port, a USB-serial adapter: not ST-LINKs.
+            usb("/dev/ttyACM1", 0x0483, 0x5740, Some("STM32 Virtual ComPort"), None),
+            usb("/dev/ttyUSB0", 0x0403, 0x6001, Some("FT232R USB UART"), None),
+            // The Nucleo's ST-LINK/V3E; macOS lists it twice, the dial-in device left out.
+            usb("/dev/cu.usbmodem14203", 0x0483, 0x374E, Some("STLINK-V3"), Some("0026003B")),
+            usb("/dev/tty.usbmodem14203", 0x0483, 0x374E, Some("STLINK-V3"), Some("0026003B")),
+            usb("COM5", 0x0483, 0x374B, None, None),
+        ];
+        assert_eq!(
+            stlink_ports(&ports),
+            [
+                ("/dev/cu.usbmodem14203".to_string(), "STLINK-V3, serial 0026003B".to_string()),
+                ("COM5".to_string(), "ST-LINK".to_string())
+            ]
+        );
+        assert!(stlink_ports(&ports[..3]).is_empty());
+    }
 
     #[test]
     fn script_lines_are_read_as_documented() {
