@@ -26,7 +26,7 @@ enum Command {
         #[arg(long, default_value_t = 200.0, allow_negative_numbers = true)]
         duration: f64,
         /// Noise seed [default: 1 for prbs, 2 for triangle, as in the float64 reference; 3 for multisine].
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         seed: Option<u64>,
         /// Add piezo hysteresis (10 % of the drive through play operators up to 0.5 V wide).
         #[arg(long)]
@@ -156,7 +156,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Which recording of the capture, counting from 1.
-        #[arg(long, default_value_t = 1)]
+        #[arg(long, default_value_t = 1, allow_negative_numbers = true)]
         recording: usize,
         /// Keep what is intact of a damaged capture: skip damaged frames and write each gap-free run of samples to
         /// its own file, OUT with -1, -2, ... before the extension (without it, damage or a gap is an error).
@@ -183,7 +183,7 @@ enum Command {
         #[arg(long, value_name = "S", default_value_t = 2.0, allow_negative_numbers = true)]
         timeout: f64,
         /// The link's baud rate: the firmware's by default.
-        #[arg(long, default_value_t = 921_600)]
+        #[arg(long, default_value_t = 921_600, allow_negative_numbers = true)]
         baud: u32,
     },
 }

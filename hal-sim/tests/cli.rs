@@ -402,7 +402,12 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--amplitude", "-1", "--out", "x.csv"], "--amplitude -1: must be"),
         (&["simulate", "--scenario", "prbs", "--amplitude", "NaN", "--out", "x.csv"], "--amplitude NaN: must be"),
         (&["simulate", "--scenario", "prbs", "--amplitude", "big", "--out", "x.csv"], "big"),
-        (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "-1"),
+        // A negative number is the option's value, refused as such (not "unexpected argument '-1'").
+        (&["simulate", "--scenario", "prbs", "--seed", "-1", "--out", "x.csv"], "invalid value '-1' for '--seed"),
+        (
+            &["simulate", "--scenario", "prbs", "--noise-tail", "-3", "--out", "x.csv"],
+            "invalid value '-3' for '--noise-tail",
+        ),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
         (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),
         (&["simulate", "--scenario", "prbs", "--out", "."], "."),

@@ -516,6 +516,7 @@ fn the_console_on_a_pseudo_terminal_takes_send_as_the_board_does() {
         (&["--port", "/dev/null"][..], "nanopos-sim: --port /dev/null: not a serial port"),
         (&["--port", "nowhere"], "nanopos-sim: --port nowhere: cannot open: No such file or directory"),
         (&["--port", "board", "--baud", "12345"], "nanopos-sim: --baud 12345: expected one of 9600, 19200,"),
+        (&["--port", "board", "--baud", "-5"], "nanopos-sim: invalid value '-5' for '--baud <BAUD>'"),
         (&["--port", "board", "--timeout", "0"], "nanopos-sim: --timeout 0: expected seconds, 0.1 to 3600"),
         (&["--port", "board", "--input", "script.txt", "--capture", "script.txt"], "the same file as --input"),
     ] {

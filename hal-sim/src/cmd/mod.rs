@@ -235,7 +235,7 @@ pub struct Disturbances {
     pub noise_rms_nm: Option<f64>,
     /// Make the probe's noise heavier-tailed at the same RMS: Student's t with DOF degrees of freedom (3 to 100;
     /// the fewer, the heavier: 3 has outliers of 10 times the RMS) instead of Gaussian
-    #[arg(long = "noise-tail", value_name = "DOF")]
+    #[arg(long = "noise-tail", value_name = "DOF", allow_negative_numbers = true)]
     pub noise_tail_dof: Option<u32>,
 }
 
