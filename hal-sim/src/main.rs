@@ -383,8 +383,8 @@ fn run(cli: Cli, interrupted: Option<std::sync::Arc<std::sync::atomic::AtomicBoo
             if std::io::IsTerminal::is_terminal(&std::io::stdin()) {
                 eprintln!(
                     "nanopos-sim: the board's console on the simulated stage, 10 kHz; type commands (help lists \
-                     them; the README says what each does); Ctrl-D or Ctrl-C ends the session (a recording is stopped \
-                     and its end line sent; a second Ctrl-C quits at once)"
+                     them; the README says what each does); {END_OF_INPUT} or Ctrl-C ends the session (a recording is \
+                     stopped and its end line sent; a second Ctrl-C quits at once)"
                 );
             }
             let (mut link, mut log) = (std::io::stdout().lock(), std::io::stderr().lock());
@@ -433,6 +433,9 @@ fn console_on_pty(args: hal_sim::cmd::console::ConsoleArgs, path: &std::path::Pa
     }
 }
 
+/// What ends the input typed at a terminal.
+const END_OF_INPUT: &str = if cfg!(windows) { "Ctrl-Z then Enter" } else { "Ctrl-D" };
+
 /// `send`: the options checked, the files and the port opened, the session run.
 fn send(
     port: Option<PathBuf>,
@@ -466,8 +469,8 @@ fn send(
     let typed = input.is_none() && std::io::IsTerminal::is_terminal(&std::io::stdin());
     if typed {
         eprintln!(
-            "nanopos-sim: the lines typed go to the board on {}, each after the last one's verdict; Ctrl-D ends (a \
-             recording started is taken to its end)",
+            "nanopos-sim: the lines typed go to the board on {}, each after the last one's verdict; {END_OF_INPUT} \
+             ends (a recording started is taken to its end)",
             port.display()
         );
     }
