@@ -1,4 +1,4 @@
-//! `nanopos-sim send --port DEVICE [--input SCRIPT] [--capture FILE] [--timeout S] [--baud N]`: a script of console
+//! `nanopos-sim send [--port DEVICE] [--input SCRIPT] [--capture FILE] [--timeout S] [--baud N]`: a script of console
 //! lines to the board, each sent after the last one's verdict, and what the board sends back to standard output (or,
 //! for the recording's stream, to a capture file that `decode` reads).
 //!
@@ -30,8 +30,9 @@
 //! of a reply to someone else's command, or a recording left running, whose frames then go on without their header
 //! until a `record off`.
 //!
-//! The link is a [`Link`]: the serial port ([`SerialLink`]) on the command line, a channel to the simulated
-//! console in the tests.
+//! The link is a [`Link`]: the serial port ([`SerialLink`], the `serialport` crate's on Linux, macOS and Windows,
+//! held by this program alone while it runs) on the command line, a channel to the simulated console in the tests.
+//! Without `--port` it is the one ST-LINK virtual COM port plugged in ([`find_port`]).
 
 use super::{clip, io_reason, stdout_error, CliError};
 use nanopos_id::control::{parse, Command, Recording};
