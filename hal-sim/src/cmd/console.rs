@@ -208,6 +208,8 @@ pub struct Pty {
     _device: std::os::fd::OwnedFd,
     /// The symbolic link, removed when the session ends.
     path: std::path::PathBuf,
+    /// The pseudo-terminal's device, which `path` links to.
+    device: std::path::PathBuf,
 }
 
 #[cfg(unix)]
@@ -244,12 +246,12 @@ impl Pty {
         let device = nix::unistd::ttyname(&pty.slave).map_err(|e| fail("name the pseudo-terminal", e))?;
         std::os::unix::fs::symlink(&device, path)
             .map_err(|e| CliError(format!("--pty {shown}: cannot create: {}", super::io_reason(&e))))?;
-        Ok(Pty { master: std::fs::File::from(pty.master), _device: pty.slave, path: path.to_owned() })
+        Ok(Pty { master: std::fs::File::from(pty.master), _device: pty.slave, path: path.to_owned(), device })
     }
 
     /// The pseudo-terminal's device, which `path` links to.
-    pub fn device(&self) -> std::path::PathBuf {
-        std::fs::read_link(&self.path).unwrap_or_default()
+    pub fn device(&self) -> &std::path::Path {
+        &self.device
     }
 }
 

@@ -415,7 +415,8 @@ pub fn stdout_error(e: std::io::Error) -> CliError {
 
 /// What a path names, to tell whether two paths are one file however they are spelled: an existing file by its device
 /// and inode on Unix (the same through `..`, symbolic links and hard links), elsewhere by its canonical path (the
-/// same through `..` and symbolic links, not hard links), a file yet to be made by its directory's canonical path and its name.
+/// same through `..` and symbolic links, not hard links), a file yet to be made by its directory's canonical path and
+/// its name.
 #[derive(Debug, PartialEq)]
 enum FileId {
     #[cfg(unix)]

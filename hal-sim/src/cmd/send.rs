@@ -19,11 +19,11 @@
 //!
 //! A recording it started is taken to its end: at the script's end (or a refusal) a `record on` still running is
 //! stopped with `record off` (as `nanopos-sim console` does at its input's end), a burst runs to its last sample (a
-//! Ctrl-C stops either), and `send` waits for the recording's end line (`# nanopos-record end ...`) as long as the stream keeps
-//! coming. With `--capture FILE` every byte received goes to FILE as it arrives (kept whatever happens after: it is
-//! the board's data), and standard output has the rest: the lines sent (after `> `) and the replies, without the
-//! recording's lines; without it, standard output has everything (a line that does not end within 4 KiB, noise at the
-//! wrong baud rate, in pieces of that length).
+//! Ctrl-C stops either), and `send` waits for the recording's end line (`# nanopos-record end ...`) as long as the
+//! stream keeps coming. With `--capture FILE` every byte received goes to FILE as it arrives (kept whatever happens
+//! after: it is the board's data), and standard output has the rest: the lines sent (after `> `) and the replies,
+//! without the recording's lines; without it, standard output has everything (a line that does not end within 4 KiB,
+//! noise at the wrong baud rate, in pieces of that length).
 //!
 //! Before the first line `send` sends Ctrl-U, which clears whatever a terminal left typed on the board's line (the
 //! console answers nothing to it), and drops what arrives in the next 0.2 s, with a note when something did: the end
@@ -201,6 +201,14 @@ impl Stream<'_> {
         }
     }
 
+    /// Send `line` to the board, ended by `\n`; shown first after `> ` when `echo`.
+    fn send_line(&mut self, link: &mut dyn Link, line: &[u8], echo: bool) -> Result<(), CliError> {
+        if echo {
+            self.write_out(&[&b"> "[..], line, b"\n"].concat())?;
+        }
+        link.transmit(&[line, &b"\n"[..]].concat()).map_err(|e| link_write_error(link, e))
+    }
+
     /// What arrived of a line that never ended, to standard output, so that nothing received is lost from it.
     fn finish(&mut self) -> Result<(), CliError> {
         if !self.partial.is_empty() {
@@ -210,6 +218,11 @@ impl Stream<'_> {
         }
         self.out.flush().map_err(stdout_error)
     }
+}
+
+/// A failed write to `link`, as the messages say it.
+fn link_write_error(link: &dyn Link, e: std::io::Error) -> CliError {
+    CliError(format!("{}: cannot write: {}", link.name(), io_reason(&e)))
 }
 
 /// A script's line, as `send` takes it.
@@ -254,11 +267,9 @@ pub fn run<'a>(
     options: &SendOptions,
 ) -> Result<Sent, CliError> {
     let interrupted = || options.interrupted.as_ref().is_some_and(|i| i.load(Ordering::Relaxed));
-    let name = link.name();
-    let link_error = |e: std::io::Error| CliError(format!("{name}: cannot write: {}", io_reason(&e)));
     let mut sent = Sent::default();
     // What arrives before the first line is not a reply to the script: dropped, not shown.
-    link.transmit(&[CLEAR_LINE]).map_err(link_error)?;
+    link.transmit(&[CLEAR_LINE]).map_err(|e| link_write_error(link, e))?;
     let mut stale = Vec::new();
     let unended = {
         let mut settle = Stream { out: &mut stale, capture: None, partial: Vec::new(), recording: false };
@@ -315,10 +326,7 @@ pub fn run<'a>(
                 stream.pump(link, Until::Time(Instant::now() + d), &interrupted)?;
             }
             ScriptLine::Send(cmd) => {
-                if options.echo {
-                    stream.write_out(&[&b"> "[..], cmd, b"\n"].concat())?;
-                }
-                link.transmit(&[cmd, &b"\n"[..]].concat()).map_err(link_error)?;
+                stream.send_line(link, cmd, options.echo)?;
                 match stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)? {
                     Some(verdict) if verdict.starts_with("error:") => {
                         outcome = Err(CliError(format!(
@@ -357,10 +365,7 @@ pub fn run<'a>(
             stopped = true;
             let why = if record_on { "still running at the end" } else { "interrupted" };
             sent.notes.push(format!("the recording {why}: stopped with record off"));
-            if options.echo {
-                stream.write_out(b"> record off\n")?;
-            }
-            link.transmit(b"record off\n").map_err(link_error)?;
+            stream.send_line(link, b"record off", options.echo)?;
             // Its verdict, then the recording's last frames and end line (or they came first).
             stream.pump(link, Until::Verdict(Instant::now() + options.timeout), &|| false)?;
             continue;
