@@ -727,14 +727,13 @@ struct SubstepMap<T> {
     qb: [T; 2],
 }
 
-/// The state after the substeps taken so far, its sensitivities to `g0`, `g1` and `z4` (zero at the period's start),
-/// and `Psi`, the product of the maps' `P` (`None` before the first).
+/// The state after the substeps taken so far, and its sensitivities to `g0`, `g1` and `z4` (zero at the period's
+/// start).
 struct Track<T> {
     x: [T; 2],
     t0: [T; 2],
     t1: [T; 2],
     tb: [T; 2],
-    psi: Option<[T; 4]>,
 }
 
 /// `m v`, `m` 2 x 2 row-major.
@@ -759,7 +758,40 @@ impl<T: Real> SubstepMap<T> {
         s.t1 = core::array::from_fn(|i| pt1[i] + p1x[i] + self.q1[i]);
         s.tb = core::array::from_fn(|i| ptb[i] + self.qb[i]);
         s.x = core::array::from_fn(|i| px[i] + self.q[i]);
-        s.psi = Some(s.psi.map_or(self.p, |psi| mm2(&self.p, &psi)));
+    }
+
+    /// Take the map `n` times (at least once) on `s`; returns `s` and the `n`th power of `P`.
+    #[inline(always)]
+    fn take_times(&self, mut s: Track<T>, n: u32) -> (Track<T>, [T; 4]) {
+        for _ in 0..n {
+            self.take(&mut s);
+        }
+        let mut power = self.p;
+        for _ in 1..n {
+            power = mm2(&self.p, &power);
+        }
+        (s, power)
+    }
+
+    /// Take the map `n` times on `s`, squaring it while more than [`DIRECT_SUBSTEPS`] remain (for an odd count taken
+    /// once first); returns `s` and the `n`th power of `P`. Out of line and in RAM beside the RK4, its arguments by
+    /// value: the paper's 4 substeps never come here, and the hybrid filter's loop of them keeps its values in
+    /// registers as without it (with the squaring inline, or `&mut` arguments, they went to the stack: 30 to 60
+    /// instructions more a sample).
+    #[inline(never)]
+    #[cfg_attr(target_os = "none", link_section = ".ramtext.ekf_take_squaring")] // src/bin/nanopos-fw/ram_code.rs
+    fn take_squaring(mut self, mut s: Track<T>, mut n: u32) -> (Track<T>, [T; 4]) {
+        let mut odd: Option<[T; 4]> = None;
+        while n > DIRECT_SUBSTEPS {
+            if n % 2 == 1 {
+                self.take(&mut s);
+                odd = Some(odd.map_or(self.p, |power| mm2(&self.p, &power)));
+            }
+            n /= 2;
+            self = self.squared();
+        }
+        let (s, power) = self.take_times(s, n);
+        (s, odd.map_or(power, |odd| mm2(&power, &odd)))
     }
 
     /// The map taken twice: `P P`, `P q + q`, and the derivatives `dP P + P dP`, `dP q + P dq + dq`.
@@ -815,7 +847,9 @@ impl<T: Real> EkfCore<T> {
     ///
     /// (Horner's form of `R = I + h A + (h A)^2 / 2 + (h A)^3 / 6 + (h A)^4 / 24`). `R` and `S` are computed once per
     /// sample, with their derivatives along `g0` and `g1` carried alongside (forward differentiation), and the
-    /// `substeps` steps are taken on `x` and on its sensitivities to the parameters, `dx/dz2`, `dx/dz3`, `dx/dz4`.
+    /// `substeps` steps are taken on `x` and on its sensitivities to the parameters, `dx/dz2`, `dx/dz3`, `dx/dz4`: one
+    /// at a time up to [`DIRECT_SUBSTEPS`], above it as powers of the one step's map ([`SubstepMap`], squared), the
+    /// same in exact arithmetic.
     /// That gives the state RK4 gives, and `Phi = [[Psi, Sigma], [0, I]]`, the exact Jacobian of the RK4 map over
     /// the period (`Psi = R^substeps`, `Sigma` the sensitivities). The covariance is then propagated as the
     /// discrete EKF of that map propagates it:
@@ -836,8 +870,8 @@ impl<T: Real> EkfCore<T> {
     /// fourth-order, and per step they differ by 2e-4 of the covariance's scale `sqrt(P_ii P_jj)` at the start and
     /// 1.3e-6 once converged (`tests::the_prediction_matches_the_rk4_of_the_riccati_equation`); over 20 s of PRBS
     /// the estimates of the two differ by 4e-7 at most (`hal-sim/tests/ekf.rs`, against the dense peer, which keeps
-    /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 70 per substep, 150 for
-    /// `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4 computed by parts (QEMU:
+    /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 60 per substep (about 120 per
+    /// squaring above 4), 150 for `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4 computed by parts (QEMU:
     /// `hekf_f32` 2 638 -> 1 011 instructions, 1 014 with the veneer to the covariance bounds in RAM).
     #[inline]
     fn predict(&mut self, u: T) {
@@ -866,7 +900,7 @@ impl<T: Real> EkfCore<T> {
         let (sb, sb0, sb1) = ([s.0[1], s.0[3]], [s.1[1], s.1[3]], [s.2[1], s.2[3]]);
         // One substep as a map, `x -> R x + b S [0, 1]`, with its derivatives; squared while more than
         // `DIRECT_SUBSTEPS` remain (the substeps of each odd count taken first), then taken that many times.
-        let mut map = SubstepMap {
+        let map = SubstepMap {
             p: r,
             p0: r0,
             p1: r1,
@@ -875,21 +909,13 @@ impl<T: Real> EkfCore<T> {
             q1: sb1.map(|v| b * v),
             qb: sb.map(|v| db * v),
         };
-        let mut track = Track { x: [self.z[0], self.z[1]], t0: [zero; 2], t1: [zero; 2], tb: [zero; 2], psi: None };
-        let mut n = c.substeps;
-        while n > DIRECT_SUBSTEPS {
-            if n % 2 == 1 {
-                map.take(&mut track);
-            }
-            n /= 2;
-            map = map.squared();
-        }
-        for _ in 0..n {
-            map.take(&mut track);
-        }
-        let Track { x, t0, t1, tb, psi } = track;
-        // Psi = R^substeps (`substeps` is at least 1, so a map was taken).
-        let psi = psi.unwrap_or(r);
+        let track = Track { x: [self.z[0], self.z[1]], t0: [zero; 2], t1: [zero; 2], tb: [zero; 2] };
+        // Psi = R^substeps, the product of the maps' `P`.
+        let (Track { x, t0, t1, tb }, psi) = if c.substeps <= DIRECT_SUBSTEPS {
+            map.take_times(track, c.substeps)
+        } else {
+            map.take_squaring(track, c.substeps)
+        };
         self.z[0] = x[0];
         self.z[1] = x[1];
         // Sigma = dx/d[z2, z3, z4] (rows x1, x2).
