@@ -705,7 +705,7 @@ impl<T: Real> EkfConfig<T> {
 }
 
 /// The hybrid filter's substeps are taken one at a time while at most this many remain; above, the substep map is
-/// squared first ([`SubstepMap`]). Taking a map costs about 60 flops and squaring one about 120, so squaring pays
+/// squared first ([`SubstepMap`]). Taking a map costs about 60 flops and squaring one about 130, so squaring pays
 /// from 5 on; at the paper's 4 the prediction is the plain loop of substeps.
 const DIRECT_SUBSTEPS: u32 = 4;
 
@@ -714,10 +714,17 @@ const DIRECT_SUBSTEPS: u32 = 4;
 /// `g1`, and of `q` along `z4` (`P` does not depend on it). The parameters and `u` are constant over the period, so
 /// every substep is the same map, and maps of a power of two substeps come by squaring: 64 substeps take four
 /// squarings and four maps instead of 64 steps of the state and its sensitivities and 63 products for `Psi`.
+///
+/// `P` is held as its deviation from the identity, `D = P - I`, and the maps are taken as `x + (D x + q)`: a substep
+/// moves the state by a small part of itself (`h A`, 0.02 at 64 substeps of the paper's stage), which `P` itself,
+/// rounded near 1, would keep to a few of the working scalar's digits. In f32 with `P` whole, 64 substeps took
+/// `a1`'s means 1.1e-4 to 1.6e-4 from f64's, past SPEC 10's 1e-4 (the loop of substeps before the squaring, and the
+/// squaring, alike); with `D` 5e-7 (`hal-sim/tests/ekf.rs`,
+/// `hekf_with_many_substeps_is_the_same_filter_in_f64_and_f32`).
 #[derive(Clone, Copy)]
 struct SubstepMap<T> {
-    /// `P`, 2 x 2 row-major, and its derivatives along `g0` and `g1`.
-    p: [T; 4],
+    /// `D = P - I`, 2 x 2 row-major, and the derivatives of `P` along `g0` and `g1`.
+    d: [T; 4],
     p0: [T; 4],
     p1: [T; 4],
     /// `q` and its derivatives along `g0`, `g1` and `z4`.
@@ -749,73 +756,93 @@ fn mm2<T: Real>(a: &[T; 4], b: &[T; 4]) -> [T; 4] {
 }
 
 impl<T: Real> SubstepMap<T> {
-    /// Take the map: `x -> P x + q`, and each sensitivity `t -> P t + dP x + dq` (with the `x` before the map).
+    /// Take the map `n` times on `s` with `P` whole (`p`, `I + D` rounded), as the loop of substeps always did: the
+    /// paper's 4 substeps, where `P`'s rounding is within SPEC 10 (f32 within 2e-5 of f64) and `x + (D x + q)` would
+    /// cost two additions a vector a substep. Returns `s` and `P^n`.
     #[inline(always)]
-    fn take(&self, s: &mut Track<T>) {
-        let (pt0, pt1, ptb) = (mv2(&self.p, &s.t0), mv2(&self.p, &s.t1), mv2(&self.p, &s.tb));
-        let (p0x, p1x, px) = (mv2(&self.p0, &s.x), mv2(&self.p1, &s.x), mv2(&self.p, &s.x));
-        s.t0 = core::array::from_fn(|i| pt0[i] + p0x[i] + self.q0[i]);
-        s.t1 = core::array::from_fn(|i| pt1[i] + p1x[i] + self.q1[i]);
-        s.tb = core::array::from_fn(|i| ptb[i] + self.qb[i]);
-        s.x = core::array::from_fn(|i| px[i] + self.q[i]);
-    }
-
-    /// Take the map `n` times (at least once) on `s`; returns `s` and the `n`th power of `P`.
-    #[inline(always)]
-    fn take_times(&self, mut s: Track<T>, n: u32) -> (Track<T>, [T; 4]) {
+    fn take_whole(&self, p: &[T; 4], mut s: Track<T>, n: u32) -> (Track<T>, [T; 4]) {
         for _ in 0..n {
-            self.take(&mut s);
+            let (pt0, pt1, ptb) = (mv2(p, &s.t0), mv2(p, &s.t1), mv2(p, &s.tb));
+            let (p0x, p1x, px) = (mv2(&self.p0, &s.x), mv2(&self.p1, &s.x), mv2(p, &s.x));
+            s.t0 = core::array::from_fn(|i| pt0[i] + p0x[i] + self.q0[i]);
+            s.t1 = core::array::from_fn(|i| pt1[i] + p1x[i] + self.q1[i]);
+            s.tb = core::array::from_fn(|i| ptb[i] + self.qb[i]);
+            s.x = core::array::from_fn(|i| px[i] + self.q[i]);
         }
-        let mut power = self.p;
+        let mut power = *p;
         for _ in 1..n {
-            power = mm2(&self.p, &power);
+            power = mm2(p, &power);
         }
         (s, power)
     }
 
+    /// Take the map once on `s`: `x + (D x + q)`, and each sensitivity `t + (D t + dP x + dq)` (with the `x` before
+    /// the map).
+    #[inline(always)]
+    fn take(&self, s: &mut Track<T>) {
+        let (dt0, dt1, dtb) = (mv2(&self.d, &s.t0), mv2(&self.d, &s.t1), mv2(&self.d, &s.tb));
+        let (p0x, p1x, dx) = (mv2(&self.p0, &s.x), mv2(&self.p1, &s.x), mv2(&self.d, &s.x));
+        s.t0 = core::array::from_fn(|i| s.t0[i] + (dt0[i] + p0x[i] + self.q0[i]));
+        s.t1 = core::array::from_fn(|i| s.t1[i] + (dt1[i] + p1x[i] + self.q1[i]));
+        s.tb = core::array::from_fn(|i| s.tb[i] + (dtb[i] + self.qb[i]));
+        s.x = core::array::from_fn(|i| s.x[i] + (dx[i] + self.q[i]));
+    }
+
+    /// `(I + D) (I + B) - I = D + B + D B`: the deviation of this map's `P` times `I + B`.
+    #[inline(always)]
+    fn after(&self, b: &[T; 4]) -> [T; 4] {
+        let db = mm2(&self.d, b);
+        core::array::from_fn(|i| (self.d[i] + b[i]) + db[i])
+    }
+
+    /// The map taken twice, in terms of `D`: `P P - I = 2 D + D D`, `P q + q = 2 q + D q`, and the derivatives
+    /// `dP P + P dP = 2 dP + dP D + D dP`, `dP q + P dq + dq = 2 dq + dP q + D dq`.
+    #[inline(always)]
+    fn squared(&self) -> Self {
+        let (d, q) = (&self.d, &self.q);
+        let dp = |e: &[T; 4]| {
+            let (a, b) = (mm2(e, d), mm2(d, e));
+            core::array::from_fn(|i| (e[i] + e[i]) + (a[i] + b[i]))
+        };
+        let dq = |e: &[T; 4], f: &[T; 2]| {
+            let (a, b) = (mv2(e, q), mv2(d, f));
+            core::array::from_fn(|i| (f[i] + f[i]) + (a[i] + b[i]))
+        };
+        let (dd, dq0, dqb) = (mm2(d, d), mv2(d, q), mv2(d, &self.qb));
+        SubstepMap {
+            d: core::array::from_fn(|i| (d[i] + d[i]) + dd[i]),
+            p0: dp(&self.p0),
+            p1: dp(&self.p1),
+            q: core::array::from_fn(|i| (q[i] + q[i]) + dq0[i]),
+            q0: dq(&self.p0, &self.q0),
+            q1: dq(&self.p1, &self.q1),
+            qb: core::array::from_fn(|i| (self.qb[i] + self.qb[i]) + dqb[i]),
+        }
+    }
+
     /// Take the map `n` times on `s`, squaring it while more than [`DIRECT_SUBSTEPS`] remain (for an odd count taken
-    /// once first); returns `s` and the `n`th power of `P`. Out of line and in RAM beside the RK4, its arguments by
-    /// value: the paper's 4 substeps never come here, and the hybrid filter's loop of them keeps its values in
-    /// registers as without it (with the squaring inline, or `&mut` arguments, they went to the stack: 30 to 60
-    /// instructions more a sample).
+    /// once first); returns `s` and `P^n`. Out of line and in RAM beside the RK4, its arguments by value: the paper's
+    /// 4 substeps never come here, and the hybrid filter's loop of them keeps its values in registers as without it
+    /// (with the squaring inline, or `&mut` arguments, they went to the stack: 30 to 60 instructions more a sample).
     #[inline(never)]
     #[cfg_attr(target_os = "none", link_section = ".ramtext.ekf_take_squaring")] // src/bin/nanopos-fw/ram_code.rs
     fn take_squaring(mut self, mut s: Track<T>, mut n: u32) -> (Track<T>, [T; 4]) {
-        let mut odd: Option<[T; 4]> = None;
+        // `P^n - I` so far.
+        let mut power = [T::zero(); 4];
         while n > DIRECT_SUBSTEPS {
             if n % 2 == 1 {
                 self.take(&mut s);
-                odd = Some(odd.map_or(self.p, |power| mm2(&self.p, &power)));
+                power = self.after(&power);
             }
             n /= 2;
             self = self.squared();
         }
-        let (s, power) = self.take_times(s, n);
-        (s, odd.map_or(power, |odd| mm2(&power, &odd)))
-    }
-
-    /// The map taken twice: `P P`, `P q + q`, and the derivatives `dP P + P dP`, `dP q + P dq + dq`.
-    #[inline(always)]
-    fn squared(&self) -> Self {
-        let (p, q) = (&self.p, &self.q);
-        let dp = |d: &[T; 4]| {
-            let (a, b) = (mm2(d, p), mm2(p, d));
-            core::array::from_fn(|i| a[i] + b[i])
-        };
-        let dq = |d: &[T; 4], e: &[T; 2]| {
-            let (a, b) = (mv2(d, q), mv2(p, e));
-            core::array::from_fn(|i| a[i] + b[i] + e[i])
-        };
-        let (pq, pqb) = (mv2(p, q), mv2(p, &self.qb));
-        SubstepMap {
-            p: mm2(p, p),
-            p0: dp(&self.p0),
-            p1: dp(&self.p1),
-            q: core::array::from_fn(|i| pq[i] + q[i]),
-            q0: dq(&self.p0, &self.q0),
-            q1: dq(&self.p1, &self.q1),
-            qb: core::array::from_fn(|i| pqb[i] + self.qb[i]),
+        for _ in 0..n {
+            self.take(&mut s);
+            power = self.after(&power);
         }
+        let one = T::one();
+        (s, [one + power[0], power[1], power[2], one + power[3]])
     }
 }
 
@@ -870,9 +897,10 @@ impl<T: Real> EkfCore<T> {
     /// fourth-order, and per step they differ by 2e-4 of the covariance's scale `sqrt(P_ii P_jj)` at the start and
     /// 1.3e-6 once converged (`tests::the_prediction_matches_the_rk4_of_the_riccati_equation`); over 20 s of PRBS
     /// the estimates of the two differ by 4e-7 at most (`hal-sim/tests/ekf.rs`, against the dense peer, which keeps
-    /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 60 per substep (about 120 per
-    /// squaring above 4), 150 for `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4 computed by parts (QEMU:
-    /// `hekf_f32` 2 638 -> 1 011 instructions, 1 014 with the veneer to the covariance bounds in RAM).
+    /// the Riccati RK4). Cost: about 130 flops for `R`, `S` and their derivatives, 60 per substep (about 130 per
+    /// squaring above 4), 150 for `Phi P Phi' + Qd`: about 560 a sample, against about 1 600 for the Riccati RK4
+    /// computed by parts (QEMU: `hekf_f32` 2 638 -> 1 011 instructions, 1 014 with the veneer to the covariance
+    /// bounds in RAM).
     #[inline]
     fn predict(&mut self, u: T) {
         let c = &self.cfg;
@@ -901,7 +929,7 @@ impl<T: Real> EkfCore<T> {
         // One substep as a map, `x -> R x + b S [0, 1]`, with its derivatives; squared while more than
         // `DIRECT_SUBSTEPS` remain (the substeps of each odd count taken first), then taken that many times.
         let map = SubstepMap {
-            p: r,
+            d: [zero; 4],
             p0: r0,
             p1: r1,
             q: sb.map(|v| b * v),
@@ -912,9 +940,10 @@ impl<T: Real> EkfCore<T> {
         let track = Track { x: [self.z[0], self.z[1]], t0: [zero; 2], t1: [zero; 2], tb: [zero; 2] };
         // Psi = R^substeps, the product of the maps' `P`.
         let (Track { x, t0, t1, tb }, psi) = if c.substeps <= DIRECT_SUBSTEPS {
-            map.take_times(track, c.substeps)
+            map.take_whole(&r, track, c.substeps)
         } else {
-            map.take_squaring(track, c.substeps)
+            // `D = R - I = A S` (`R`'s last Horner step without its `I`: the same products, not rounded near 1).
+            SubstepMap { d: a_mul(&s.0), ..map }.take_squaring(track, c.substeps)
         };
         self.z[0] = x[0];
         self.z[1] = x[1];

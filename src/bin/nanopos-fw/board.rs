@@ -20,9 +20,9 @@
 //! LPUART1 is wired to the ST-LINK's virtual COM port on the Nucleo (solder bridges SB12/SB13 closed as shipped):
 //! the run-time commands and the recording stream use it at 921 600 baud, which continuous recording needs (575
 //! kbit/s). The UART's 8-byte FIFOs carry it through the sample interrupt (about 35 us, up to about 50 us on the
-//! sample that applies a command's change; about 75 us with `tune ekf substeps 64`, the heaviest configuration:
-//! under the 87 us a FIFO lasts at this rate, the last near it, and a byte lost is a receive error, whose line is
-//! refused). A status snapshot (about 10 us with the interrupts off) is not added to it: the tasks take the lock
+//! sample that applies a command's change, and with `tune ekf substeps 64`, the heaviest configuration, whose 75 us
+//! came near the limit until its substeps were squared: under the 87 us a FIFO lasts at this rate, and a byte lost
+//! is a receive error, whose line is refused). A status snapshot (about 10 us with the interrupts off) is not added to it: the tasks take the lock
 //! only where it ends before the next sample ([`clear_of_sample`]), and after a sample the UART's interrupt runs
 //! before them. The independent watchdog (IWDG, LSI 32 kHz) resets the board 0.5 s after its last feed.
 //!
