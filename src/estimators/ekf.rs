@@ -1422,6 +1422,18 @@ mod tests {
         (core.z, core.p)
     }
 
+    /// `z` is `reference` within `tolerance` of `1 + |reference|` in every value.
+    fn assert_same_state(z: &[f64; 5], reference: &[f64; 5], tolerance: f64, what: &str) {
+        for i in 0..5 {
+            assert!(
+                (z[i] - reference[i]).abs() <= tolerance * (1.0 + reference[i].abs()),
+                "{what}: z{i} {} against {}",
+                z[i],
+                reference[i]
+            );
+        }
+    }
+
     /// The largest difference of two covariances entry by entry, relative to the correlation scale
     /// `sqrt(P_ii P_jj)` of `reference`.
     fn worst_difference(p: &[f64; 15], reference: &[f64; 15]) -> (f64, (usize, usize)) {
@@ -1463,14 +1475,7 @@ mod tests {
                 let (z, p) = predict_by_riccati_rk4(&before, u);
                 let mut new = before;
                 new.predict(u);
-                for i in 0..5 {
-                    assert!(
-                        (new.z[i] - z[i]).abs() <= 1e-15 * (1.0 + z[i].abs()),
-                        "{seconds} s: z{i} {} against {}",
-                        new.z[i],
-                        z[i]
-                    );
-                }
+                assert_same_state(&new.z, &z, 1e-15, &format!("{seconds} s"));
                 let (worst, (i, j)) = worst_difference(&new.p, &p);
                 assert!(
                     worst < bound,
@@ -1500,14 +1505,7 @@ mod tests {
             let (z, _) = predict_by_riccati_rk4(&before, u);
             let mut new = before;
             new.predict(u);
-            for i in 0..5 {
-                assert!(
-                    (new.z[i] - z[i]).abs() <= 1e-13 * (1.0 + z[i].abs()),
-                    "{substeps} substeps: z{i} {} against {}",
-                    new.z[i],
-                    z[i]
-                );
-            }
+            assert_same_state(&new.z, &z, 1e-13, &format!("{substeps} substeps"));
             (before.cfg.q_period, before.cfg.q_xt, before.cfg.q_xx) = ([0.0; 5], [[0.0; 3]; 2], [[0.0; 3]; 3]);
             let derivative = |k: usize| {
                 let eps = 1e-6 * before.z[k].abs().max(1.0);
