@@ -13,7 +13,7 @@
 //! | `ekf q` | diag `Q` for `[x1, x2, a0, a1, b0]`; also sets `p0` to `10 Q` (SPEC 6.4), which `ekf p0` then overrides | positive |
 //! | `ekf p0` | diag `P(0)` | positive |
 //! | `ekf r` | measurement noise, um^2 | positive |
-//! | `ekf substeps` | the hybrid filter's prediction substeps (up to 4 about 68 instructions each on the M4F, above 4 taken by squaring: 64 cost about 1 050 more than 4, and the board's interrupt takes up to about 6 600 there, BENCHMARKS.md) | whole, 1 to 64 |
+//! | `ekf substeps` | the hybrid filter's prediction substeps (up to 4 about 68 instructions each on the M4F, above 4 taken by squaring: 64 cost about 1 070 more than 4, and the board's interrupt takes up to about 6 600 there, BENCHMARKS.md) | whole, 1 to 64 |
 //! | `ekf gate_sigma` | innovation gate, relative to the running level | positive |
 //! | `ekf change_samples` | gated samples in a row that mean a change (0: off, gating off too) | whole, 0 or more |
 //! | `ekf drift_ratio` | short- over long-run `nu^2/S` that means a gentle change | 0 (off) or at least 1 |
