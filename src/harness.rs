@@ -6,15 +6,15 @@
 //! [`Vectors`] file. The harness embeds that file, replays the probe codes through the same [`Workload`] on the
 //! Cortex-M4F and compares: every DAC code, and the final estimates bit for bit.
 //!
-//! File layout (little-endian): magic `NPV3`, `u32` sample count, the [`BoardDescription`] (`u8` bits, `f64` full
+//! File layout (little-endian): magic `NPV4`, `u32` sample count, the [`BoardDescription`] (`u8` bits, `f64` full
 //! scale and `u32` largest code of the probe, the same of the amplifier, two `f64` of the DAC's swing, `u8` actuation
 //! delay), the [`Results`], then per sample the `u32` probe code and the `u32` DAC code. (`NPV1`, before the swing,
-//! and `NPV2`, before the largest code, are refused.)
+//! `NPV2`, before the largest code, and `NPV3`, before the hybrid filter at 7 substeps, are refused.)
 
 use crate::estimator::{Estimator, FilteredSample};
 use crate::estimators::arx::{ArxConfig, ArxDesign, ArxEstimator, ArxRls};
 use crate::estimators::ekf::dense::DenseHekf;
-use crate::estimators::ekf::EkfDesign;
+use crate::estimators::ekf::{EkfDesign, Hekf};
 use crate::fixed::Q32;
 use crate::hal::{BoardDescription, ConverterFormat};
 use crate::pipeline::{Pipeline, PipelineConfig, PipelineSettings, SampleOutput, SettingsError};
@@ -34,6 +34,8 @@ pub struct Results {
     pub hekf: [u32; 3],
     /// Dense hybrid EKF (nalgebra).
     pub hekf_dense: [u32; 3],
+    /// Hybrid EKF with [`SQUARED_SUBSTEPS`] substeps: its substep map squared, an odd count's map taken first.
+    pub hekf_squared: [u32; 3],
     /// ARX RLS in f32.
     pub arx: [u32; 3],
     /// ARX RLS in Q31.32: the raw deviations of `[A1, A2, B1, B2]`.
@@ -48,11 +50,11 @@ fn bits(p: StageParams<f32>) -> [u32; 3] {
 
 impl Results {
     /// Serialised size.
-    pub const BYTES: usize = 5 * 3 * 4 + 4 * 8 + 8;
+    pub const BYTES: usize = 6 * 3 * 4 + 4 * 8 + 8;
 
     fn write(&self, out: &mut [u8; Self::BYTES]) {
         let mut w = Writer { buf: out, at: 0 };
-        for p in [self.crls, self.cekf, self.hekf, self.hekf_dense, self.arx] {
+        for p in [self.crls, self.cekf, self.hekf, self.hekf_dense, self.hekf_squared, self.arx] {
             p.iter().for_each(|x| w.put(&x.to_le_bytes()));
         }
         self.arx_fixed.iter().for_each(|x| w.put(&x.to_le_bytes()));
@@ -61,9 +63,10 @@ impl Results {
 
     fn read(r: &mut Reader) -> Option<Self> {
         let mut three = || Some([r.u32()?, r.u32()?, r.u32()?]);
-        let (crls, cekf, hekf, hekf_dense, arx) = (three()?, three()?, three()?, three()?, three()?);
+        let (crls, cekf, hekf, hekf_dense) = (three()?, three()?, three()?, three()?);
+        let (hekf_squared, arx) = (three()?, three()?);
         let arx_fixed = [r.i64()?, r.i64()?, r.i64()?, r.i64()?];
-        Some(Results { crls, cekf, hekf, hekf_dense, arx, arx_fixed, dac_code_sum: r.u64()? })
+        Some(Results { crls, cekf, hekf, hekf_dense, hekf_squared, arx, arx_fixed, dac_code_sum: r.u64()? })
     }
 }
 
@@ -82,8 +85,14 @@ pub struct Workload {
     pub arx_fixed_cfg: ArxConfig<Q32>,
     /// The dense hybrid EKF.
     pub hekf_dense: DenseHekf<f32>,
+    /// The hybrid EKF with [`SQUARED_SUBSTEPS`] substeps.
+    pub hekf_squared: Hekf<f32>,
     dac_code_sum: u64,
 }
+
+/// The substeps of [`Workload::hekf_squared`]: more than the 4 taken one at a time, so that its substep map is squared
+/// (`estimators::ekf`), and odd, so that a map is taken before the squaring too: every branch of it.
+pub const SQUARED_SUBSTEPS: u32 = 7;
 
 impl Workload {
     /// Every estimator at its defaults, the pipeline at its default settings for `board`.
@@ -96,6 +105,7 @@ impl Workload {
             arx_fixed: ArxRls::new(&arx_fixed_cfg),
             arx_fixed_cfg,
             hekf_dense: DenseHekf::new(EkfDesign::default().design()),
+            hekf_squared: Hekf::new(EkfDesign { substeps: SQUARED_SUBSTEPS, ..EkfDesign::default() }.design()),
             cfg,
             dac_code_sum: 0,
         })
@@ -122,6 +132,7 @@ impl Workload {
         let (u, y) = (Q32::of(f64::from(s.u_f.value)), Q32::of(f64::from(s.y_f.value)));
         self.arx_fixed.update(&self.arx_fixed_cfg, u, y, true);
         self.hekf_dense.update(s.u_f.value, s.y_f.value);
+        self.hekf_squared.update(s);
     }
 
     /// The final estimates.
@@ -132,6 +143,7 @@ impl Workload {
             cekf: bits(cekf.params()),
             hekf: bits(hekf.params()),
             hekf_dense: bits(self.hekf_dense.params()),
+            hekf_squared: bits(self.hekf_squared.params()),
             arx: bits(self.arx.params()),
             arx_fixed: self.arx_fixed.rls().theta().map(|q| q.0),
             dac_code_sum: self.dac_code_sum,
@@ -152,13 +164,13 @@ pub struct Vectors<'a> {
 /// Why a vectors file was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum VectorsError {
-    /// It does not start with `NPV3`.
+    /// It does not start with `NPV4`.
     Magic,
     /// It ends before its header says.
     Truncated,
 }
 
-const MAGIC: &[u8; 4] = b"NPV3";
+const MAGIC: &[u8; 4] = b"NPV4";
 const HEADER: usize = 4 + 4 + 2 * (1 + 8 + 4) + 2 * 8 + 1;
 
 impl<'a> Vectors<'a> {
@@ -274,8 +286,13 @@ mod tests {
             amplifier_swing_v: [0.2, 3.1],
             actuation_delay_samples: 1,
         };
-        let expected =
-            Results { crls: [1, 2, 3], arx_fixed: [-5, 6, 7, i64::MIN], dac_code_sum: 99, ..Default::default() };
+        let expected = Results {
+            crls: [1, 2, 3],
+            hekf_squared: [4, 5, 6],
+            arx_fixed: [-5, 6, 7, i64::MIN],
+            dac_code_sum: 99,
+            ..Default::default()
+        };
         let samples = [(1u32, 2u32), (40_000, 4095)];
         let mut bytes = std::vec::Vec::new();
         Vectors::write(&board, &expected, &samples, |b| bytes.extend_from_slice(b));
@@ -287,6 +304,8 @@ mod tests {
         let mut old = bytes.clone();
         old[..4].copy_from_slice(b"NPV2");
         assert_eq!(Vectors::parse(&old).unwrap_err(), VectorsError::Magic, "the format before the largest code");
+        old[..4].copy_from_slice(b"NPV3");
+        assert_eq!(Vectors::parse(&old).unwrap_err(), VectorsError::Magic, "the format before 7 substeps");
         assert_eq!(Vectors::parse(&bytes[..10]).unwrap_err(), VectorsError::Truncated);
     }
 }

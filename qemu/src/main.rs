@@ -364,6 +364,7 @@ fn compare_results(got: &Results, expected: &Results) -> bool {
         compare("cekf_f32 [a0, a1, b0]", &got.cekf, &expected.cekf),
         compare("hekf_f32 [a0, a1, b0]", &got.hekf, &expected.hekf),
         compare("hekf_dense_f32 [a0, a1, b0]", &got.hekf_dense, &expected.hekf_dense),
+        compare("hekf_f32, 7 substeps [a0, a1, b0]", &got.hekf_squared, &expected.hekf_squared),
         compare("arx_rls_f32 [a0, a1, b0]", &got.arx, &expected.arx),
         compare("arx_rls_fixed theta (i64 halves)", &fixed(got), &fixed(expected)),
         compare("DAC code sum", &sums(got), &sums(expected)),
