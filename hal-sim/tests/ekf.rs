@@ -84,15 +84,15 @@ fn hekf_f32_stays_with_f64_on_the_reference_prbs_data() {
 /// substeps) and 1.6e-4 (the squaring).
 #[test]
 fn hekf_with_many_substeps_is_the_same_filter_in_f64_and_f32() {
-    let run = |substeps| {
-        let design = HekfDesign { substeps, ..HekfDesign::default() };
-        let h64 = on_reference_data::<f64, _>(Hekf::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
-        let h32 = on_reference_data::<f32, _>(Hekf::<f32>::new(design.design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
-        (h64, h32)
+    let design = |substeps| HekfDesign { substeps, ..HekfDesign::default() };
+    let run64 = |substeps| {
+        on_reference_data::<f64, _>(Hekf::new(design(substeps).design()), ExcitationDesign::PAPER_PRBS, 1, 20.0)
     };
-    let (four, _) = run(4);
+    let four = run64(4);
     for substeps in [7, 64] {
-        let (h64, h32) = run(substeps);
+        let h64 = run64(substeps);
+        let h32 =
+            on_reference_data::<f32, _>(Hekf::new(design(substeps).design()), ExcitationDesign::PAPER_PRBS, 1, 20.0);
         for (t0, t1, truth) in [(15.0, 20.0, StageParams::PAYLOAD), (35.0, 40.0, StageParams::NO_PAYLOAD)] {
             let e4 = window_rel_errors(&four, t0, t1, &truth);
             let (e64, e32) = (window_rel_errors(&h64, t0, t1, &truth), window_rel_errors(&h32, t0, t1, &truth));

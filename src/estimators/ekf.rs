@@ -721,7 +721,6 @@ const DIRECT_SUBSTEPS: u32 = 4;
 /// `a1`'s means 1.1e-4 to 1.6e-4 from f64's, past SPEC 10's 1e-4 (the loop of substeps before the squaring, and the
 /// squaring, alike); with `D` 5e-7 (`hal-sim/tests/ekf.rs`,
 /// `hekf_with_many_substeps_is_the_same_filter_in_f64_and_f32`).
-#[derive(Clone, Copy)]
 struct SubstepMap<T> {
     /// `D = P - I`, 2 x 2 row-major, and the derivatives of `P` along `g0` and `g1`.
     d: [T; 4],
