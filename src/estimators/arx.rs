@@ -388,6 +388,64 @@ mod tests {
         assert_ne!(theta(&arx), before);
     }
 
+    /// The parameters' covariance is the RLS's covariance of the ARX coefficients carried through the conversion to
+    /// the stage to first order, `J F J'` with rows and columns in the order `(a0, a1, b0)`: checked here against a
+    /// Jacobian of [`ArxRls::stage_f64`] (the f64 conversion) taken with a tenth of the step, after a run on the
+    /// ZOH-sampled stage with a random input and a little noise has made every entry of `F` non-zero.
+    #[test]
+    fn the_parameters_covariance_is_the_coefficients_covariance_carried_through_the_conversion() {
+        use crate::estimator::PeLevel;
+        use crate::filters::prefilter::Prefiltered;
+        let p = StageParams::PAYLOAD;
+        let (phi, psi) = zoh(&[[0.0, 1.0], [-p.a0, -p.a1]], 1e-4);
+        let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
+        let mut next = crate::xorshift64(0xA2C0_5EED);
+        let mut x = [0.0f64; 2];
+        for _ in 0..5_000 {
+            let u = if next() % 2 == 0 { 1.0 } else { -1.0 };
+            let y = x[0] + 1e-3 * (next() as f64 / u64::MAX as f64 - 0.5);
+            let f = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
+            arx.update(&FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: 1.0, single: false } });
+            x = [
+                phi[0][0] * x[0] + phi[0][1] * x[1] + psi[0][1] * p.b0 * u,
+                phi[1][0] * x[0] + phi[1][1] * x[1] + psi[1][1] * p.b0 * u,
+            ];
+        }
+        let f = arx.core.rls().covariance();
+        assert!(f.iter().flatten().all(|v| *v != 0.0), "{f:?}");
+        let theta = *arx.core.rls().theta();
+        // Column k of J: the stage's (a0, a1, b0) along the coefficient k.
+        let column = |k: usize| {
+            let h = 1e-4 * f[k][k].sqrt();
+            let at = |step: f64| {
+                let mut core = arx.core.clone();
+                let mut d = theta;
+                d[k] += step;
+                core.rls.set_theta(d);
+                core.stage_f64(&arx.cfg).expect("a stage near the estimate")
+            };
+            let (plus, minus) = (at(h), at(-h));
+            [plus.a0 - minus.a0, plus.a1 - minus.a1, plus.b0 - minus.b0].map(|d| d / (2.0 * h))
+        };
+        let j: [[f64; 3]; 4] = core::array::from_fn(column);
+        let want = |r: usize, c: usize| -> f64 {
+            (0..4).map(|k| (0..4).map(|l| j[k][r] * f[k][l] * j[l][c]).sum::<f64>()).sum()
+        };
+        let got = arx.param_covariance();
+        for r in 0..3 {
+            for c in 0..3 {
+                let scale = (want(r, r) * want(c, c)).sqrt();
+                assert!(scale > 0.0);
+                assert!(
+                    (got[r][c] - want(r, c)).abs() <= 1e-5 * scale,
+                    "C[{r}][{c}] {} against {}",
+                    got[r][c],
+                    want(r, c)
+                );
+            }
+        }
+    }
+
     #[test]
     fn zoh_arx_round_trips_to_the_stage() {
         for p in [StageParams::PAYLOAD, StageParams::NO_PAYLOAD, StageParams::INITIAL] {
