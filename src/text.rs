@@ -326,5 +326,10 @@ mod tests {
         assert!(b.truncated());
         b.clear();
         assert!(write!(b, "ok").is_ok() && b.as_str() == "ok");
+        // A cut that falls inside a character backs off to its start: the text stays UTF-8 (`as_str` would give "").
+        b.clear();
+        assert!(write!(b, "ok ").is_ok());
+        assert!(b.write_str("abcdefgh\u{b5}m and more").is_err());
+        assert_eq!(b.as_str(), "ok abcdefgh...\n");
     }
 }
