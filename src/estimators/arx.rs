@@ -418,7 +418,7 @@ mod tests {
         let column = |k: usize| {
             let h = 1e-4 * f[k][k].sqrt();
             let at = |step: f64| {
-                let mut core = arx.core.clone();
+                let mut core = arx.core;
                 let mut d = theta;
                 d[k] += step;
                 core.rls.set_theta(d);
@@ -432,16 +432,11 @@ mod tests {
             (0..4).map(|k| (0..4).map(|l| j[k][r] * f[k][l] * j[l][c]).sum::<f64>()).sum()
         };
         let got = arx.param_covariance();
-        for r in 0..3 {
-            for c in 0..3 {
+        for (r, row) in got.iter().enumerate() {
+            for (c, v) in row.iter().enumerate() {
                 let scale = (want(r, r) * want(c, c)).sqrt();
                 assert!(scale > 0.0);
-                assert!(
-                    (got[r][c] - want(r, c)).abs() <= 1e-5 * scale,
-                    "C[{r}][{c}] {} against {}",
-                    got[r][c],
-                    want(r, c)
-                );
+                assert!((v - want(r, c)).abs() <= 1e-5 * scale, "C[{r}][{c}] {v} against {}", want(r, c));
             }
         }
     }
