@@ -180,6 +180,14 @@ impl Reader {
                 r.shown
             )));
         }
+        if is_blank(&r.carry[..header_end]) {
+            // Rows follow a blank first line (an empty file was told above): where the header should be.
+            return Err(CliError(format!(
+                "{}:1: blank, and rows follow: the first line must be the header, naming {}",
+                r.shown,
+                names.join(",")
+            )));
+        }
         let header = std::str::from_utf8(&r.carry[..header_end])
             .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
         // A spreadsheet's UTF-8 export starts with a byte-order mark, which would otherwise be part of the first name.
@@ -726,6 +734,22 @@ mod tests {
         let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
         assert!(e.0.ends_with("blank.csv: empty file (a header line naming u is needed)"), "{}", e.0);
         assert_eq!(read("t,u\n\"0\",\"1\"\n\"0.5\",\"2\"\n"), Some(0.5), "quoted");
+    }
+
+    /// Blank lines before anything else, beyond one read (64 KiB) too: an empty file if nothing follows; otherwise
+    /// the first line is where the header should be, and the message says so (it had said "no column 'u' in the
+    /// header (found: )").
+    #[test]
+    fn blank_lines_beyond_one_read_make_an_empty_file_or_a_blank_header() {
+        let blank = "\n".repeat(200_000);
+        let e = Reader::open(&file("blanks.csv", &blank), &["u"], &[], Time::Required).err().unwrap();
+        assert!(e.0.ends_with("blanks.csv: empty file (a header line naming u is needed)"), "{}", e.0);
+        for (name, before) in [("late.csv", blank.as_str()), ("one.csv", "\n"), ("spaces.csv", "  \r\n")] {
+            let e =
+                Reader::open(&file(name, &format!("{before}t,u\n0,1\n")), &["u"], &[], Time::Required).err().unwrap();
+            let want = format!("{name}:1: blank, and rows follow: the first line must be the header, naming u");
+            assert!(e.0.ends_with(&want), "{}", e.0);
+        }
     }
 
     /// What a spreadsheet writes reads as the plain file does: a byte-order mark before the header, quoted names and
