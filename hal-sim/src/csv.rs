@@ -161,31 +161,26 @@ impl Reader {
             r.fill(1 << 16)?;
         };
         if is_blank(&r.carry[..header_end]) {
-            // Blank: an empty file, unless rows follow (then the missing columns are named below).
+            // Blank: an empty file, unless rows follow; then the first line is where the header should be.
             while !r.eof && is_blank(&r.carry) {
                 r.fill(1 << 16)?;
             }
-            if is_blank(&r.carry) {
-                return Err(CliError(format!(
-                    "{}: empty file (a header line naming {} is needed)",
+            let message = if is_blank(&r.carry) {
+                format!("{}: empty file (a header line naming {} is needed)", r.shown, names.join(","))
+            } else {
+                format!(
+                    "{}:1: blank, and rows follow: the first line must be the header, naming {}",
                     r.shown,
                     names.join(",")
-                )));
-            }
+                )
+            };
+            return Err(CliError(message));
         }
         if utf16(&r.carry) {
             return Err(CliError(format!(
                 "{}: UTF-16 text (its first bytes say so: Excel's \"Unicode text\" and a redirection in Windows \
                  PowerShell write it): save it as CSV in UTF-8 or ASCII",
                 r.shown
-            )));
-        }
-        if is_blank(&r.carry[..header_end]) {
-            // Rows follow a blank first line (an empty file was told above): where the header should be.
-            return Err(CliError(format!(
-                "{}:1: blank, and rows follow: the first line must be the header, naming {}",
-                r.shown,
-                names.join(",")
             )));
         }
         let header = std::str::from_utf8(&r.carry[..header_end])
