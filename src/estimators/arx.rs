@@ -354,6 +354,11 @@ impl<T: Real> Estimator<T> for ArxEstimator<T> {
 mod tests {
     use super::*;
 
+    /// One sample of the stage `x' = A x + [0, b0 u]` with `u` held, from its ZOH matrices `(phi, psi)` ([`zoh`]).
+    fn zoh_step(phi: &[[f64; 2]; 2], psi: &[[f64; 2]; 2], b0: f64, x: [f64; 2], u: f64) -> [f64; 2] {
+        [0, 1].map(|i| phi[i][0] * x[0] + phi[i][1] * x[1] + psi[i][1] * b0 * u)
+    }
+
     /// After a start, a reset or a resume the ARX shifts two samples into its history before it adapts: the
     /// regression of the third is the first whose history is the signals'.
     #[test]
@@ -406,10 +411,7 @@ mod tests {
             let y = x[0] + 1e-3 * (next() as f64 / u64::MAX as f64 - 0.5);
             let f = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
             arx.update(&FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: 1.0, single: false } });
-            x = [
-                phi[0][0] * x[0] + phi[0][1] * x[1] + psi[0][1] * p.b0 * u,
-                phi[1][0] * x[0] + phi[1][1] * x[1] + psi[1][1] * p.b0 * u,
-            ];
+            x = zoh_step(&phi, &psi, p.b0, x, u);
         }
         let f = arx.core.rls().covariance();
         assert!(f.iter().flatten().all(|v| *v != 0.0), "{f:?}");
@@ -467,10 +469,7 @@ mod tests {
                 let pred = c[0] * y[0] + c[1] * y[1] + c[2] * u[0] + c[3] * u[1];
                 assert!((pred - yk).abs() < 1e-12, "k = {k}");
             }
-            x = [
-                phi[0][0] * x[0] + phi[0][1] * x[1] + psi[0][1] * p.b0 * uk,
-                phi[1][0] * x[0] + phi[1][1] * x[1] + psi[1][1] * p.b0 * uk,
-            ];
+            x = zoh_step(&phi, &psi, p.b0, x, uk);
             y = [yk, y[0], y[1]];
             u = [uk, u[0], u[1]];
         }
