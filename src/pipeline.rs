@@ -36,7 +36,7 @@ use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::spike::{SpikeBound, SpikeGate};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign};
-use crate::hal::{BoardDescription, BoardFaults};
+use crate::hal::{BoardDescription, BoardFaults, ConverterFormat};
 use crate::scalar::{fmax, fmin};
 use crate::Real;
 
@@ -76,6 +76,12 @@ impl AmplifierFrontEnd {
     /// The command, V, that a DAC output of `dac_v` gives at the amplifier's input.
     pub fn command_v(&self, dac_v: f64) -> f64 {
         (dac_v - self.dac_offset_v) / self.dac_v_per_command_v
+    }
+
+    /// Command, V, to the unrounded code of DAC `dac`, in `T`: `(u * gain + offset) / (V/code)`.
+    fn to_code<T: Real>(&self, dac: &ConverterFormat) -> Affine<T> {
+        let vpc_out = dac.volts_per_code();
+        Affine { scale: T::of(self.dac_v_per_command_v / vpc_out), offset: T::of(self.dac_offset_v / vpc_out) }
     }
 }
 
@@ -396,6 +402,14 @@ impl PipelineSettings {
         Some(self.limits.within(self.dac_reach(board)?.1))
     }
 
+    /// The DAC code of the safe output, in `T`: [`PipelineConfig::safe_code`] of [`Self::design`]'s configuration,
+    /// without the design (which takes milliseconds on the board's reset clock), for the start-up to put the output
+    /// safe before anything else. Settings the design refuses still give a code (the DAC's nearest to the safe value).
+    pub fn safe_code<T: Real>(&self, board: &BoardDescription) -> u32 {
+        let dac = &board.amplifier;
+        code_of(&self.amplifier.to_code(dac), dac.max_code, T::of(self.limits.safe_v))
+    }
+
     /// Validate and design for the board's converters.
     #[inline(never)]
     pub fn design<T: Real>(&self, board: &BoardDescription) -> Result<PipelineConfig<T>, SettingsError> {
@@ -467,7 +481,6 @@ impl PipelineSettings {
         // code -> um: ((code * V/code) - offset) / divider * um/V
         let k_probe = p.um_per_v / p.adc_v_per_sensor_v;
         let vpc_in = probe_adc.volts_per_code();
-        // V -> code: (u * gain + offset) / (V/code)
         let vpc_out = amplifier_dac.volts_per_code();
         let margin = self.faults.over_range_margin_codes;
         let um_per_code = libm::fabs(vpc_in * k_probe);
@@ -493,10 +506,7 @@ impl PipelineSettings {
             lags,
             prefilter,
             probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
-            amplifier: Affine {
-                scale: T::of(a.dac_v_per_command_v / vpc_out),
-                offset: T::of(a.dac_offset_v / vpc_out),
-            },
+            amplifier: a.to_code(&amplifier_dac),
             amplifier_inverse: Affine {
                 scale: T::of(vpc_out / a.dac_v_per_command_v),
                 offset: T::of(-a.dac_offset_v / a.dac_v_per_command_v),
@@ -920,13 +930,19 @@ impl<T: Real, E: EstimatorBank<T>> Pipeline<T, E> {
 /// command within the DAC's swing: [`PipelineConfig::dac_max_code`]).
 #[inline]
 fn encode<T: Real>(cfg: &PipelineConfig<T>, u_v: T) -> (u32, T) {
-    let raw = cfg.amplifier.apply(u_v).round();
-    let code = if raw <= T::zero() {
+    let code = code_of(&cfg.amplifier, cfg.dac_max_code, u_v);
+    (code, cfg.command_of_code(code))
+}
+
+/// The DAC code nearest `u_v` through `to_code`, within `0..=max_code`.
+#[inline(always)]
+fn code_of<T: Real>(to_code: &Affine<T>, max_code: u32, u_v: T) -> u32 {
+    let raw = to_code.apply(u_v).round();
+    if raw <= T::zero() {
         0
     } else {
-        num_traits::cast::<T, u32>(raw).unwrap_or(cfg.dac_max_code).min(cfg.dac_max_code)
-    };
-    (code, cfg.command_of_code(code))
+        num_traits::cast::<T, u32>(raw).unwrap_or(max_code).min(max_code)
+    }
 }
 
 #[cfg(test)]

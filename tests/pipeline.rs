@@ -352,6 +352,41 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
 }
 
 /// What `Biquad::is_stable` accepts: finite coefficients, both poles inside the unit circle.
+/// The start-up puts the output safe before it designs anything (`board::early_safe_output` in the firmware): the
+/// code it writes is the one the design's configuration gives, in either scalar.
+#[test]
+fn the_safe_code_without_a_design_is_the_designs() {
+    let desc = SimBoard::new(BoardSettings::default()).description();
+    let ok = PipelineSettings::default();
+    let mut settings = vec![ok];
+    for (min_v, max_v, safe_v) in [(-5.0, 5.0, 2.5), (0.0, 8.0, 0.0), (-8.0, 1.0, -7.77), (-1.0, 1.0, 0.00121)] {
+        let mut s = ok;
+        s.limits = OutputLimits { min_v, max_v, safe_v, ..ok.limits };
+        settings.push(s);
+    }
+    let mut s = ok;
+    (s.amplifier.dac_v_per_command_v, s.limits.safe_v) = (-3.3 / 20.0, 3.0); // an inverting level shift
+    settings.push(s);
+    let mut s = ok;
+    (s.amplifier.dac_v_per_command_v, s.amplifier.dac_offset_v) = (2.9 / 20.0, 1.5);
+    settings.push(s);
+    for s in settings {
+        let (f32_code, f64_code) = (s.safe_code::<f32>(&desc), s.safe_code::<f64>(&desc));
+        assert_eq!(f32_code, s.design::<f32>(&desc).unwrap().safe_code(), "{:?}", s.limits);
+        assert_eq!(f64_code, s.design::<f64>(&desc).unwrap().safe_code(), "{:?}", s.limits);
+    }
+    assert_eq!(ok.safe_code::<f32>(&desc), 2048);
+    // Settings the design refuses (the safe value beyond the DAC's reach) give the DAC's nearest code.
+    let mut s = ok;
+    s.amplifier.dac_offset_v = 3.2;
+    assert!(s.design::<f32>(&desc).is_err());
+    assert_eq!(s.safe_code::<f32>(&desc), 3972);
+    s.amplifier.dac_offset_v = 4.0;
+    assert_eq!(s.safe_code::<f32>(&desc), desc.amplifier.max_code);
+    s.amplifier.dac_offset_v = -1.0;
+    assert_eq!(s.safe_code::<f32>(&desc), 0);
+}
+
 #[test]
 fn a_section_is_stable_with_finite_coefficients_and_its_poles_inside_the_unit_circle() {
     let section = |a1: f64, a2: f64| Biquad { b: [1.0, 0.0, 0.0], a: [a1, a2] };
