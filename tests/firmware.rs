@@ -163,6 +163,7 @@ fn firmware_builds_for_the_g474_without_warnings_and_fits() {
     check_stack_below_statics(&elf);
     check_logger_leaves_interrupts_on(&elf, &root);
     check_panic_puts_the_output_safe_first(&elf);
+    check_start_up_puts_the_output_safe_first(&elf);
     check_tasks_lock_clear_of_samples(&elf);
     let report = format!(
         "{{\"text\": {}, \"data\": {}, \"bss\": {}, \"flash\": {flash}, \"static_ram\": {ram}, \"ccm_code\": {ccm_code}}}\n",
@@ -344,6 +345,38 @@ fn check_panic_puts_the_output_safe_first(elf: &Elf) {
         );
     }
     println!("firmware: the panic handlers mask interrupts and put the output safe first");
+}
+
+/// The start-up drives the output to its safe value (`board::early_safe_output`) before anything else: from a reset
+/// until then the DAC is off and its pin floats, and whatever ran before it (the RAM code's copy, the crystal's
+/// start-up, the clocks, the designs) would keep it floating for longer. Its call is the start-up's first, within
+/// its first [`EARLY_CALL_WITHIN`] instructions (the prologue and the task's state dispatch), so that nothing
+/// inlined comes before it either (the RAM code's copy or the crystal's wait would: loops of their own).
+fn check_start_up_puts_the_output_safe_first(elf: &Elf) {
+    const EARLY_CALL_WITHIN: usize = 24;
+    let functions = elf.functions();
+    let target = |f: &(u64, u64, &str)| f.2.contains("early_safe_output");
+    let &(early, _, _) = functions.iter().find(|f| target(f)).expect("board::early_safe_output, never inlined");
+    // The calls out of a function: (index of the instruction, target).
+    let calls = |&(start, len, _): &(u64, u64, &str)| {
+        elf.instructions(start, len)
+            .into_iter()
+            .enumerate()
+            .filter_map(|(i, (pc, h1, h2))| h2.and_then(|h2| branch_target(pc, h1, h2)).map(|to| (i, to)))
+            .filter(move |&(_, to)| !(start..start + len).contains(&to))
+            .collect::<Vec<(usize, u64)>>()
+    };
+    let callers: Vec<_> = functions.iter().filter(|f| !target(f) && calls(f).iter().any(|c| c.1 == early)).collect();
+    assert_eq!(callers.len(), 1, "board::early_safe_output called from {callers:?}");
+    let (at, first) = calls(callers[0])[0];
+    let first_name = functions.iter().find(|f| f.0 == first).map(|f| f.2);
+    assert_eq!(
+        first, early,
+        "the start-up ({}) calls {first_name:?} first, not board::early_safe_output",
+        callers[0].2
+    );
+    assert!(at < EARLY_CALL_WITHIN, "the start-up calls board::early_safe_output at its instruction {at}");
+    println!("firmware: the start-up puts the output safe first (its instruction {at})");
 }
 
 /// The tasks take the interrupt's state (`with_task`, which holds the interrupts off) only when the sample interrupt

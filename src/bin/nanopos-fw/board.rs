@@ -270,17 +270,37 @@ pub fn settings() -> PipelineSettings {
     }
 }
 
-/// Set up DAC, ADC, the sample timer, the console and the watchdog. The timer is left stopped:
-/// [`start_sample_clock`] starts it. `safe_code` is the DAC code the output holds until the pipeline runs.
+/// Drive the amplifier at `code` (its safe value) from the reset clock on, before anything else of the start-up:
+/// DAC1 channel 1 on PA4 (analog out of reset on the G4) switched on with its output buffer, for the external pin,
+/// untriggered, so that its output follows the code at once. From any reset (power-up, the watchdog, a flashing)
+/// until here the DAC is off and its pin floats: the RAM's initialisation, about 1 ms at 16 MHz (14 KiB of statics
+/// zeroed a word at a time; an estimate), where before this the copy of the RAM code, the crystal's start-up, the
+/// clocks and the designs came first too: a few ms, over 50 without the crystal. [`init`] then sets its trigger, without resetting it (embassy's driver would: the output off again).
+/// Never inlined: `tests/firmware.rs` checks that it is the start-up's first call.
+#[inline(never)]
+pub fn early_safe_output(code: u16) {
+    pac::RCC.ahb2enr().modify(|w| w.set_dac1en(true));
+    // Read back: the clock is on before DAC1 is written.
+    let _ = pac::RCC.ahb2enr().read();
+    let dac = pac::DAC1;
+    // With the channel off (the mode can be written only then). The interface's high-frequency mode for the 170 MHz
+    // AHB the clocks will run at (RM0440, DAC_MCR.HFSEL: above 160 MHz), which only adds wait cycles below it.
+    dac.mcr().modify(|w| {
+        w.set_hfsel(0b10);
+        w.set_mode(0, pac::dac::vals::Mode::NORMAL_EXT_BUFEN);
+    });
+    // Untriggered, a code written reaches the output register a clock later; written before and after the channel
+    // is on, it is there whether or not that transfer happens with the channel off (else the reset's code 0, -10 V
+    // at the amplifier, would stay).
+    dac.dhr12r(0).write(|w| w.set_dhr(code));
+    dac.cr().modify(|w| w.set_en(0, true));
+    dac.dhr12r(0).write(|w| w.set_dhr(code));
+}
+
+/// Set up the ADC, the sample timer, the DAC's trigger, the console and the watchdog; the DAC is on already
+/// ([`early_safe_output`]). The timer is left stopped: [`start_sample_clock`] starts it. `safe_code` is the DAC
+/// code the output holds until the pipeline runs.
 pub fn init(p: Peripherals, safe_code: u16) -> Parts {
-    // DAC1 channel 1 on PA4: the driver enables the clock, selects the high-frequency interface mode for a
-    // 170 MHz AHB and the buffered external output, sets PA4 analog, and enables the channel with triggering off, so
-    // that its output register follows the holding register: the safe code goes there at once, with the channel on
-    // (written with the channel off, it would reach the output only if that transfer happened while the channel is
-    // disabled; else the driver's code 0, -10 V at the amplifier, would stay until the timer's first update). The
-    // trigger is set on the registers below, so the driver is forgotten (dropping it would disable the channel).
-    let dac = embassy_stm32::dac::DacChannel::new_blocking(p.DAC1, p.PA4);
-    core::mem::forget(dac);
     let dac = pac::DAC1;
     dac.dhr12r(0).write(|w| w.set_dhr(safe_code));
 

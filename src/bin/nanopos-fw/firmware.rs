@@ -112,7 +112,11 @@ fn mask_clear_of_sample() -> bool {
 
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
-    // SAFETY: first thing, once; nothing in `.ramtext` has run (its interrupt is enabled further down).
+    // The output safe first, on the reset clock, from the settings alone (their design takes milliseconds).
+    let early_safe = board::settings().safe_code::<f32>(&board::DESCRIPTION) as u16;
+    board::early_safe_output(early_safe);
+    SAFE_CODE.store(early_safe, Ordering::Relaxed);
+    // SAFETY: once, before anything in `.ramtext` has run (its interrupt is enabled further down).
     unsafe { crate::ram_code::load() };
     let crystal = board::crystal_starts();
     let p = embassy_stm32::init(board::clocks(crystal));
