@@ -36,7 +36,7 @@ use crate::excitation::{Excitation, ExcitationDesign, ExcitationState};
 use crate::filters::design::{LagReplica, ReplicaDesign};
 use crate::filters::spike::{SpikeBound, SpikeGate};
 use crate::filters::{Biquad, BiquadState, Prefilter, PrefilterDesign};
-use crate::hal::{BoardDescription, BoardFaults, ConverterFormat};
+use crate::hal::{BoardDescription, BoardFaults};
 use crate::scalar::{fmax, fmin};
 use crate::Real;
 
@@ -78,9 +78,8 @@ impl AmplifierFrontEnd {
         (dac_v - self.dac_offset_v) / self.dac_v_per_command_v
     }
 
-    /// Command, V, to the unrounded code of DAC `dac`, in `T`: `(u * gain + offset) / (V/code)`.
-    fn code_of_command<T: Real>(&self, dac: &ConverterFormat) -> Affine<T> {
-        let vpc_out = dac.volts_per_code();
+    /// Command, V, to the unrounded code of a DAC of `vpc_out` volts per code, in `T`: `(u * gain + offset) / (V/code)`.
+    fn code_of_command<T: Real>(&self, vpc_out: f64) -> Affine<T> {
         Affine { scale: T::of(self.dac_v_per_command_v / vpc_out), offset: T::of(self.dac_offset_v / vpc_out) }
     }
 }
@@ -407,7 +406,7 @@ impl PipelineSettings {
     /// safe before anything else. Settings the design refuses still give a code (the DAC's nearest to the safe value).
     pub fn safe_code<T: Real>(&self, board: &BoardDescription) -> u32 {
         let dac = &board.amplifier;
-        code_of(&self.amplifier.code_of_command(dac), dac.max_code, T::of(self.limits.safe_v))
+        code_of(&self.amplifier.code_of_command(dac.volts_per_code()), dac.max_code, T::of(self.limits.safe_v))
     }
 
     /// Validate and design for the board's converters.
@@ -506,7 +505,7 @@ impl PipelineSettings {
             lags,
             prefilter,
             probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
-            amplifier: a.code_of_command(&amplifier_dac),
+            amplifier: a.code_of_command(vpc_out),
             amplifier_inverse: Affine {
                 scale: T::of(vpc_out / a.dac_v_per_command_v),
                 offset: T::of(-a.dac_offset_v / a.dac_v_per_command_v),
