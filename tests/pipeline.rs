@@ -303,6 +303,14 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     check(s, SettingsError::SlowSlew((reach[0] - 1.0).abs() / 0.1));
     s.limits.max_slew_v_per_s = 97.9;
     assert!(s.design::<f32>(&desc).is_ok());
+    // The far end is the one farther from the safe value: with a reach off centre (a level shift whose 0 V is at
+    // 1 V on the DAC: -4.84 to 12.72 V) and the safe value at 2 V, the top end, 10.72 V away.
+    let mut s = ok;
+    (s.amplifier.dac_offset_v, s.limits.safe_v) = (1.0, 2.0);
+    let (_, off_centre) = s.dac_reach(&desc).unwrap();
+    assert!((off_centre[0] + 4.8448).abs() < 1e-4 && (off_centre[1] - 12.7236).abs() < 1e-4, "{off_centre:?}");
+    s.limits.max_slew_v_per_s = 100.0;
+    check(s, SettingsError::SlowSlew((off_centre[1] - 2.0) / 0.1));
     // The clamp in force is the limits within the DAC's reach; a safe value beyond the reach is refused (the output
     // could not go there), and so is a DAC whose swing holds fewer than two codes.
     let cfg = ok.design::<f32>(&desc).unwrap();
