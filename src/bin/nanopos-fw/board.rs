@@ -274,8 +274,9 @@ pub fn settings() -> PipelineSettings {
 /// DAC1 channel 1 on PA4 (analog out of reset on the G4) switched on with its output buffer, for the external pin,
 /// untriggered, so that its output follows the code at once. From any reset (power-up, the watchdog, a flashing)
 /// until here the DAC is off and its pin floats: the RAM's initialisation, about 1.5 ms at 16 MHz (13 KiB of statics
-/// zeroed by cortex-m-rt's loop, 7 to 8 cycles a word; an estimate), where before this the copy of the RAM code, the crystal's start-up, the
-/// clocks and the designs came first too: a few ms, over 50 without the crystal. [`init`] then sets its trigger, without resetting it (embassy's driver would: the output off again).
+/// zeroed by cortex-m-rt's loop, 7 to 8 cycles a word; an estimate), where before this the copy of the RAM code,
+/// the crystal's start-up, the clocks and the designs came first too: a few ms, over 50 without the crystal.
+/// [`init`] then sets its trigger, without resetting it (embassy's driver would: the output off again).
 /// Never inlined: `tests/firmware.rs` checks that it is the start-up's first call.
 #[inline(never)]
 pub fn early_safe_output(code: u16) {
