@@ -78,7 +78,8 @@ impl AmplifierFrontEnd {
         (dac_v - self.dac_offset_v) / self.dac_v_per_command_v
     }
 
-    /// Command, V, to the unrounded code of a DAC of `vpc_out` volts per code, in `T`: `(u * gain + offset) / (V/code)`.
+    /// Command, V, to the unrounded code of a DAC of `vpc_out` volts per code, in `T`:
+    /// `(u * gain + offset) / (V/code)`.
     fn code_of_command<T: Real>(&self, vpc_out: f64) -> Affine<T> {
         Affine { scale: T::of(self.dac_v_per_command_v / vpc_out), offset: T::of(self.dac_offset_v / vpc_out) }
     }
