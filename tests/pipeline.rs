@@ -14,6 +14,7 @@ use nanopos_id::{Real, StageParams};
 struct Recorder<T> {
     seen: Vec<FilteredSample<T>>,
     resets: u32,
+    resumes: u32,
 }
 
 impl<T: Real> Estimator<T> for Recorder<T> {
@@ -29,6 +30,9 @@ impl<T: Real> Estimator<T> for Recorder<T> {
     }
     fn reset(&mut self) {
         self.resets += 1;
+    }
+    fn resume(&mut self) {
+        self.resumes += 1;
     }
     fn set_adapting(&mut self, _: bool) {}
     fn health(&self) -> Health {
@@ -124,12 +128,15 @@ fn an_over_range_probe_stops_the_excitation_and_the_estimators_until_cleared() {
     assert_eq!(sim.pipeline.fault_counters().probe_over_range, 1);
     sim.pipeline.clear_faults();
     // The pre-filter took in the readings over range: the estimators wait until it has settled (ten of its slowest
-    // time constants, 3.5 ms for the paper's: 354 samples), then are fed again.
+    // time constants, 3.5 ms for the paper's: 354 samples), are told once, at the wait's end, that the samples come
+    // back (`Estimator::resume`: what they hold of the signals is stale), then are fed again.
     let settle = sim.config.prefilter_settle_samples;
     assert_eq!(settle, 354);
-    for _ in 0..settle {
+    assert_eq!(sim.pipeline.estimators.0.resumes, 0);
+    for i in 1..=settle {
         let (_, out) = sim.step();
         assert!(out.faults.is_empty() && out.estimator_input.is_none());
+        assert_eq!(sim.pipeline.estimators.0.resumes, u32::from(i == settle), "sample {i} of the wait");
     }
     assert_eq!(sim.pipeline.estimators.0.seen.len(), before);
     let (_, out) = sim.step();
