@@ -208,6 +208,37 @@ mod tests {
         (gate, replaced)
     }
 
+    /// The bound is a threshold to exceed: a residual exactly at the floor, or exactly at the ratio times the mean
+    /// residual, is taken; one a step beyond either is replaced.
+    #[test]
+    fn a_residual_at_the_bound_is_taken_and_one_beyond_it_replaced() {
+        // A gate that has learnt a still reading: its mean residual far below the floor over the ratio.
+        let quiet = |bound: &SpikeBound<f64>| {
+            let (mut gate, mut replaced) = (SpikeGate::new(), 0);
+            for _ in 0..5_000 {
+                assert_eq!(gate.pass(bound, 0.0, &mut replaced), 0.0);
+            }
+            assert!(replaced == 0 && gate.mean > 0.0 && bound.ratio * gate.mean < 1e-20, "{}", gate.mean);
+            gate
+        };
+        // The curve predicts 0: the residual is the reading. At the floor (the ratio's bound far below it), then with
+        // no floor at the ratio times the mean residual.
+        let no_floor = SpikeBound { floor_um: 0.0, ..BOUND };
+        let at_floor: fn(&SpikeGate<f64>) -> f64 = |_| BOUND.floor_um;
+        let at_ratio: fn(&SpikeGate<f64>) -> f64 = |g| BOUND.ratio * g.mean;
+        for (bound, at) in [(BOUND, at_floor), (no_floor, at_ratio)] {
+            let mut replaced = 0;
+            let mut gate = quiet(&bound);
+            let y = at(&gate);
+            assert_eq!(gate.pass(&bound, y, &mut replaced), y, "at the bound, {y}");
+            assert_eq!(replaced, 0);
+            let mut gate = quiet(&bound);
+            let y = at(&gate).next_up();
+            assert_eq!(gate.pass(&bound, y, &mut replaced), 0.0, "beyond the bound, {y}");
+            assert_eq!(replaced, 1);
+        }
+    }
+
     #[test]
     fn a_smooth_reading_passes_unchanged_from_the_start() {
         let (gate, replaced) = settled(20_000);
