@@ -272,17 +272,21 @@ mod tests {
     /// A reading off the curve by half the bound is taken, but the curve goes on from it clipped to a quarter: as it
     /// was, its residual came back three times over in the next predictions, and the next reading, a good one, was
     /// replaced by a prediction half the bound and more off (the noise's far tail did that on the board's
-    /// heavy-tailed noise, `hal-sim/tests/spike.rs`).
+    /// heavy-tailed noise, `hal-sim/tests/spike.rs`). Above and below the curve, where it crosses zero and near its
+    /// peaks (the clip is about the prediction, not about zero).
     #[test]
     fn a_reading_taken_far_off_the_curve_does_not_get_good_ones_replaced() {
-        let (mut gate, mut replaced) = settled(5_000);
-        let off = 0.5 * BOUND.ratio * gate.mean;
-        assert!(off > BOUND.floor_um, "{off}");
-        for k in 5_000..5_100 {
-            let y = reading(k) + if k == 5_050 { off } else { 0.0 };
-            assert_eq!(gate.pass(&BOUND, y, &mut replaced), y, "k {k}");
+        // The 400 Hz sine crosses zero at sample 5 050 and peaks 6 samples later or earlier.
+        for (at, sign) in [(5_050, 1.0), (5_050, -1.0), (5_056, 1.0), (5_056, -1.0), (5_044, 1.0), (5_044, -1.0)] {
+            let (mut gate, mut replaced) = settled(5_000);
+            let off = sign * 0.5 * BOUND.ratio * gate.mean;
+            assert!(off.abs() > BOUND.floor_um, "{off}");
+            for k in 5_000..5_100 {
+                let y = reading(k) + if k == at { off } else { 0.0 };
+                assert_eq!(gate.pass(&BOUND, y, &mut replaced), y, "off {off} at {at}, k {k}");
+            }
+            assert_eq!(replaced, 0, "off {off} at {at}");
         }
-        assert_eq!(replaced, 0);
     }
 
     #[test]
