@@ -80,7 +80,7 @@ impl AmplifierFrontEnd {
 
     /// Command, V, to the unrounded code of a DAC of `vpc_out` volts per code, in `T`:
     /// `(u * gain + offset) / (V/code)`.
-    fn code_of_command<T: Real>(&self, vpc_out: f64) -> Affine<T> {
+    fn code_map<T: Real>(&self, vpc_out: f64) -> Affine<T> {
         Affine { scale: T::of(self.dac_v_per_command_v / vpc_out), offset: T::of(self.dac_offset_v / vpc_out) }
     }
 }
@@ -407,7 +407,7 @@ impl PipelineSettings {
     /// safe before anything else. Settings the design refuses still give a code (the DAC's nearest to the safe value).
     pub fn safe_code<T: Real>(&self, board: &BoardDescription) -> u32 {
         let dac = &board.amplifier;
-        code_of(&self.amplifier.code_of_command(dac.volts_per_code()), dac.max_code, T::of(self.limits.safe_v))
+        code_of(&self.amplifier.code_map(dac.volts_per_code()), dac.max_code, T::of(self.limits.safe_v))
     }
 
     /// Validate and design for the board's converters.
@@ -506,7 +506,7 @@ impl PipelineSettings {
             lags,
             prefilter,
             probe: Affine { scale: T::of(vpc_in * k_probe), offset: T::of(-p.adc_offset_v * k_probe) },
-            amplifier: a.code_of_command(vpc_out),
+            amplifier: a.code_map(vpc_out),
             amplifier_inverse: Affine {
                 scale: T::of(vpc_out / a.dac_v_per_command_v),
                 offset: T::of(-a.dac_offset_v / a.dac_v_per_command_v),

@@ -77,6 +77,16 @@ impl<'a> Elf<'a> {
             })
             .map(|h| (self.u32_at(h + 16) + addr - self.u32_at(h + 12)) as usize)
     }
+    /// The calls out of the function at `start` of `len` bytes (BL, BLX, and B.W to outside it): the index of the
+    /// instruction and the target, in order.
+    fn calls_out(&self, start: u64, len: u64) -> Vec<(usize, u64)> {
+        self.instructions(start, len)
+            .into_iter()
+            .enumerate()
+            .filter_map(|(i, (pc, h1, h2))| h2.and_then(|h2| branch_target(pc, h1, h2)).map(|to| (i, to)))
+            .filter(|&(_, to)| !(start..start + len).contains(&to))
+            .collect()
+    }
     /// The Thumb instructions of `len` bytes from `start`: address, first halfword, and the second of a 32-bit one.
     fn instructions(&self, start: u64, len: u64) -> Vec<(u64, u16, Option<u16>)> {
         let at = self.file_offset(start).unwrap_or_else(|| panic!("no code at {start:#x}"));
@@ -329,12 +339,8 @@ fn check_panic_puts_the_output_safe_first(elf: &Elf) {
             .find(|f| f.2.contains(handler) && !f.2.contains("default"))
             .unwrap_or_else(|| panic!("the panic handler {handler}"));
         let code = elf.instructions(start, len);
-        let first_call = code
-            .iter()
-            .position(|&(pc, h1, h2)| h2.and_then(|h2| branch_target(pc, h1, h2)).is_some())
-            .unwrap_or_else(|| panic!("a call in {handler}"));
-        let (pc, h1, h2) = code[first_call];
-        let callee = branch_target(pc, h1, h2.unwrap()).and_then(|a| functions.iter().find(|f| f.0 == a));
+        let &(first_call, to) = elf.calls_out(start, len).first().unwrap_or_else(|| panic!("a call in {handler}"));
+        let callee = functions.iter().find(|f| f.0 == to);
         assert!(
             callee.is_some_and(|f| f.2.contains("force_safe_output")),
             "{handler} calls {callee:?} first, not board::force_safe_output"
@@ -357,24 +363,17 @@ fn check_start_up_puts_the_output_safe_first(elf: &Elf) {
     let functions = elf.functions();
     let target = |f: &(u64, u64, &str)| f.2.contains("early_safe_output");
     let &(early, _, _) = functions.iter().find(|f| target(f)).expect("board::early_safe_output, never inlined");
-    // The calls out of a function: (index of the instruction, target).
-    let calls = |&(start, len, _): &(u64, u64, &str)| {
-        elf.instructions(start, len)
-            .into_iter()
-            .enumerate()
-            .filter_map(|(i, (pc, h1, h2))| h2.and_then(|h2| branch_target(pc, h1, h2)).map(|to| (i, to)))
-            .filter(move |&(_, to)| !(start..start + len).contains(&to))
-            .collect::<Vec<(usize, u64)>>()
-    };
-    let callers: Vec<_> = functions.iter().filter(|f| !target(f) && calls(f).iter().any(|c| c.1 == early)).collect();
-    assert_eq!(callers.len(), 1, "board::early_safe_output called from {callers:?}");
-    let (at, first) = calls(callers[0])[0];
+    let callers: Vec<_> = functions
+        .iter()
+        .filter(|f| !target(f))
+        .map(|f| (f.2, elf.calls_out(f.0, f.1)))
+        .filter(|(_, calls)| calls.iter().any(|c| c.1 == early))
+        .collect();
+    assert_eq!(callers.len(), 1, "board::early_safe_output called from {:?}", callers.iter().map(|c| c.0));
+    let (caller, calls) = &callers[0];
+    let (at, first) = calls[0];
     let first_name = functions.iter().find(|f| f.0 == first).map(|f| f.2);
-    assert_eq!(
-        first, early,
-        "the start-up ({}) calls {first_name:?} first, not board::early_safe_output",
-        callers[0].2
-    );
+    assert_eq!(first, early, "the start-up ({caller}) calls {first_name:?} first, not board::early_safe_output");
     assert!(at < EARLY_CALL_WITHIN, "the start-up calls board::early_safe_output at its instruction {at}");
     println!("firmware: the start-up puts the output safe first (its instruction {at})");
 }
