@@ -781,6 +781,11 @@ mod tests {
             let text = std::format!("{err}");
             assert!(!text.is_empty() && !text.contains('\n'), "{text}");
         }
+        // At most MAX_LINE bytes: the longest line is read, one byte more is refused.
+        let mut longest = [b' '; MAX_LINE + 1];
+        longest[..6].copy_from_slice(b"status");
+        assert_eq!(parse(&longest[..MAX_LINE]), Ok(Command::Status));
+        assert_eq!(parse(&longest), Err(TooLong));
         assert_eq!(parse(&[b'a'; MAX_LINE + 1]), Err(TooLong));
     }
 
