@@ -85,19 +85,31 @@ fn gating_rejects_outliers_and_keeps_the_estimate() {
     assert!(eg < 0.1 * eu, "gating keeps the estimate ({eg:e} vs {eu:e})");
 }
 
-#[test]
-fn a_nan_resets_the_filter_counts_it_and_the_filter_carries_on() {
-    let mut est = Cekf::new(EkfDesign::default().design());
-    let nan_once = |k: u64, s: &mut FilteredSample<f64>| {
+/// A NaN in the filtered reading, or an infinity in the filtered input, each alone: the filter is reset and the
+/// fault counted as a numeric reset, and only as that (no rejected outlier, no change); it converges again.
+fn a_non_finite_value_resets_the_filter<K: EkfKind>(tamper: fn(&mut FilteredSample<f64>)) {
+    let mut est = Ekf::<f64, K>::new(EkfDesign::default().design());
+    let once = |k: u64, s: &mut FilteredSample<f64>| {
         if k == 10_000 {
-            s.y_f.value = f64::NAN;
+            tamper(s);
         }
     };
-    drive(&mut est, 4.0, f64::INFINITY, |_| false, nan_once, |_, _| {});
-    assert_eq!(est.health().numeric_resets, 1);
+    drive(&mut est, 4.0, f64::INFINITY, |_| false, once, |_, _| {});
+    let h = est.health();
+    assert_eq!((h.numeric_resets, h.rejected_samples, h.changes_detected), (1, 0, 0), "{}", K::NAME);
     let p = est.params();
     // Three seconds after the reset it has converged again.
-    assert!(rel(&p, &StageParams::PAYLOAD) < 5e-3, "{p:?}");
+    assert!(rel(&p, &StageParams::PAYLOAD) < 5e-3, "{}: {p:?}", K::NAME);
+}
+
+#[test]
+fn a_nan_resets_the_filter_counts_it_and_the_filter_carries_on() {
+    let nan_reading = |s: &mut FilteredSample<f64>| s.y_f.value = f64::NAN;
+    let infinite_input = |s: &mut FilteredSample<f64>| s.u_f.value = f64::INFINITY;
+    for tamper in [nan_reading as fn(&mut FilteredSample<f64>), infinite_input] {
+        a_non_finite_value_resets_the_filter::<Continuous>(tamper);
+        a_non_finite_value_resets_the_filter::<Hybrid>(tamper);
+    }
 }
 
 /// One reading of 10^4 um (a glitch; the PRBS's reading stays within 0.3 um): the pre-filter spreads it over tenths
