@@ -660,6 +660,7 @@ mod tests {
         assert_eq!(p("freeze rls"), Ok(Command::Freeze(EstimatorSet(1))));
         assert_eq!(p("adapt ekf"), Ok(Command::Adapt(EstimatorSet(2))));
         assert_eq!(p("tuning triangle"), Ok(Command::Tuning(TuningPreset::Triangle)));
+        assert_eq!(p("tuning PRBS"), Ok(Command::Tuning(TuningPreset::Prbs)));
         assert_eq!(p("limits -5 5 1000"), Ok(Command::Limits { min_v: -5.0, max_v: 5.0, slew_v_per_s: 1000.0 }));
         assert_eq!(p("limits"), Ok(Command::LimitsInUse));
         assert_eq!(
@@ -668,6 +669,7 @@ mod tests {
         );
         assert_eq!(p("record burst 20000"), Ok(Command::Record(Recording::Burst(20000))));
         assert_eq!(p("record on"), Ok(Command::Record(Recording::On)));
+        assert_eq!(p("record off"), Ok(Command::Record(Recording::Off)));
         assert_eq!(
             p("tune initial 1e6 90 3.9e7"),
             Ok(Command::Tune { key: TuningKey::Initial, values: Some([1e6, 90.0, 3.9e7, 0.0, 0.0]) })
@@ -707,7 +709,7 @@ mod tests {
     fn every_malformed_line_gets_an_error_that_says_where() {
         use ParseError::*;
         const EKF_KEYS: &str = "q, p0, r, substeps, gate_sigma, change_samples, drift_ratio, reopen or pe_floor_v2";
-        let cases: [(&[u8], ParseError); 53] = [
+        let cases: [(&[u8], ParseError); 54] = [
             (b"", Empty),
             (b"   \r", Empty),
             (b"launch", UnknownCommand),
@@ -744,6 +746,11 @@ mod tests {
             (b"tuning sine", Invalid { word: 2, expected: "prbs or triangle" }),
             (
                 b"limits 5 -5 100",
+                Invalid { word: 3, expected: "the highest command in V, above the lowest, at most 10" },
+            ),
+            // The highest command must be above the lowest, not equal to it.
+            (
+                b"limits 5 5 100",
                 Invalid { word: 3, expected: "the highest command in V, above the lowest, at most 10" },
             ),
             (b"limits -5 5 0", Invalid { word: 4, expected: "a slew limit in V/s, above 0" }),
