@@ -178,7 +178,7 @@ fn a_filter_that_does_not_relock_is_reset() {
 /// Innovations more than 10 times what the filter's `R` allows for, for good (here 2 um of white noise added to the
 /// filtered reading, 16 times the 122 nm per sample the paper's `R / T` stands for): the filter did not relock by
 /// `RELOCK_NIS_RATIO`'s test, and is reset, once; the level that failed is the next wait's reference, so it is not
-/// reset every 5 s (it was 5 times in 30 s when the reference went back to 1). A filter merely told of less noise
+/// reset every 5 s (it was 5 times in 30 s when the reference went back to 1), nor taken for a drift. A filter merely told of less noise
 /// than there is (`R` down to 1e-8 of the paper's, the probe's 1.25 nm against 0.012 nm) is not reset: its own
 /// covariance grows to match.
 #[test]
@@ -191,15 +191,21 @@ fn a_filter_whose_innovations_exceed_its_noise_model_for_good_is_reset_once() {
     let mut est = Hekf::new(EkfDesign::default().design());
     let mut extra = NormalStream::new(7);
     let noisy = |_: u64, s: &mut FilteredSample<f64>| s.y_f.value += 2.0 * extra.next_normal();
-    let mut resets_at = Vec::new();
+    let (mut resets_at, mut changes_at) = (Vec::new(), Vec::new());
     let observe = |k: u64, e: &Hekf<f64>| {
         if e.health().numeric_resets as usize > resets_at.len() {
             resets_at.push(k as f64 * 1e-4);
         }
+        if e.health().changes_detected as usize > changes_at.len() {
+            changes_at.push(k as f64 * 1e-4);
+        }
     };
     drive(&mut est, 30.0, f64::INFINITY, |_| false, noisy, observe);
-    eprintln!("resets at {resets_at:?} s, changes {}", est.health().changes_detected);
+    eprintln!("resets at {resets_at:?} s, changes at {changes_at:?} s");
     assert_eq!(resets_at.len(), 1, "{resets_at:?}");
+    // With the failed level as its reference, the drift detector stays quiet while the noise stays the same (a
+    // change is seen once, 62 ms after the reset, as the filter starts again from its initial parameters).
+    assert!(changes_at.iter().all(|&t| t < resets_at[0] + 1.0), "{changes_at:?}");
 }
 
 /// A NaN in the measurement and an infinity in the input, each in the raw and the pre-filtered value (the
