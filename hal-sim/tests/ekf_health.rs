@@ -103,10 +103,10 @@ fn a_non_finite_value_resets_the_filter<K: EkfKind>(tamper: fn(&mut FilteredSamp
 }
 
 #[test]
-fn a_nan_resets_the_filter_counts_it_and_the_filter_carries_on() {
-    let nan_reading = |s: &mut FilteredSample<f64>| s.y_f.value = f64::NAN;
-    let infinite_input = |s: &mut FilteredSample<f64>| s.u_f.value = f64::INFINITY;
-    for tamper in [nan_reading as fn(&mut FilteredSample<f64>), infinite_input] {
+fn a_nan_or_an_infinity_resets_the_filter_counts_it_and_the_filter_carries_on() {
+    // A NaN reading, an infinite input.
+    let tampers: [fn(&mut FilteredSample<f64>); 2] = [|s| s.y_f.value = f64::NAN, |s| s.u_f.value = f64::INFINITY];
+    for tamper in tampers {
         a_non_finite_value_resets_the_filter::<Continuous>(tamper);
         a_non_finite_value_resets_the_filter::<Hybrid>(tamper);
     }
@@ -178,9 +178,9 @@ fn a_filter_that_does_not_relock_is_reset() {
 /// Innovations more than 10 times what the filter's `R` allows for, for good (here 2 um of white noise added to the
 /// filtered reading, 16 times the 122 nm per sample the paper's `R / T` stands for): the filter did not relock by
 /// `RELOCK_NIS_RATIO`'s test, and is reset, once; the level that failed is the next wait's reference, so it is not
-/// reset every 5 s (it was 5 times in 30 s when the reference went back to 1), nor taken for a drift. A filter merely told of less noise
-/// than there is (`R` down to 1e-8 of the paper's, the probe's 1.25 nm against 0.012 nm) is not reset: its own
-/// covariance grows to match.
+/// reset every 5 s (it was 5 times in 30 s when the reference went back to 1), nor taken for a drift. A filter
+/// merely told of less noise than there is (`R` down to 1e-8 of the paper's, the probe's 1.25 nm against 0.012 nm)
+/// is not reset: its own covariance grows to match.
 #[test]
 fn a_filter_whose_innovations_exceed_its_noise_model_for_good_is_reset_once() {
     for r in [1.5e-10, 1.5e-12, 1.5e-14] {
