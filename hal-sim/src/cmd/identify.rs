@@ -1549,6 +1549,52 @@ mod tests {
         assert_eq!(streamed.windows[1].0, Window { t0: 14.0, t1: 16.0 });
     }
 
+    /// A record whose end is not where it was before the read (the file grew, or was cut or rewritten, while
+    /// `identify` read it; the default windows were placed from the end read first) is an error that names the file
+    /// and the end it found, and so is a read that fails part way: the error, no result, so nothing is written.
+    #[test]
+    fn a_record_that_changes_or_fails_while_it_is_read_is_an_error() {
+        let n = 20_000;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-4).collect();
+        let u: Vec<f64> = t.iter().map(|t| (2.0 * std::f64::consts::PI * 300.0 * t).sin()).collect();
+        let y: Vec<f64> = u.iter().map(|u| 0.08 * u).collect();
+        let rec = Recording { source: "run.csv", t: &t, u: &u, y: &y, truth: None };
+        let tuning: TuningArg = Tuning::preset("prbs").unwrap().into();
+        let identify_ending = |last_t: Option<f64>, windows: &[Window], fail_at: Option<u64>| {
+            let record = Stream {
+                source: "run.csv",
+                last_t,
+                has_truth: false,
+                progress_total: n as u64,
+                dac_step_v: None,
+                spike_ratio: None,
+            };
+            let blocks = rec.blocks(5_000).map(|b| match (b, fail_at) {
+                (Ok((_, reached)), Some(at)) if reached > at => {
+                    Err(CliError(format!("run.csv: line {}: cannot read: Input/output error", at + 2)))
+                }
+                (b, _) => b,
+            });
+            identify_blocks::<f64>(&record, &["ekf"], &tuning, windows, blocks)
+        };
+        let end = t[n - 1];
+        let whole = identify_ending(Some(end), &[], None).unwrap();
+        assert_eq!(whole.windows.last().unwrap().0.t1, 2.0, "the default windows at the end, 1.9999 s");
+        // It grew (the end read first was earlier) or was cut (later).
+        for first_end in [end - 0.5, end + 0.5] {
+            let e = identify_ending(Some(first_end), &[], None).err().expect("an error");
+            assert_eq!(e.0, "run.csv: the file changed while it was read (its last time 1.9999 s)");
+        }
+        // Windows of the user's own need no end read first: the rows read are the record.
+        let asked = [Window { t0: 1.0, t1: 1.5 }];
+        assert_eq!(identify_ending(Some(end - 0.5), &asked, None).unwrap().windows.len(), 1);
+        // A read that fails in the third block: that error, whatever the windows.
+        for windows in [&[][..], &asked[..]] {
+            let e = identify_ending(Some(end), windows, Some(10_000)).err().expect("an error");
+            assert_eq!(e.0, "run.csv: line 10002: cannot read: Input/output error");
+        }
+    }
+
     /// The tuning's pre-filter is the stage's `W_p` for the pipeline (the EKFs and the ARX read its output) and for
     /// the continuous-time RLS (which filters `u'`, `y'` with its own `W_p` inside its RK4 step): moved to 600 Hz,
     /// both estimates change, and the EKF's stays on the truth.
