@@ -378,6 +378,16 @@ mod tests {
             }
             // A truncated line is refused.
             assert!(decode_frame(&line[..line.len() - 6], &mut out).is_err());
+            // The form is checked, not only the CRC: a frame but for its letter or the space after its index, with
+            // the CRC made right for it, is not a frame.
+            for (i, c) in [(0, b'S'), (13, b'_')] {
+                let mut bad = line.to_vec();
+                bad[i] = c;
+                let body = bad.len() - 5;
+                let crc = crc16(&bad[..body]) as u64;
+                write_hex(crc, &mut bad[body + 1..]);
+                assert_eq!(decode_frame(&bad, &mut out), Err(FrameError::Malformed), "{n} {i}");
+            }
         }
         assert_eq!(crc16(b"123456789"), 0x29B1);
     }
