@@ -379,14 +379,25 @@ mod tests {
             // A truncated line is refused.
             assert!(decode_frame(&line[..line.len() - 6], &mut out).is_err());
             // The form is checked, not only the CRC: a frame but for its letter or the space after its index, with
-            // the CRC made right for it, is not a frame.
+            // the CRC made right for it, is not a frame; nor is a payload of part of a sample, or with a character
+            // more (six bits of zeros: a whole number of bytes still).
+            let with_crc = |body: &[u8]| {
+                let mut line = body.to_vec();
+                line.extend_from_slice(b" 0000");
+                write_hex(crc16(body) as u64, &mut line[body.len() + 1..]);
+                line
+            };
+            let body = &line[..line.len() - 5];
             for (i, c) in [(0, b'S'), (13, b'_')] {
-                let mut bad = line.to_vec();
+                let mut bad = body.to_vec();
                 bad[i] = c;
-                let body = bad.len() - 5;
-                let crc = crc16(&bad[..body]) as u64;
-                write_hex(crc, &mut bad[body + 1..]);
-                assert_eq!(decode_frame(&bad, &mut out), Err(FrameError::Malformed), "{n} {i}");
+                assert_eq!(decode_frame(&with_crc(&bad), &mut out), Err(FrameError::Malformed), "{n} {i}");
+            }
+            assert_eq!(decode_frame(&with_crc(body), &mut out), Ok((0x0012_3456_789a, n)), "{n}");
+            // Three characters: two bytes, half a sample; and a character of zeros after the samples.
+            let (half, longer) = ([&body[..14], b"AAA"].concat(), [body, b"A"].concat());
+            for bad in [half, longer] {
+                assert_eq!(decode_frame(&with_crc(&bad), &mut out), Err(FrameError::Length), "{n}");
             }
         }
         assert_eq!(crc16(b"123456789"), 0x29B1);
