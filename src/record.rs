@@ -359,6 +359,13 @@ mod tests {
             u_code: (i as u16).wrapping_mul(977) & 0x0FFF,
             y_code: (i as u16).wrapping_mul(40_503),
         });
+        // A frame's body with its CRC made right for it, as `encode_frame` ends a line (without the `\n`).
+        let with_crc = |body: &[u8]| {
+            let mut line = body.to_vec();
+            line.extend_from_slice(b" 0000");
+            write_hex(crc16(body) as u64, &mut line[body.len() + 1..]);
+            line
+        };
         let mut buf = [0u8; FRAME_MAX_BYTES];
         for n in [0, 1, 2, 3, 47, 48] {
             let len = encode_frame(0x0012_3456_789a, &samples[..n], &mut buf);
@@ -381,12 +388,6 @@ mod tests {
             // The form is checked, not only the CRC: a frame but for its letter or the space after its index, with
             // the CRC made right for it, is not a frame; nor is a payload of part of a sample, or with a character
             // more (six bits of zeros: a whole number of bytes still).
-            let with_crc = |body: &[u8]| {
-                let mut line = body.to_vec();
-                line.extend_from_slice(b" 0000");
-                write_hex(crc16(body) as u64, &mut line[body.len() + 1..]);
-                line
-            };
             let body = &line[..line.len() - 5];
             for (i, c) in [(0, b'S'), (13, b'_')] {
                 let mut bad = body.to_vec();
