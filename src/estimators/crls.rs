@@ -394,6 +394,39 @@ mod tests {
         }
     }
 
+    /// Held, the estimate and `P` stand still (the step still runs its pre-filter); adapting on signals that carry
+    /// nothing (`phi = 0`, with the monitor told the input is rich), `P` grows by the forgetting factor up to the bound
+    /// `R0` on `||P||_F` and stops there, rather than winding up.
+    #[test]
+    fn the_covariance_stands_still_while_held_and_stops_at_its_bound() {
+        let design = CrlsDesign { gamma: 5.0, ..CrlsDesign::default() };
+        let mut rls = Crls::<f64>::new(design.design());
+        for k in 0..500 {
+            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
+            rls.update(&excited(u, 1e-3 * u));
+        }
+        rls.set_adapting(false);
+        let (params, p) = (rls.params(), rls.param_covariance());
+        for k in 0..20_000 {
+            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
+            rls.update(&excited(u, 1e-3 * u));
+        }
+        assert_eq!((rls.params(), rls.param_covariance()), (params, p), "held");
+
+        rls.set_adapting(true);
+        let r0_sq = design.r0 * design.r0;
+        let silent = FilteredSample { u: 0.0, y: 0.0, ..excited(1.0, 0.0) };
+        let start = rls.norm_sq();
+        assert!(start < 1e-3 * r0_sq, "||P||^2 {start:e} starts far below R0^2 {r0_sq:e}");
+        // e^(2 gamma t): R0 reached after about 0.9 s; then 1.1 s more at the bound.
+        for _ in 0..20_000 {
+            rls.update(&silent);
+            // The bound is tested before each step: one step's growth past it at most.
+            assert!(rls.norm_sq() <= r0_sq * (1.0 + 4.0 * design.gamma * 1e-4), "{:e}", rls.norm_sq());
+        }
+        assert!(rls.norm_sq() >= 0.99 * r0_sq, "||P||^2 {:e} did not reach R0^2 {r0_sq:e}", rls.norm_sq());
+    }
+
     /// The bound's norm, from the six packed normalised entries and their weights, is the Frobenius norm of the
     /// whole 3 x 3 covariance in the paper's units (off-diagonal entries twice), on a covariance with every entry
     /// non-zero: 0.2 s of a square-wave input on a resonance at 400 Hz.
