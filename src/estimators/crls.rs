@@ -427,6 +427,25 @@ mod tests {
         assert!(rls.norm_sq() >= 0.99 * r0_sq, "||P||^2 {:e} did not reach R0^2 {r0_sq:e}", rls.norm_sq());
     }
 
+    /// A variance of the parameters below zero, every value still finite (what rounding could leave of a `P` near
+    /// singular), resets the estimator and is counted, as a non-finite value is.
+    #[test]
+    fn a_negative_variance_resets_and_is_counted() {
+        let initial = Crls::<f64>::new(CrlsDesign::default().design());
+        for i in 0..3 {
+            let mut rls = initial;
+            for k in 0..500 {
+                let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
+                rls.update(&excited(u, 1e-3 * u));
+            }
+            assert_eq!(rls.health().numeric_resets, 0);
+            rls.x[P + ix(i, i)] = -rls.x[P + ix(i, i)];
+            rls.update(&excited(1.0, 1e-3));
+            assert_eq!(rls.health().numeric_resets, 1, "variance {i}");
+            assert_eq!((rls.params(), rls.param_covariance()), (initial.params(), initial.param_covariance()));
+        }
+    }
+
     /// The bound's norm, from the six packed normalised entries and their weights, is the Frobenius norm of the
     /// whole 3 x 3 covariance in the paper's units (off-diagonal entries twice), on a covariance with every entry
     /// non-zero: 0.2 s of a square-wave input on a resonance at 400 Hz.
