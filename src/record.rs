@@ -520,6 +520,11 @@ mod tests {
             ("# nanopos-tuning at=1000 ekf r", "no value"),
             ("# nanopos-tuning at=1000 ekf r 3eb92a737110e454 3eb92a737110e454", "two values for one"),
             ("# nanopos-tuning at=1000 ekf q 3eb92a737110e454", "one value for five"),
+            (
+                "# nanopos-tuning at=1000 ekf q 3eb92a737110e454 3eb92a737110e454 3eb92a737110e454 3eb92a737110e454 \
+                 3eb92a737110e454 3eb92a737110e454",
+                "six values for five (not one written past the five)",
+            ),
             ("# nanopos-tuning at=1000 ekf gain 3eb92a737110e454", "a key this tuning lacks"),
             ("# nanopos-tuning at=1000 ekf r 3eb92a737110e45", "15 digits"),
             ("# nanopos-tuning ekf r 3eb92a737110e454", "no sample"),
