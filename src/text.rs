@@ -333,5 +333,12 @@ mod tests {
         assert!(write!(b, "ok ").is_ok());
         assert!(b.write_str("abcdefgh\u{b5}m and more").is_err());
         assert_eq!(b.as_str(), "ok abcdefgh...\n");
+        // With less room left than the marker takes, as much of the marker as fits, and nothing written past the end.
+        b.clear();
+        assert!(write!(b, "ok 12345678901").is_ok());
+        assert!(b.write_str("abc").is_err());
+        assert_eq!((b.as_str(), b.truncated()), ("ok 12345678901..", true));
+        assert!(b.write_str("more").is_err());
+        assert_eq!(b.as_str(), "ok 12345678901..");
     }
 }
