@@ -372,14 +372,19 @@ mod tests {
         FilteredSample { u, y, u_f: zero, y_f: zero, pe: PeLevel { power: u * u, single: false } }
     }
 
+    /// `n` samples of a square wave of +-1 V, 50 samples a period, with a reading of 1e-3 of it.
+    fn square_wave(rls: &mut Crls<f64>, n: usize) {
+        for k in 0..n {
+            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
+            rls.update(&excited(u, 1e-3 * u));
+        }
+    }
+
     /// Reopening sets `P` to a multiple of `P(0)`, uncorrelated, and keeps the estimate.
     #[test]
     fn reopening_keeps_the_estimate_and_sets_the_covariance() {
         let mut rls = Crls::<f64>::new(CrlsDesign::default().design());
-        for k in 0..500 {
-            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-            rls.update(&excited(u, 1e-3 * u));
-        }
+        square_wave(&mut rls, 500);
         let before = rls.params();
         assert_ne!(rls.param_covariance()[0][2], 0.0, "the run correlated the parameters");
         rls.reopen_covariance(2.0);
@@ -401,16 +406,10 @@ mod tests {
     fn the_covariance_stands_still_while_held_and_stops_at_its_bound() {
         let design = CrlsDesign { gamma: 5.0, ..CrlsDesign::default() };
         let mut rls = Crls::<f64>::new(design.design());
-        for k in 0..500 {
-            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-            rls.update(&excited(u, 1e-3 * u));
-        }
+        square_wave(&mut rls, 500);
         rls.set_adapting(false);
         let (params, p) = (rls.params(), rls.param_covariance());
-        for k in 0..20_000 {
-            let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-            rls.update(&excited(u, 1e-3 * u));
-        }
+        square_wave(&mut rls, 20_000);
         assert_eq!((rls.params(), rls.param_covariance()), (params, p), "held");
 
         rls.set_adapting(true);
@@ -434,10 +433,7 @@ mod tests {
         let initial = Crls::<f64>::new(CrlsDesign::default().design());
         for i in 0..3 {
             let mut rls = initial;
-            for k in 0..500 {
-                let u = if (k / 25) % 2 == 0 { 1.0 } else { -1.0 };
-                rls.update(&excited(u, 1e-3 * u));
-            }
+            square_wave(&mut rls, 500);
             assert_eq!(rls.health().numeric_resets, 0);
             rls.x[P + ix(i, i)] = -rls.x[P + ix(i, i)];
             rls.update(&excited(1.0, 1e-3));
