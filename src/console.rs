@@ -1185,4 +1185,35 @@ mod tests {
         let full = format!("{}{}", "x".repeat(REPLY_BYTES - 8), "ok full\n");
         assert_eq!(fitted(&full), full);
     }
+
+    /// The notes kept are counted from the first: a note that fills the room to the byte is kept; when not even the
+    /// first fits, every note is left out and counted.
+    #[test]
+    fn the_notes_kept_fill_the_room_to_the_byte_and_the_count_is_of_those_left_out() {
+        const LEFT_OUT: usize = "note: 99 more notes left out (the reply's buffer is full)\n".len();
+        let note = |len: usize| format!("note: {}\n", "n".repeat(len - 7));
+        let verdict = "ok excite\n";
+        // The room for notes is what the buffer holds beside the verdict and the longest count line.
+        let exact = note(REPLY_BYTES - verdict.len() - LEFT_OUT);
+        let body = format!("{exact}{}{verdict}", note(100));
+        let reply = fitted(&body);
+        assert_eq!(reply, format!("{exact}note: 1 more note left out (the reply's buffer is full)\n{verdict}"));
+        assert!(reply.len() <= REPLY_BYTES);
+        // One byte more and it goes too: none kept, all five counted.
+        let over = note(REPLY_BYTES - verdict.len() - LEFT_OUT + 1);
+        let body = format!("{over}{}{}{}{}{verdict}", note(100), note(50), note(50), note(50));
+        assert_eq!(fitted(&body), format!("note: 5 more notes left out (the reply's buffer is full)\n{verdict}"));
+    }
+
+    /// A reply too long without a note to leave out (none is: the longest error is about 300 bytes, `status`'s
+    /// longest line 490) is cut by the buffer, which marks the cut, and no line claims notes were left out.
+    #[test]
+    fn a_reply_too_long_without_notes_is_cut_and_says_nothing_of_notes() {
+        let first = format!("{}\n", "x".repeat(REPLY_BYTES - 40));
+        let body = format!("{first}ok {}\n", "y".repeat(60));
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        assert!(fit_reply(&body, &mut reply).is_err());
+        let r = reply.as_str();
+        assert!(reply.truncated() && r.starts_with(&format!("{first}ok yyy")) && !r.contains("note:"), "{r}");
+    }
 }
