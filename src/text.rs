@@ -182,7 +182,8 @@ pub fn parse_decimal(s: &str) -> Option<f64> {
     Some(if negative { -x } else { x })
 }
 
-/// A fixed buffer that `write!` fills; what does not fit is cut and the buffer remembers it (ending in `...`).
+/// A fixed buffer that `write!` fills; what does not fit is cut and the buffer remembers it (ending in `...\n`, which
+/// takes the end of what was written when less room is left: a cut reply still ends its line).
 #[derive(Clone, Debug)]
 pub struct TextBuf<const N: usize> {
     buf: [u8; N],
@@ -225,9 +226,18 @@ impl<const N: usize> fmt::Write for TextBuf<N> {
             return Ok(());
         }
         if !self.truncated {
-            // Cut at a character boundary, leaving room for the marker and the line end.
-            let keep = room.saturating_sub(4);
-            let mut cut = keep.min(s.len());
+            // Cut at a character boundary, leaving room for the marker and the line end: with less room left than
+            // they take, they take the end of what was written before (a cut reply still ends its line).
+            let limit = N.saturating_sub(4);
+            let mut cut = limit.saturating_sub(self.len).min(s.len());
+            if self.len > limit {
+                let mut end = limit;
+                // Back to the start of the character `end` falls in (a UTF-8 continuation byte is 0b10xx_xxxx).
+                while end > 0 && self.buf[end] & 0xC0 == 0x80 {
+                    end -= 1;
+                }
+                self.len = end;
+            }
             while !s.is_char_boundary(cut) {
                 cut -= 1;
             }
@@ -333,12 +343,27 @@ mod tests {
         assert!(write!(b, "ok ").is_ok());
         assert!(b.write_str("abcdefgh\u{b5}m and more").is_err());
         assert_eq!(b.as_str(), "ok abcdefgh...\n");
-        // With less room left than the marker takes, as much of the marker as fits, and nothing written past the end.
+        // With less room left than the marker takes, the marker takes the end of what was written: the line still
+        // ends, and nothing is written past the end or after.
         b.clear();
         assert!(write!(b, "ok 12345678901").is_ok());
         assert!(b.write_str("abc").is_err());
-        assert_eq!((b.as_str(), b.truncated()), ("ok 12345678901..", true));
+        assert_eq!((b.as_str(), b.truncated()), ("ok 123456789...\n", true));
         assert!(b.write_str("more").is_err());
-        assert_eq!(b.as_str(), "ok 12345678901..");
+        assert_eq!(b.as_str(), "ok 123456789...\n");
+        // ... at a character's start.
+        b.clear();
+        assert!(write!(b, "ok 12345678\u{b5}x").is_ok());
+        assert!(b.write_str("abc").is_err());
+        assert_eq!(b.as_str(), "ok 12345678...\n");
+        // Exactly the marker's room left: all that was written is kept.
+        b.clear();
+        assert!(write!(b, "ok 123456789").is_ok());
+        assert!(b.write_str("abcde").is_err());
+        assert_eq!(b.as_str(), "ok 123456789...\n");
+        // A buffer smaller than the marker holds as much of it as fits.
+        let mut tiny = TextBuf::<2>::default();
+        assert!(tiny.write_str("abc").is_err());
+        assert_eq!((tiny.as_str(), tiny.truncated()), ("..", true));
     }
 }
