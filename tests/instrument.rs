@@ -2112,7 +2112,7 @@ fn the_multisines_steepest_step_is_judged_against_the_slew_limit() {
 fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
     let mut lab = Lab::new();
     lab.run(100);
-    let cases: [(&str, &[&str]); 9] = [
+    let cases: [(&str, &[&str]); 10] = [
         ("excite prbs 1\n", &[]),
         (
             "excite sine 3 100 8\n",
@@ -2143,6 +2143,8 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
                  ramped",
             ],
         ),
+        // Limits the excitation reaches exactly (its extent and its step): nothing to clip or ramp, and nothing said.
+        ("limits -1 1 20000\n", &[]),
         (
             "limits -10 10 25000\n",
             &["note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 V): the clamp \
