@@ -1287,6 +1287,47 @@ fn tune_initial_from_an_estimator_refuses_what_cannot_start_the_estimators() {
     assert!(lab.send("status\n").contains("tuning=prbs "), "not tuned");
 }
 
+/// An estimate is "still the initial parameters" only when all three are: a stage whose gain (or stiffness) the
+/// initial parameters had right, with the rest moved, is taken (a status made by hand, the hybrid EKF's estimate set
+/// to each such case, as the console's `execute` is given it).
+#[test]
+fn tune_initial_from_an_estimator_takes_an_estimate_with_some_parameters_at_their_initial_values() {
+    let initial = |lab: &mut Lab| {
+        let r = lab.send("tune initial\n");
+        let v: Vec<f64> = verdict(&r).split_once("= ").unwrap().1.split(' ').map(|x| x.parse().unwrap()).collect();
+        StageParams { b0: v[0] as f32, a1: v[1] as f32, a0: v[2] as f32 }
+    };
+    let mut lab = Lab::new();
+    lab.run(100);
+    let init = initial(&mut lab);
+    let moved = StageParams { b0: 1.125 * init.b0, a1: 1.5 * init.a1, a0: 1.25 * init.a0 }; // exact in f32
+    let cases = [
+        StageParams { b0: init.b0, ..moved },
+        StageParams { a1: init.a1, ..moved },
+        StageParams { a0: init.a0, ..moved },
+        StageParams { b0: init.b0, a0: init.a0, ..moved },
+    ];
+    for p in cases {
+        let mut lab = Lab::new();
+        lab.run(100);
+        let mut st = lab.isr.status();
+        st.estimates[2].0 = p;
+        st.estimates[2].1.held = false;
+        let mut reply = TextBuf::<REPLY_BYTES>::default();
+        let (change, _) = lab.ctl.execute(nanopos_id::control::parse(b"tune initial hekf").unwrap(), || st, &mut reply);
+        assert!(change.is_some(), "{p:?}: {}", reply.as_str());
+        assert_eq!(initial(&mut lab), p, "{}", reply.as_str());
+    }
+    // All three at their initial values: refused.
+    let mut lab = Lab::new();
+    lab.run(100);
+    let mut st = lab.isr.status();
+    st.estimates[2] = (init, nanopos_id::estimator::Health::new());
+    let mut reply = TextBuf::<REPLY_BYTES>::default();
+    let (change, _) = lab.ctl.execute(nanopos_id::control::parse(b"tune initial hekf").unwrap(), || st, &mut reply);
+    assert!(change.is_none() && reply.as_str().contains("estimate is its initial parameters"), "{}", reply.as_str());
+}
+
 /// The pre-filter's centre far from the stage's resonance biases the estimates, and `tune` says so. On the stage at
 /// 1 kHz of the test above, the estimators started near it (`tune initial`) but the pre-filter left at the paper's
 /// 450 Hz: 5 s later `b0` is more than 5 % off in every estimator (measured 5.3 / 7.6 / 7.4 / 7.0 % for rls, ekf,
