@@ -331,36 +331,26 @@ mod tests {
     #[test]
     fn a_full_buffer_cuts_and_says_so() {
         use core::fmt::Write;
-        let mut b = TextBuf::<16>::default();
-        assert!(write!(b, "ok ").is_ok());
-        assert!(b.write_str("a long reply that does not fit").is_err());
-        assert_eq!(b.as_str(), "ok a long re...\n");
-        assert!(b.truncated());
-        b.clear();
-        assert!(write!(b, "ok").is_ok() && b.as_str() == "ok");
+        // `written`, which fits, then `more`, which does not, into 16 bytes: what the buffer holds, marked as cut.
+        let cut = |written: &str, more: &str| {
+            let mut b = TextBuf::<16>::default();
+            assert!(b.write_str(written).is_ok() && b.write_str(more).is_err() && b.truncated());
+            // Nothing is written after the cut.
+            let held = b.as_str().to_string();
+            assert!(b.write_str("more").is_err() && b.as_str() == held);
+            b.clear();
+            assert!(write!(b, "ok").is_ok() && b.as_str() == "ok" && !b.truncated());
+            held
+        };
+        assert_eq!(cut("ok ", "a long reply that does not fit"), "ok a long re...\n");
         // A cut that falls inside a character backs off to its start: the text stays UTF-8 (`as_str` would give "").
-        b.clear();
-        assert!(write!(b, "ok ").is_ok());
-        assert!(b.write_str("abcdefgh\u{b5}m and more").is_err());
-        assert_eq!(b.as_str(), "ok abcdefgh...\n");
+        assert_eq!(cut("ok ", "abcdefgh\u{b5}m and more"), "ok abcdefgh...\n");
         // With less room left than the marker takes, the marker takes the end of what was written: the line still
-        // ends, and nothing is written past the end or after.
-        b.clear();
-        assert!(write!(b, "ok 12345678901").is_ok());
-        assert!(b.write_str("abc").is_err());
-        assert_eq!((b.as_str(), b.truncated()), ("ok 123456789...\n", true));
-        assert!(b.write_str("more").is_err());
-        assert_eq!(b.as_str(), "ok 123456789...\n");
-        // ... at a character's start.
-        b.clear();
-        assert!(write!(b, "ok 12345678\u{b5}x").is_ok());
-        assert!(b.write_str("abc").is_err());
-        assert_eq!(b.as_str(), "ok 12345678...\n");
+        // ends, and nothing is written past the end; at a character's start.
+        assert_eq!(cut("ok 12345678901", "abc"), "ok 123456789...\n");
+        assert_eq!(cut("ok 12345678\u{b5}x", "abc"), "ok 12345678...\n");
         // Exactly the marker's room left: all that was written is kept.
-        b.clear();
-        assert!(write!(b, "ok 123456789").is_ok());
-        assert!(b.write_str("abcde").is_err());
-        assert_eq!(b.as_str(), "ok 123456789...\n");
+        assert_eq!(cut("ok 123456789", "abcde"), "ok 123456789...\n");
         // A buffer smaller than the marker holds as much of it as fits.
         let mut tiny = TextBuf::<2>::default();
         assert!(tiny.write_str("abc").is_err());
