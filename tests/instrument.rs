@@ -2151,9 +2151,11 @@ fn the_multisines_steepest_step_is_judged_against_the_slew_limit() {
 /// it, else from `tune initial`) cannot either.
 #[test]
 fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
+    const DAC_REACH: &str = "note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 \
+                             V): the clamp stops the output there";
     let mut lab = Lab::new();
     lab.run(100);
-    let cases: [(&str, &[&str]); 10] = [
+    let cases: [(&str, &[&str]); 12] = [
         ("excite prbs 1\n", &[]),
         (
             "excite sine 3 100 8\n",
@@ -2186,11 +2188,10 @@ fn the_console_says_when_an_excitation_will_not_fit_the_limits() {
         ),
         // Limits the excitation reaches exactly (its extent and its step): nothing to clip or ramp, and nothing said.
         ("limits -1 1 20000\n", &[]),
-        (
-            "limits -10 10 25000\n",
-            &["note: the DAC reaches -8.78418 V to 8.78418 V (its output is specified from 0.2 V to 3.1 V): the clamp \
-               stops the output there"],
-        ),
+        // Limits beyond the DAC's reach on either side, or both.
+        ("limits -10 5 25000\n", &[DAC_REACH]),
+        ("limits -5 10 25000\n", &[DAC_REACH]),
+        ("limits -10 10 25000\n", &[DAC_REACH]),
     ];
     for (cmd, want) in cases {
         let reply = lab.send(cmd);
