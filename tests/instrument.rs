@@ -1475,7 +1475,7 @@ fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
 
 /// The recording's stream carries 16-bit codes: a board whose ADC gives more (the simulated ADC summing 256
 /// conversions without a shift: 20 bits, largest code 1 048 320) is refused `record`, with the reason; the G474's
-/// 64x / 4 (16 bits, largest code 65 520) records.
+/// 64x / 4 (16 bits, largest code 65 520) records. So for the amplifier's DAC.
 #[test]
 fn record_refuses_codes_wider_than_its_stream() {
     let (mut board, settings) = Lab::settings(None);
@@ -1488,6 +1488,13 @@ fn record_refuses_codes_wider_than_its_stream() {
     }
     let reply = Lab::new().send("record burst 10\n");
     assert!(reply.starts_with("# nanopos-record v2 ") && reply.ends_with("ok record burst 10\n"), "{reply}");
+    // The amplifier's DAC too: 16 bits (largest code 65 535, the stream's own) record, 17 do not.
+    for (bits, records) in [(16, true), (17, false)] {
+        let (mut board, settings) = Lab::settings(None);
+        board.dac.bits = bits;
+        let reply = Lab::on_board(board, settings).send("record burst 10\n");
+        assert_eq!(reply.ends_with("ok record burst 10\n"), records, "{bits} bits: {reply}");
+    }
 }
 
 #[test]
