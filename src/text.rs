@@ -231,9 +231,10 @@ impl<const N: usize> fmt::Write for TextBuf<N> {
             let limit = N.saturating_sub(4);
             let mut cut = limit.saturating_sub(self.len).min(s.len());
             if self.len > limit {
+                // Back to the start of the character `limit` falls in, as the cut of `s` below.
+                let written = self.as_str();
                 let mut end = limit;
-                // Back to the start of the character `end` falls in (a UTF-8 continuation byte is 0b10xx_xxxx).
-                while end > 0 && self.buf[end] & 0xC0 == 0x80 {
+                while !written.is_char_boundary(end) {
                     end -= 1;
                 }
                 self.len = end;

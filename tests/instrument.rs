@@ -1307,25 +1307,25 @@ fn tune_initial_from_an_estimator_takes_an_estimate_with_some_parameters_at_thei
         StageParams { a0: init.a0, ..moved },
         StageParams { b0: init.b0, a0: init.a0, ..moved },
     ];
-    for p in cases {
+    // `tune initial hekf` on a fresh lab whose status has the hybrid EKF's estimate `p`, adapting: whether it was
+    // taken, the reply, and the lab after it.
+    let seed = |p: StageParams<f32>| {
         let mut lab = Lab::new();
         lab.run(100);
         let mut st = lab.isr.status();
-        st.estimates[2].0 = p;
-        st.estimates[2].1.held = false;
+        st.estimates[2] = (p, nanopos_id::estimator::Health::new());
         let mut reply = TextBuf::<REPLY_BYTES>::default();
         let (change, _) = lab.ctl.execute(nanopos_id::control::parse(b"tune initial hekf").unwrap(), || st, &mut reply);
-        assert!(change.is_some(), "{p:?}: {}", reply.as_str());
-        assert_eq!(initial(&mut lab), p, "{}", reply.as_str());
+        (change.is_some(), reply.as_str().to_string(), lab)
+    };
+    for p in cases {
+        let (taken, reply, mut lab) = seed(p);
+        assert!(taken, "{p:?}: {reply}");
+        assert_eq!(initial(&mut lab), p, "{reply}");
     }
     // All three at their initial values: refused.
-    let mut lab = Lab::new();
-    lab.run(100);
-    let mut st = lab.isr.status();
-    st.estimates[2] = (init, nanopos_id::estimator::Health::new());
-    let mut reply = TextBuf::<REPLY_BYTES>::default();
-    let (change, _) = lab.ctl.execute(nanopos_id::control::parse(b"tune initial hekf").unwrap(), || st, &mut reply);
-    assert!(change.is_none() && reply.as_str().contains("estimate is its initial parameters"), "{}", reply.as_str());
+    let (taken, reply, _) = seed(init);
+    assert!(!taken && reply.contains("estimate is its initial parameters"), "{reply}");
 }
 
 /// The pre-filter's centre far from the stage's resonance biases the estimates, and `tune` says so. On the stage at
