@@ -823,5 +823,20 @@ mod tests {
         assert_eq!(ExcitationDesign::OFF.design::<f32>(1e4).next(&mut s), 0.0);
         assert_eq!(ExcitationDesign::constant(0.25).design::<f32>(1e4).next(&mut s), 0.25);
         assert!(!ExcitationDesign::OFF.design::<f32>(1e4).is_active());
+        assert!(!ExcitationDesign::constant(0.25).design::<f32>(1e4).is_active());
+    }
+
+    #[test]
+    fn a_waveform_is_active_only_with_an_amplitude() {
+        // What the stuck-probe check asks: while the output holds still (`excite prbs 0` is a valid command) a
+        // probe that reads the same code is no fault.
+        let active = |design: ExcitationDesign| design.design::<f32>(1e4).is_active();
+        for waveform in
+            [ExcitationDesign::PAPER_PRBS, ExcitationDesign::PAPER_TRIANGLE, ExcitationDesign::sine(423.0, 1.0)]
+        {
+            assert!(active(waveform));
+            assert!(!active(ExcitationDesign { amplitude_v: 0.0, offset_v: 1.0, ..waveform }));
+        }
+        assert!(active(ExcitationDesign::multisine(200.0, 800.0, 0.1)));
     }
 }
