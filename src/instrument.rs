@@ -778,6 +778,22 @@ mod tests {
             e[2].0.b0 = -1e-30;
         }));
         assert_eq!(d.map(|d| d.ekf_names()), Some("hekf"));
+        // A gain of exactly zero has no sign: it agrees with no gain of either sign, the EKF's or the reference's
+        // (the RLS held, so that the ARX alone is the reference).
+        for sign in [1.0, -1.0] {
+            let signed = |e: &mut [(StageParams<f32>, Health); 4]| e.iter_mut().for_each(|(p, _)| p.b0 *= sign);
+            let d = disagreement(&status(|e| {
+                signed(e);
+                e[1].0.b0 = 0.0;
+            }));
+            assert_eq!(d.map(|d| d.ekf_names()), Some("ekf"), "gains of sign {sign}");
+            let d = disagreement(&status(|e| {
+                signed(e);
+                e[3].0.b0 = 0.0;
+                e[0].1.held = true;
+            }));
+            assert_eq!(d.map(|d| (d.ekf_names(), d.reference_name())), Some(("ekf,hekf", "arx")), "sign {sign}");
+        }
         // Not finite: no agreement either.
         let nan = StageParams { a0: f32::NAN, ..STAGE };
         assert_eq!(disagreement(&status(|e| e[2].0 = nan)).map(|d| d.ekf_names()), Some("hekf"));
