@@ -853,8 +853,12 @@ mod tests {
         assert!(response_ratio(&st, 2).is_some_and(|r| (r - 1.46).abs() < 0.01), "{:?}", response_ratio(&st, 2));
         assert_eq!(trusted_ekf_estimate(&st, 2), None);
         // No innovations yet, no resonance, no damping, no input.
-        assert_eq!(response_ratio(&status(|e| e[2].1.innovation_rms_um = f32::NAN), 2), None);
-        assert_eq!(response_ratio(&status(|e| e[2].0.a0 = -1.0), 2), None);
+        for rms in [f32::NAN, 0.0] {
+            assert_eq!(response_ratio(&status(|e| e[2].1.innovation_rms_um = rms), 2), None, "innovations {rms}");
+        }
+        for a0 in [-1.0, 0.0] {
+            assert_eq!(response_ratio(&status(|e| e[2].0.a0 = a0), 2), None, "a0 {a0}");
+        }
         assert_eq!(response_ratio(&status(|_| ()), 0), None, "the RLS has no innovations");
         assert_eq!(response_ratio(&status(|e| e[2].0.a1 = 0.0), 2), Some(0.0));
         let mut st = status(|_| ());
