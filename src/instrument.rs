@@ -940,6 +940,26 @@ mod tests {
     }
 
     #[test]
+    fn the_estimated_resonance_is_the_hybrid_ekfs_else_a_references_and_needs_a_resonance() {
+        let f0 = STAGE.f0_hz() as f64;
+        assert_eq!(estimated_resonance(&status(|_| ())), Some((f0, 2)));
+        // The EKFs off the reference: the ARX's. The hybrid EKF off: the first running estimator's, the RLS's.
+        assert_eq!(estimated_resonance(&status(|e| e[2].0 = moved(2.0))), Some((f0, 3)));
+        let mut s = status(|_| ());
+        s.selected = EstimatorSet(0b1011);
+        assert_eq!(estimated_resonance(&s), Some((f0, 0)));
+        // The RLS alone (no EKF to judge), with no resonance: `a0` zero, negative, infinite or not a number.
+        for a0 in [0.0, -1.0, f32::INFINITY, f32::NAN] {
+            let mut s = status(|e| e[0].0.a0 = a0);
+            s.selected = EstimatorSet(0b0001);
+            assert_eq!(estimated_resonance(&s), None, "a0 {a0}");
+        }
+        let mut s = status(|_| ());
+        s.selected = EstimatorSet(0);
+        assert_eq!(estimated_resonance(&s), None, "none running");
+    }
+
+    #[test]
     fn a_resonance_too_fast_for_the_continuous_ekf_is_told_once_after_2_s() {
         let khz = |e: &mut [(StageParams<f32>, Health); 4]| e.iter_mut().for_each(|(p, _)| *p = moved(1000.0 / 422.9));
         let f = fast_resonance(&status(khz), 1e4).expect("1 kHz at 10 kHz");
