@@ -1478,10 +1478,10 @@ fn the_watchdog_is_fed_only_while_the_sample_clock_runs() {
 /// 64x / 4 (16 bits, largest code 65 520) records. So for the amplifier's DAC.
 #[test]
 fn record_refuses_codes_wider_than_its_stream() {
-    let (mut board, settings) = Lab::settings(None);
-    (board.adc.oversampling, board.adc.shift) = (256, 0);
-    assert_eq!((board.adc.format().bits, board.adc.format().max_code), (20, 1_048_320));
-    let mut lab = Lab::on_board(board, settings);
+    let mut lab = Lab::with_board(|board| {
+        (board.adc.oversampling, board.adc.shift) = (256, 0);
+        assert_eq!((board.adc.format().bits, board.adc.format().max_code), (20, 1_048_320));
+    });
     for line in ["record on\n", "record burst 10\n"] {
         let reply = lab.send(line);
         assert_eq!(reply, "error: record: the v1 stream carries 16-bit codes; this board's are wider\n", "{line}");
@@ -1490,9 +1490,7 @@ fn record_refuses_codes_wider_than_its_stream() {
     assert!(reply.starts_with("# nanopos-record v2 ") && reply.ends_with("ok record burst 10\n"), "{reply}");
     // The amplifier's DAC too: 16 bits (largest code 65 535, the stream's own) record, 17 do not.
     for (bits, records) in [(16, true), (17, false)] {
-        let (mut board, settings) = Lab::settings(None);
-        board.dac.bits = bits;
-        let reply = Lab::on_board(board, settings).send("record burst 10\n");
+        let reply = Lab::with_board(|board| board.dac.bits = bits).send("record burst 10\n");
         assert_eq!(reply.ends_with("ok record burst 10\n"), records, "{bits} bits: {reply}");
     }
 }
@@ -2416,10 +2414,10 @@ fn a0_b0_off(p: StageParams<f32>, a0: f64, b0: f64) -> f64 {
 fn a_pre_filter_change_holds_the_estimators_until_the_new_filter_settles() {
     let changes = [(20.0, "tune prefilter 50 450 0.1"), (-15.0, "tune prefilter 200 600 0.2")];
     for ((dc_um, change), restart) in changes.into_iter().flat_map(|c| [(c, false), (c, true)]) {
-        let (mut board, settings) = Lab::settings(None);
         // The board's probe reads `dc_um` off the pipeline's zero: a stage held away from its probe's zero.
-        board.probe.adc_offset_v += dc_um * board.probe.adc_v_per_sensor_v / board.probe.um_per_v;
-        let mut lab = Lab::on_board(board, settings);
+        let mut lab = Lab::with_board(|board| {
+            board.probe.adc_offset_v += dc_um * board.probe.adc_v_per_sensor_v / board.probe.um_per_v
+        });
         let peak = |out: &[nanopos_id::pipeline::SampleOutput<f32>]| {
             out.iter()
                 .map(|o| o.estimator_input.expect("no fault"))
@@ -3084,9 +3082,7 @@ impl SlewWatch {
 #[test]
 fn every_estimator_follows_a_drifting_gain_with_its_own_lag() {
     let run = |pct_per_min: f64| {
-        let (mut board, settings) = Lab::settings(None);
-        board.plant.gain_drift_per_s = pct_per_min / 100.0 / 60.0;
-        let mut lab = Lab::on_board(board, settings);
+        let mut lab = Lab::with_board(|board| board.plant.gain_drift_per_s = pct_per_min / 100.0 / 60.0);
         let mut sums = [[0.0f64; 3]; 4];
         for k in 0..1_000_000 {
             let truth = lab.board.plant().params();

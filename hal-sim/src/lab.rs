@@ -58,6 +58,13 @@ impl Lab {
         Lab { board, isr, ctl, line: LineBuffer::default(), link: String::new() }
     }
 
+    /// The firmware on the paper's board ([`Lab::settings`]`(None)`) changed by `edit`, with the paper's pipeline.
+    pub fn with_board(edit: impl FnOnce(&mut BoardSettings)) -> Self {
+        let (mut board, settings) = Lab::settings(None);
+        edit(&mut board);
+        Lab::on_board(board, settings)
+    }
+
     /// The board's and the pipeline's settings of [`Lab::with_stage`]: the paper's experiment ([`Scenario::Prbs`]
     /// over 200 s), with `stage` (payload on and off alike) instead of the paper's stage.
     pub fn settings(stage: Option<StageParams<f64>>) -> (BoardSettings, PipelineSettings) {
