@@ -802,38 +802,44 @@ mod tests {
     }
 
     /// `refined_max` refines the local maxima of its grid within 3 % of the grid's largest, and no other point, each
-    /// by 16 ternary steps and a last look (33 calls of `f`), to 2e-3 of a grid step: on a flat grid even about both
-    /// ends (an end a local maximum when no less than its one neighbour), and on a periodic one (its ends
-    /// neighbours). Tents of slope 0.02-0.05 a grid step, the highest crest between two grid points, so that the
-    /// grid misses it.
+    /// by 16 ternary steps and a last look (33 calls of `f`, the first a third of a grid step before the point), to
+    /// 2e-3 of a grid step: on a flat grid even about both ends (an end a local maximum when no less than its one
+    /// neighbour), and on a periodic one (its ends neighbours). Tents of slope 0.02-0.05 a grid step, the highest
+    /// crest between two grid points, so that the grid misses it.
     #[test]
     fn the_search_refines_the_grids_highest_local_maxima_and_no_other_point() {
         // The largest of tents `(centre, height, slope)` at the distances `d(centre)`, in grid steps.
         fn tents(d: impl Fn(f64) -> f64, tents: &[(f64, f64, f64)]) -> f32 {
             tents.iter().map(|&(c, p, k)| p - k * d(c)).fold(0.0, f64::max) as f32
         }
-        let calls = core::cell::Cell::new(0usize);
+        let calls = core::cell::RefCell::new(std::vec::Vec::new());
+        // The points refined, in order, from the calls after the grid's `n`.
+        let refined = |n: usize, h: u64| -> std::vec::Vec<usize> {
+            let calls = calls.take();
+            assert_eq!((calls.len() - n) % 33, 0, "{} calls for a grid of {n}", calls.len());
+            let point = |x: u64| (libm::round(x as i64 as f64 / h as f64) as i64).rem_euclid(n as i64) as usize;
+            calls[n..].chunks(33).map(|c| point(c[0])).collect()
+        };
 
         // 13 points, even about both ends (the phases before 0 and past 12 steps fold back). The grid: 0.965 0.915
         // 0.928 0.948 0.968 0.988 0.992 0.972 0.952 0.94 0.97 0.94 0.91, its largest 0.992, so 3 % below is 0.962:
         // the local maxima 0, 6 and 10 are refined; 4, 5 (rising) and 7 (falling) are within 3 % but not maxima.
         let h = 1u64 << 58;
         let flat = |x: u64| {
-            calls.set(calls.get() + 1);
+            calls.borrow_mut().push(x);
             let s = 12.0 - libm::fabs(12.0 - libm::fabs(x as i64 as f64 / h as f64));
             tents(|c| libm::fabs(s - c), &[(5.6, 1.0, 0.02), (10.0, 0.97, 0.03), (0.0, 0.965, 0.05)])
         };
         let best = refined_max(&mut [0.0f32; 13], h, false, flat);
-        assert_eq!(calls.get(), 13 + 3 * 33, "the flat grid, and its points 0, 6 and 10 refined");
+        assert_eq!(refined(13, h), [0, 6, 10], "the flat grid's points refined");
         assert!(best <= 1.0 && 1.0 - best <= 0.02 * 2e-3, "flat: {best} for 1 at 5.6 grid steps");
 
         // 12 points round a cycle, the highest crest 0.4 steps after the first point. The grid: 0.992 0.988 0.968
         // 0.948 0.928 0.94 0.97 0.94 0.912 0.932 0.952 0.972: the local maxima 0 and 6 are refined; 1 (falling) and
         // 11 (rising, next to 0) are within 3 % but not maxima.
-        calls.set(0);
         let h = u64::MAX / 12;
         let round = |x: u64| {
-            calls.set(calls.get() + 1);
+            calls.borrow_mut().push(x);
             let s = x as f64 / h as f64;
             let d = |c: f64| {
                 let d = libm::fmod(libm::fabs(s - c), 12.0);
@@ -842,7 +848,7 @@ mod tests {
             tents(d, &[(0.4, 1.0, 0.02), (6.0, 0.97, 0.03)])
         };
         let best = refined_max(&mut [0.0f32; 12], h, true, round);
-        assert_eq!(calls.get(), 12 + 2 * 33, "the periodic grid, and its points 0 and 6 refined");
+        assert_eq!(refined(12, h), [0, 6], "the periodic grid's points refined");
         assert!(best <= 1.0 && 1.0 - best <= 0.02 * 2e-3, "periodic: {best} for 1 at 0.4 grid steps");
     }
 
