@@ -231,7 +231,7 @@ fn phase_step(f_hz: f64, fs_hz: f64) -> u64 {
 /// (to 2e-3 of a grid step): the sum's largest lobe is a few grid steps wide, so the coarse grid finds every candidate,
 /// and the refinement takes the missed crest's 1-2 % back. In f32 with the generators' own sines (at most 509 points of
 /// at most 64 terms, `cos(n phi)` by the recurrence `2 cos(2 phi) cos(n phi) - cos((n - 2) phi)`), raised by
-/// [`TRIANGLE_STEP_RAISE`] for its rounding: measured from 1.0e-5 below to 1.0e-5 above the maximum over a grid of
+/// [`TRIANGLE_STEP_RAISE`] for its rounding: measured from 1.0e-5 below to 1.3e-5 above the maximum over a grid of
 /// 2^17 phases in f64, for 800 fundamentals from 0.5 Hz to 1 kHz (half of them under 20 Hz, where it is least
 /// accurate); 1.1e-7 with the sum in f64, which on the board would be soft double. `excite triangle 1 10` takes 425 000
 /// instructions on the M4F, 201 000 more than `excite prbs 1` (QEMU, measured once). The steepest step sits next to the
@@ -774,7 +774,7 @@ mod tests {
     /// The triangle's steepest step, searched in f32, against the change from one phase to the next computed in f64
     /// on a grid of 2^17 phases a period (the unit triangle's series at `x` and `x + 2 pi f / fs`), for fundamentals
     /// from 0.5 Hz (64 harmonics, the most) to 1 kHz (one), and at 9.178 Hz (where its f32 sum is 1.0e-5 low): at
-    /// or above it, by at most its raise and the f32 search's own error (measured up to 1.0e-5 either way on 800
+    /// or above it, by at most its raise and the f32 search's own error (measured from 1.0e-5 below to 1.3e-5 above on 800
     /// fundamentals). And with many harmonics
     /// it is the flank's `4 f / fs` overshot by Gibbs's 1.18 (1.15-1.19 here, as the harmonics' count and the sample
     /// period round the lobe).
