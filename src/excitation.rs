@@ -775,8 +775,8 @@ mod tests {
     /// on a grid of 2^17 phases a period (the unit triangle's series at `x` and `x + 2 pi f / fs`), for fundamentals
     /// from 0.5 Hz (64 harmonics, the most) to 1 kHz (one), and at 9.178 Hz (where its f32 sum is 1.0e-5 low): at
     /// or above it, by at most its raise and the f32 search's own error (measured from 1.0e-5 below to 1.3e-5 above
-    /// on 800 fundamentals). And with many harmonics it is the flank's `4 f / fs` overshot by Gibbs's 1.18 (1.15-1.19 here, as the harmonics' count and the sample
-    /// period round the lobe).
+    /// on 800 fundamentals). And with many harmonics it is the flank's `4 f / fs` overshot by Gibbs's 1.18 (1.15-1.19
+    /// here, as the harmonics' count and the sample period round the lobe).
     #[test]
     fn the_triangles_steepest_step_is_found_in_every_phase() {
         let fs = 1e4;
