@@ -2099,7 +2099,7 @@ fn the_triangles_steepest_step_is_judged_against_the_slew_limit() {
     let r = lab.send("excite triangle 1 100\n");
     assert!(
         notes(&r).contains(
-            &"note: the excitation steps by up to 0.0471587 V a sample (471.587 V/s), beyond the slew limit's 0.03 V: \
+            &"note: the excitation steps by up to 0.0471592 V a sample (471.592 V/s), beyond the slew limit's 0.03 V: \
               it will be ramped"
                 .to_string()
         ),
