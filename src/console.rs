@@ -199,11 +199,6 @@ impl Controller {
         &self.settings
     }
 
-    /// Whether the excitation runs.
-    pub fn running(&self) -> bool {
-        self.running
-    }
-
     /// `s` designed for the board, with the excitation running or held at the safe value.
     fn design<T: Real>(&self, s: &PipelineSettings, running: bool) -> Result<PipelineConfig<T>, SettingsError> {
         let mut s = *s;
