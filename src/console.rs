@@ -31,10 +31,10 @@ pub const REPLY_BYTES: usize = 512;
 
 /// The most bytes a command's reply takes before [`Controller::execute`] fits it into [`REPLY_BYTES`] (a scratch
 /// buffer on the stack while the command runs, not in the console's state). Its notes can add up to more than the
-/// reply's buffer: `excite sine 2.9e-5 1.2e-9 -9.77` (within a step of the DAC, beyond the clamp, a sine) has three
-/// and its verdict, 600 bytes. `excite`, with the most kinds of note, can write five: about 1 100 bytes with the
-/// longest numbers. A debug build checks that no reply outgrows this (the host tests, the random session's 20 000
-/// commands among them).
+/// reply's buffer: `excite multisine 2.9e-5 1.2e-9 2.2e-9 -9.77` (within a step of the DAC, beyond the clamp, a band
+/// that misses the resonance) has three and its verdict, 528 bytes. `excite`, with the most kinds of note, can write
+/// five: about 1 100 bytes with the longest numbers. A debug build checks that no reply outgrows this (the host tests,
+/// the random session's 20 000 commands among them).
 const BODY_BYTES: usize = 3 * REPLY_BYTES;
 
 /// `body`, lines each ended by `\n` and the last the verdict, into `reply` within [`REPLY_BYTES`]: whole, or with its
