@@ -344,7 +344,7 @@ fn multisine_steepest_step(step: u64, spacing: u64) -> f64 {
         let d = step.wrapping_add(spacing.wrapping_mul(j as u64));
         // In f64: the generators' f32 sine holds the phase to 2^-27 of a cycle, which is up to 3e-5 of `d / 2`
         // for tones of a few Hz.
-        let size = (2.0 * libm::sin(core::f64::consts::PI * (d as f64 / 18_446_744_073_709_551_616.0))) as f32;
+        let size = (2.0 * f64::phase_sin(d / 2)) as f32;
         let (sin, cos) = f32::phase_sin_cos(schroeder_phase(j));
         *c = (size * cos, size * sin);
     }
