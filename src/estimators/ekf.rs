@@ -1523,6 +1523,50 @@ mod tests {
         }
     }
 
+    /// The continuous filter's right-hand side, written entry by entry, is the dense one: `z' = f(z) + K (y - x1)`
+    /// and `P' = F P + P F' + Q - K H P` (`K = P H' / R`, `H = e1`), with the measurement and without, at a
+    /// converged filter's state and covariance; and `x2_rate` (the curvature term's) is `f(z)`'s `x2'`. The
+    /// hybrid filter's tests compare its prediction with the RK4 of this derivative, so they cannot see its errors:
+    /// the state noise's sign, the measurement's terms wrong, passed them all.
+    #[test]
+    fn the_derivative_is_the_dense_right_hand_side() {
+        let core = converged_hybrid(0.3).core;
+        let (c, z) = (&core.cfg, core.z);
+        let c2u = c.c2 * 0.7;
+        let mut f = [[0.0; 5]; 5];
+        f[0][1] = c.w;
+        f[1] = [-c.c0 * z[2], -c.c1 * z[3], -c.c0 * z[0], -c.c1 * z[1], c2u];
+        let p: [[f64; 5]; 5] = core::array::from_fn(|i| core::array::from_fn(|j| core.p[idx(i, j)]));
+        // F P and its terms' magnitudes, for a bound on the rounding.
+        let fp: [[f64; 5]; 5] =
+            core::array::from_fn(|i| core::array::from_fn(|j| (0..5).map(|k| f[i][k] * p[k][j]).sum()));
+        let size: [[f64; 5]; 5] =
+            core::array::from_fn(|i| core::array::from_fn(|j| (0..5).map(|k| (f[i][k] * p[k][j]).abs()).sum()));
+        let rate = -c.c0 * z[2] * z[0] - c.c1 * z[3] * z[1] + c2u * z[4];
+        assert!((core.x2_rate(&z, c2u) - rate).abs() <= 1e-15 * rate.abs().max(1.0));
+        for y in [None, Some(z[0] + 0.3), Some(z[0] - 2.0)] {
+            let (dz, dp) = core.derivative(&z, &core.p, c2u, y);
+            let mut want_z = [c.w * z[1], rate, 0.0, 0.0, 0.0];
+            for i in 0..5 {
+                let gain = y.map_or(0.0, |y| p[i][0] * c.inv_r * (y - z[0]));
+                want_z[i] += gain;
+                assert!(
+                    (dz[i] - want_z[i]).abs() <= 1e-14 * (want_z[i].abs() + 1.0),
+                    "{y:?}: z{i}' {} against {}",
+                    dz[i],
+                    want_z[i]
+                );
+                for j in i..5 {
+                    let measured = if y.is_some() { p[i][0] * p[0][j] * c.inv_r } else { 0.0 };
+                    let q = if i == j { c.q[i] } else { 0.0 };
+                    let want = fp[i][j] + fp[j][i] + q - measured;
+                    let bound = 1e-14 * (size[i][j] + size[j][i] + q + measured.abs());
+                    assert!((dp[idx(i, j)] - want).abs() <= bound, "{y:?}: P{i}{j}' {} against {want}", dp[idx(i, j)]);
+                }
+            }
+        }
+    }
+
     /// The prediction with any number of substeps, the maps squared above `DIRECT_SUBSTEPS`: the state is the RK4's
     /// in `substeps` steps (to rounding), and `Psi` and `Sigma` are the derivatives of that state along the states and
     /// the parameters, against central differences of the prediction itself. Read from the covariance it predicts
