@@ -198,6 +198,19 @@ mod tests {
         assert_eq!(LagReplica { poles_hz: [None, None], match_hz: 450.0 }.design(FS), Biquad::passthrough());
     }
 
+    /// Cramer's rule on a system without the lag replica's ones and minus ones (on which a product and a quotient
+    /// by an entry agree, so its own test cannot tell them apart).
+    #[test]
+    fn solve3_solves_a_general_system() {
+        let m = [[2.0, -3.0, 5.0], [7.0, 11.0, -13.0], [-17.0, 19.0, 23.0]];
+        let x = [0.5, -1.25, 3.0];
+        let r: [f64; 3] = core::array::from_fn(|i| (0..3).map(|j| m[i][j] * x[j]).sum());
+        let got = solve3(m, r);
+        for i in 0..3 {
+            assert!((got[i] - x[i]).abs() < 1e-13, "x{i} {} against {}", got[i], x[i]);
+        }
+    }
+
     #[test]
     fn highpass_is_minus_3db_and_plus_45_degrees_at_its_cutoff() {
         let f = highpass1(100.0, 100.0, FS);
