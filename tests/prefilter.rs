@@ -201,3 +201,90 @@ fn rk4_amplification_says_whether_an_rk4_integration_of_the_prefilter_grows() {
         assert_eq!(grows(&d), unstable, "{d:?}: amplification {a}");
     }
 }
+
+/// `rk4_amplification`'s value, not only which side of 1 it falls: the rate at which RK4 steps of `x' = A x` at 0.1 ms
+/// decay, measured over steps 1 000 to 4 000, when the slowest mode is left (its ratio per step is the largest
+/// `|R(lambda h)|`). With `zeta_p = 4` that is the pair's slower real pole (`|R|` 0.965), not the high-pass corner
+/// (0.939) nor the faster pole (0.44), where `|R|` is not monotonic along the real axis.
+#[test]
+fn rk4_amplification_is_the_decay_per_step_of_the_slowest_rk4_mode() {
+    let h = 1e-4;
+    let measured = |d: &PrefilterDesign| {
+        let ([d0, d1, d2], _) = d.continuous();
+        let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
+        let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
+        let w = 2.0 * std::f64::consts::PI * d.f_p_hz.max(d.f_lc_hz);
+        let size = |x: &[f64; 3]| x[0].hypot(x[1] / w).hypot(x[2] / (w * w));
+        let (mut x, mut at_1000) = ([1.0, 0.3 * w, -0.7 * w * w], 0.0);
+        for k in 1..=4000 {
+            let k1 = f(x);
+            let k2 = f(add(x, k1, h / 2.0));
+            let k3 = f(add(x, k2, h / 2.0));
+            let k4 = f(add(x, k3, h));
+            x = core::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+            if k == 1000 {
+                at_1000 = size(&x);
+            }
+        }
+        (size(&x) / at_1000).powf(1.0 / 3000.0)
+    };
+    // (f_lc, f_p, zeta_p): the paper's (the pair slowest), an overdamped pair, a critically damped one, and the
+    // high-pass corner slowest.
+    for (f_lc_hz, f_p_hz, zeta_p) in [(100.0, 450.0, 0.1), (100.0, 450.0, 4.0), (100.0, 450.0, 1.0), (10.0, 450.0, 0.1)]
+    {
+        let d = PrefilterDesign { f_lc_hz, f_p_hz, zeta_p };
+        let (a, m) = (d.rk4_amplification(h), measured(&d));
+        assert!((a / m - 1.0).abs() < 1e-3, "{d:?}: rk4_amplification {a}, measured {m}");
+    }
+}
+
+/// `slowest_time_constant_s` is the time constant of the pole of `W_p` nearest zero, checked on the denominator
+/// `s^3 + d2 s^2 + d1 s + d0` itself: `r = -1 / tau` is a real root of it, or the real part of a complex pair of
+/// roots `r +- i w` (with `w^2 = 3 r^2 + 2 d2 r + d1` from the imaginary part, the real part zero to rounding against
+/// its largest term), and the roots left by deflation (their sum `-d2` and product `-d0` known) are no nearer zero.
+/// For `zeta_p` from 1 on, the pair's slower real pole, slower than the high-pass corner at 4, and at `zeta_p = 1e6`
+/// still exact where `z - sqrt(z^2 - 1)` would keep four digits.
+#[test]
+fn slowest_time_constant_is_that_of_the_pole_nearest_zero() {
+    let cases = [
+        (100.0, 450.0, 0.1, "the pair"),
+        (10.0, 450.0, 0.1, "the high-pass corner"),
+        (100.0, 450.0, 1.0, "the pair, critically damped"),
+        (100.0, 450.0, 2.0, "the high-pass corner, the pair overdamped"),
+        (100.0, 450.0, 4.0, "the pair's slower pole"),
+        (100.0, 450.0, 1e6, "the pair's slower pole, far overdamped"),
+    ];
+    let near_zero = |terms: &[f64]| {
+        let largest = terms.iter().fold(0.0_f64, |m, t| m.max(t.abs()));
+        terms.iter().sum::<f64>().abs() < 1e-12 * largest
+    };
+    for (f_lc_hz, f_p_hz, zeta_p, slowest) in cases {
+        let d = PrefilterDesign { f_lc_hz, f_p_hz, zeta_p };
+        let ([d0, d1, d2], _) = d.continuous();
+        let tau = d.slowest_time_constant_s();
+        let r = -1.0 / tau;
+        let w2 = 3.0 * r * r + 2.0 * d2 * r + d1;
+        // The other roots' largest real part.
+        let others = if near_zero(&[r * r * r, d2 * r * r, d1 * r, d0]) {
+            let (sum, product) = (-d2 - r, -d0 / r);
+            let disc = sum * sum - 4.0 * product;
+            (sum + if disc > 0.0 { disc.sqrt() } else { 0.0 }) / 2.0
+        } else {
+            let complex_root = w2 > 0.0 && near_zero(&[r * r * r, -3.0 * r * w2, d2 * (r * r - w2), d1 * r, d0]);
+            assert!(complex_root, "{d:?} ({slowest}): tau {tau}: -1/tau is not a root's real part");
+            -d2 - 2.0 * r
+        };
+        assert!(others <= r * (1.0 - 1e-9), "{d:?} ({slowest}): tau {tau}, another root at real part {others}");
+    }
+    let wp = 2.0 * std::f64::consts::PI * 450.0;
+    let d = PrefilterDesign { f_lc_hz: 100.0, f_p_hz: 450.0, zeta_p: 1e6 };
+    assert!((d.slowest_time_constant_s() / (2.0 * 1e6 / wp) - 1.0).abs() < 1e-9);
+    // A NaN anywhere: NaN, for the caller to refuse (a NaN corner compares as neither slower nor faster).
+    for (f_lc_hz, f_p_hz, zeta_p) in [(f64::NAN, 450.0, 0.1), (100.0, f64::NAN, 0.1), (100.0, 450.0, f64::NAN)] {
+        let d = PrefilterDesign { f_lc_hz, f_p_hz, zeta_p };
+        assert!(d.slowest_time_constant_s().is_nan(), "{d:?}: {}", d.slowest_time_constant_s());
+    }
+    // An infinite corner is a pole at infinity: the other's.
+    let d = PrefilterDesign { f_lc_hz: f64::INFINITY, f_p_hz: 450.0, zeta_p: 0.1 };
+    assert_eq!(d.slowest_time_constant_s(), 1.0 / (0.1 * wp));
+}

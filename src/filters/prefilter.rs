@@ -94,8 +94,9 @@ impl PrefilterDesign {
 
     /// The time constant of the slowest pole of `W_p`, s: `1 / min(w_lc, zeta_p w_p)` for a lightly damped pair,
     /// the pair's slower real pole `w_p (zeta_p - sqrt(zeta_p^2 - 1))` in its place from `zeta_p = 1` on (NaN for a
-    /// non-finite design). How long the filter rings after its input stops, and how far its state (the controllable
-    /// form's, whose first state integrates the input over the high-pass corner's time constant) can grow.
+    /// design with a NaN in it; an infinite corner is a pole at infinity, never the slowest). How long the filter
+    /// rings after its input stops, and how far its state (the controllable form's, whose first state integrates the
+    /// input over the high-pass corner's time constant) can grow.
     pub fn slowest_time_constant_s(&self) -> f64 {
         let two_pi = 2.0 * core::f64::consts::PI;
         let (wc, wp, z) = (two_pi * self.f_lc_hz, two_pi * self.f_p_hz, self.zeta_p);
