@@ -288,3 +288,16 @@ fn slowest_time_constant_is_that_of_the_pole_nearest_zero() {
     let d = PrefilterDesign { f_lc_hz: f64::INFINITY, f_p_hz: 450.0, zeta_p: 0.1 };
     assert_eq!(d.slowest_time_constant_s(), 1.0 / (0.1 * wp));
 }
+
+/// `is_finite` says whether the designed filter's constants are all numbers in the working scalar: the paper's in
+/// either, a damping of 1e36 (its `d2`, 5.7e39, beyond `f32`'s range) in `f64` but not `f32`, a NaN corner in neither.
+#[test]
+fn is_finite_says_whether_every_constant_of_the_design_is_a_number_in_its_scalar() {
+    let paper = PrefilterDesign::default();
+    assert!(paper.design::<f32>(T).is_finite() && paper.design::<f64>(T).is_finite());
+    let wide = PrefilterDesign { zeta_p: 1e36, ..paper };
+    assert!(wide.design::<f64>(T).is_finite());
+    assert!(!wide.design::<f32>(T).is_finite());
+    let nan = PrefilterDesign { f_lc_hz: f64::NAN, ..paper };
+    assert!(!nan.design::<f32>(T).is_finite() && !nan.design::<f64>(T).is_finite());
+}
