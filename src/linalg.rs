@@ -226,6 +226,40 @@ mod tests {
         }
     }
 
+    /// `balance` is what `zoh` relies on: an exact similarity (`A_b[i][j] = A[i][j] d[j] / d[i]` to the bit, each
+    /// `d[i]` a power of two), converged in Parlett and Reinsch's sense (for no state would a factor of 2 either way
+    /// lower the sum of its off-diagonal row and column by 5 %), a state without coupling left alone, and a balanced
+    /// matrix left as it is. The pre-filter's companion matrix (entries 1 to 5e9) comes out with a norm of 5.3e3.
+    #[test]
+    fn balancing_is_an_exact_power_of_two_similarity_that_evens_rows_and_columns() {
+        let two_pi = 2.0 * core::f64::consts::PI;
+        let (wc, wp, z) = (two_pi * 100.0, two_pi * 450.0, 0.1);
+        let (d2, d1, d0) = (wc + 2.0 * z * wp, wp * wp + 2.0 * z * wp * wc, wc * wp * wp);
+        let companion = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-d0, -d1, -d2]];
+        // The first state on its own: its off-diagonal row and column are zero.
+        let decoupled = [[-1e3, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -6e6, -2e3]];
+        let even = [[-1.0, 2.0, 0.0], [2.0, -1.0, 2.0], [0.0, 2.0, -1.0]];
+        for (name, a) in [("companion", companion), ("decoupled", decoupled), ("even", even)] {
+            let (ab, d) = balance(&a);
+            for i in 0..3 {
+                assert!(d[i] > 0.0 && libm::frexp(d[i]).0 == 0.5, "{name}: d[{i}] = {} is not a power of two", d[i]);
+                for j in 0..3 {
+                    assert_eq!(ab[i][j], a[i][j] * d[j] / d[i], "{name}: [{i}][{j}]");
+                }
+                let c: f64 = (0..3).filter(|&j| j != i).map(|j| ab[j][i].abs()).sum();
+                let r: f64 = (0..3).filter(|&j| j != i).map(|j| ab[i][j].abs()).sum();
+                for f in [2.0, 0.5] {
+                    assert!(c * f + r / f >= 0.95 * (c + r), "{name}: state {i} not balanced: column {c}, row {r}");
+                }
+            }
+            match name {
+                "companion" => assert!(norm1(&ab) < 1e4 && norm1(&a) > 5e9, "{ab:?}"),
+                "decoupled" => assert_eq!(d[0], 1.0),
+                _ => assert_eq!(d, [1.0; 3]),
+            }
+        }
+    }
+
     #[test]
     fn zoh_of_a_pure_integrator_is_exact() {
         let (phi, psi) = zoh(&[[0.0]], 0.25);
