@@ -155,6 +155,18 @@ fn noise_gains_are_the_sums_of_the_squared_impulse_responses() {
     }
 }
 
+/// One RK4 step of `h` seconds of `x' = A x`, `A` the companion form of `W_p`'s denominator.
+fn rk4_step_of_the_denominator(d: &PrefilterDesign, x: [f64; 3], h: f64) -> [f64; 3] {
+    let ([d0, d1, d2], _) = d.continuous();
+    let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
+    let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
+    let k1 = f(x);
+    let k2 = f(add(x, k1, h / 2.0));
+    let k3 = f(add(x, k2, h / 2.0));
+    let k4 = f(add(x, k3, h));
+    core::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]))
+}
+
 /// `rk4_amplification` against the thing itself: RK4 steps of `x' = A x` (the companion form of `W_p`'s
 /// denominator) at 0.1 ms from a unit state, 2 000 of them. Above 1 the state grows without bound (the
 /// continuous-time RLS's own pre-filter then overflows and resets it over and over); below 1 it decays.
@@ -162,19 +174,12 @@ fn noise_gains_are_the_sums_of_the_squared_impulse_responses() {
 fn rk4_amplification_says_whether_an_rk4_integration_of_the_prefilter_grows() {
     let h = 1e-4;
     let grows = |d: &PrefilterDesign| {
-        let ([d0, d1, d2], _) = d.continuous();
-        let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
-        let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
         // Scaled so that the three states weigh alike (W_p's coefficients span 1e11).
         let w = 2.0 * std::f64::consts::PI * d.f_p_hz.max(d.f_lc_hz);
         let mut x = [1.0, w, w * w];
         let size = |x: &[f64; 3]| x[0].abs() + x[1].abs() / w + x[2].abs() / (w * w);
         for _ in 0..2000 {
-            let k1 = f(x);
-            let k2 = f(add(x, k1, h / 2.0));
-            let k3 = f(add(x, k2, h / 2.0));
-            let k4 = f(add(x, k3, h));
-            x = core::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+            x = rk4_step_of_the_denominator(d, x, h);
         }
         // Overflowed to infinity or NaN counts as grown.
         let s = size(&x);
@@ -210,18 +215,11 @@ fn rk4_amplification_says_whether_an_rk4_integration_of_the_prefilter_grows() {
 fn rk4_amplification_is_the_decay_per_step_of_the_slowest_rk4_mode() {
     let h = 1e-4;
     let measured = |d: &PrefilterDesign| {
-        let ([d0, d1, d2], _) = d.continuous();
-        let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
-        let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
         let w = 2.0 * std::f64::consts::PI * d.f_p_hz.max(d.f_lc_hz);
         let size = |x: &[f64; 3]| x[0].hypot(x[1] / w).hypot(x[2] / (w * w));
         let (mut x, mut at_1000) = ([1.0, 0.3 * w, -0.7 * w * w], 0.0);
         for k in 1..=4000 {
-            let k1 = f(x);
-            let k2 = f(add(x, k1, h / 2.0));
-            let k3 = f(add(x, k2, h / 2.0));
-            let k4 = f(add(x, k3, h));
-            x = core::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+            x = rk4_step_of_the_denominator(d, x, h);
             if k == 1000 {
                 at_1000 = size(&x);
             }
