@@ -103,12 +103,44 @@ mod tests {
         }
     }
 
+    /// A gain of 7/6, not 1: at 1 the settled output `x * gain` and `x / gain` are the same.
     #[test]
     fn settled_state_outputs_the_dc_response_at_once() {
-        let f: Biquad<f64> = Biquad { b: [0.2, 0.3, 0.1], a: [-0.6, 0.2] };
+        let f: Biquad<f64> = Biquad { b: [0.2, 0.3, 0.2], a: [-0.6, 0.2] };
+        assert!((f.dc_gain() - 7.0 / 6.0).abs() < 1e-15);
         let mut s = BiquadState::default();
         s.settle(&f, 2.0);
-        let y = f.update(&mut s, 2.0);
-        assert!((y - 2.0 * f.dc_gain()).abs() < 1e-15);
+        for _ in 0..3 {
+            let y = f.update(&mut s, 2.0);
+            assert!((y - 2.0 * 7.0 / 6.0).abs() < 1e-15, "{y}");
+        }
+    }
+
+    /// `is_stable` is the stability triangle `|a2| < 1`, `|a1| < 1 + a2` (both poles strictly inside the unit
+    /// circle) with every coefficient finite: a pole on the circle (at 1, at -1, or a pair with `a2 = 1`) is not.
+    #[test]
+    fn is_stable_is_the_stability_triangle_with_finite_coefficients() {
+        let with = |a: [f64; 2]| Biquad { b: [0.2, 0.3, 0.2], a };
+        for a in [[-0.5, 0.25], [-1.9, 0.95], [1.9, 0.95], [0.0, -0.99], [0.0, 0.0]] {
+            assert!(with(a).is_stable(), "{a:?}");
+        }
+        let outside = [
+            [0.0, 1.0],    // a pair on the circle
+            [0.0, -1.0],   // poles at +-1
+            [-1.5, 0.5],   // a pole at 1
+            [1.5, 0.5],    // a pole at -1
+            [-1.6, 0.5],   // a real pole beyond 1
+            [1.6, 0.5],    // and beyond -1
+            [0.0, 1.2],    // a pair outside
+            [-2.5, -1.05], // |a2| > 1 with |a1| < 1 + a2 failing as well
+        ];
+        for a in outside {
+            assert!(!with(a).is_stable(), "{a:?}");
+        }
+        for bad in [f64::NAN, f64::INFINITY] {
+            assert!(!Biquad { b: [bad, 0.3, 0.2], a: [-0.5, 0.25] }.is_stable());
+            assert!(!with([-0.5, bad]).is_stable());
+            assert!(!with([bad, 0.25]).is_stable());
+        }
     }
 }
