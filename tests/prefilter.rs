@@ -19,11 +19,7 @@ fn continuous_step_response(design: &PrefilterDesign, samples: usize) -> Vec<Pre
         let left = if k == 0 { 0.0 } else { 1.0 };
         out.push(Prefiltered { value: x[1], d1: x[2], d2: 0.5 * (f(x, left)[2] + f(x, 1.0)[2]) });
         for _ in 0..sub {
-            let k1 = f(x, 1.0);
-            let k2 = f(std::array::from_fn(|i| x[i] + 0.5 * h * k1[i]), 1.0);
-            let k3 = f(std::array::from_fn(|i| x[i] + 0.5 * h * k2[i]), 1.0);
-            let k4 = f(std::array::from_fn(|i| x[i] + h * k3[i]), 1.0);
-            x = std::array::from_fn(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+            x = rk4_step(design, x, 1.0, h);
         }
     }
     out
@@ -155,10 +151,11 @@ fn noise_gains_are_the_sums_of_the_squared_impulse_responses() {
     }
 }
 
-/// One RK4 step of `h` seconds of `x' = A x`, `A` the companion form of `W_p`'s denominator.
-fn rk4_step_of_the_denominator(d: &PrefilterDesign, x: [f64; 3], h: f64) -> [f64; 3] {
-    let ([d0, d1, d2], _) = d.continuous();
-    let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2]];
+/// One RK4 step of `h` seconds of the continuous realisation (`x' = A x + [0, 0, g] u`, `A` the companion form of
+/// `W_p`'s denominator) with the input held at `u`.
+fn rk4_step(d: &PrefilterDesign, x: [f64; 3], u: f64, h: f64) -> [f64; 3] {
+    let ([d0, d1, d2], g) = d.continuous();
+    let f = |x: [f64; 3]| [x[1], x[2], -d0 * x[0] - d1 * x[1] - d2 * x[2] + g * u];
     let add = |x: [f64; 3], k: [f64; 3], s: f64| [x[0] + s * k[0], x[1] + s * k[1], x[2] + s * k[2]];
     let k1 = f(x);
     let k2 = f(add(x, k1, h / 2.0));
@@ -179,7 +176,7 @@ fn rk4_amplification_says_whether_an_rk4_integration_of_the_prefilter_grows() {
         let mut x = [1.0, w, w * w];
         let size = |x: &[f64; 3]| x[0].abs() + x[1].abs() / w + x[2].abs() / (w * w);
         for _ in 0..2000 {
-            x = rk4_step_of_the_denominator(d, x, h);
+            x = rk4_step(d, x, 0.0, h);
         }
         // Overflowed to infinity or NaN counts as grown.
         let s = size(&x);
@@ -219,7 +216,7 @@ fn rk4_amplification_is_the_decay_per_step_of_the_slowest_rk4_mode() {
         let size = |x: &[f64; 3]| x[0].hypot(x[1] / w).hypot(x[2] / (w * w));
         let (mut x, mut at_1000) = ([1.0, 0.3 * w, -0.7 * w * w], 0.0);
         for k in 1..=4000 {
-            x = rk4_step_of_the_denominator(d, x, h);
+            x = rk4_step(d, x, 0.0, h);
             if k == 1000 {
                 at_1000 = size(&x);
             }
