@@ -443,6 +443,132 @@ mod tests {
         }
     }
 
+    /// The conversion refuses coefficients whose poles have no continuous underdamped equivalent, and a stage it
+    /// cannot represent: each case on its own, the others at a valid stage.
+    #[test]
+    fn the_conversion_refuses_poles_with_no_continuous_underdamped_equivalent() {
+        let t = 1e-4;
+        let p = StageParams::PAYLOAD;
+        let valid = arx_of_stage(&p, t);
+        assert!(stage_of_arx_f64(&valid, t).is_some());
+        // The same stage with its damping negated: the ZOH image of an unstable pair, `r > 1` (`1 + A2 < 0`).
+        let unstable = arx_of_stage(&StageParams { a1: -p.a1, ..p }, t);
+        assert!(1.0 + unstable[1] < 0.0 && 4.0 * -unstable[1] > unstable[0] * unstable[0], "{unstable:?}");
+        // A pair on the unit circle, `r = 1` exactly (`1 + A2 = 0`): undamped, refused with the unstable.
+        let on_circle = [valid[0], -1.0, valid[2], valid[3]];
+        // A double real pole at `z = 1/2` (`4 r^2 = A1^2` exactly) and two distinct real poles, 1/2 and 9/10.
+        let double_real = [1.0, -0.25, valid[2], valid[3]];
+        let real = [1.4, -0.45, valid[2], valid[3]];
+        // The poles valid, the input's coefficients overflowing: `b0` infinite.
+        let infinite_gain = [valid[0], valid[1], f64::MAX, f64::MAX];
+        let nan = [valid[0], f64::NAN, valid[2], valid[3]];
+        for (name, c) in [
+            ("unstable", unstable),
+            ("on the circle", on_circle),
+            ("double real", double_real),
+            ("real", real),
+            ("infinite gain", infinite_gain),
+            ("NaN", nan),
+        ] {
+            assert_eq!(stage_of_arx_f64(&c, t), None, "{name}: {c:?}");
+        }
+    }
+
+    /// The ARX coefficients reported are the exact nominal ones, those of the initial stage, plus the deviations the
+    /// RLS estimates; and they convert to the stage the estimator reports.
+    #[test]
+    fn the_arx_coefficients_are_the_nominal_ones_plus_the_deviations() {
+        let design = ArxDesign::default();
+        let mut arx = ArxEstimator::<f64>::new(design.design());
+        let nominal = arx_of_stage(&design.initial, design.sample_period_s);
+        assert_eq!(arx.arx(), nominal);
+        let d = [1e-4, -2e-5, 3e-7, -1e-7];
+        arx.core.rls.set_theta(d);
+        let got = arx.arx();
+        for i in 0..4 {
+            assert_eq!(got[i], nominal[i] + d[i], "coefficient {i}");
+        }
+        let (from_arx, reported) = (stage_of_arx_f64(&got, design.sample_period_s).unwrap(), arx.params());
+        for (x, y) in [(from_arx.a0, reported.a0), (from_arx.a1, reported.a1), (from_arx.b0, reported.b0)] {
+            assert!((x / y - 1.0).abs() < 1e-9, "{x} against {y}");
+        }
+        assert_ne!(from_arx, design.initial);
+    }
+
+    /// The tuning fits its scalar when every constant is a number in it: each constant out of f32's range alone
+    /// makes it unfit in f32 and leaves it fit in f64; a NaN fits neither.
+    #[test]
+    fn fits_says_whether_every_constant_of_the_tuning_is_a_number_in_its_scalar() {
+        let base = ArxDesign::default();
+        assert!(base.design::<f32>().fits() && base.design::<f64>().fits());
+        let huge = 1e39;
+        for (name, d) in [
+            ("max_trace", ArxDesign { max_trace: huge, ..base }),
+            ("f0", ArxDesign { f0_diag: [1e-1, 1e-1, huge, 1e-3], ..base }),
+            ("pe_floor", ArxDesign { pe_floor_v2: huge, ..base }),
+            ("initial b0", ArxDesign { initial: StageParams { b0: huge, ..base.initial }, ..base }),
+        ] {
+            assert!(!d.design::<f32>().fits(), "{name}: fits f32");
+            assert!(d.design::<f64>().fits(), "{name}: does not fit f64");
+        }
+        let nan = ArxDesign { lambda: f64::NAN, ..base };
+        assert!(!nan.design::<f32>().fits() && !nan.design::<f64>().fits());
+    }
+
+    /// One sample of the pre-filtered signals, the excitation rich.
+    fn sample<T: Real>(u: T, y: T) -> FilteredSample<T> {
+        use crate::estimator::PeLevel;
+        use crate::filters::prefilter::Prefiltered;
+        let f = |value| Prefiltered { value, d1: T::zero(), d2: T::zero() };
+        FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: T::one(), single: false } }
+    }
+
+    /// A sample that leaves any part of the RLS unusable resets the estimator to its initial state at once, and is
+    /// counted: a NaN output (the error and the estimate NaN, the factors still finite), and an input so large in
+    /// f32 that `phi' F phi` overflows (the error and the estimate finite, a factor of `F` zero).
+    #[test]
+    fn a_sample_that_breaks_the_rls_resets_the_estimator_at_once() {
+        let cfg = ArxDesign::default().design::<f32>();
+        let mut arx = ArxEstimator::new(cfg);
+        let initial = arx.params();
+        for k in 0..50 {
+            arx.update(&sample([0.5f32, -0.3, 0.2][k % 3], 1e-3 * k as f32));
+        }
+        assert_ne!(*arx.rls().theta(), [0.0; 4], "adapted before the fault");
+        arx.update(&sample(0.1, f32::NAN));
+        assert_eq!(arx.health().numeric_resets, 1, "NaN output");
+        assert_eq!((*arx.rls().theta(), arx.params()), ([0.0; 4], initial));
+        // `phi = [0, 0, 0, 1e30]` on the third sample after the reset, its first adaptation: the last factor of `D`
+        // becomes `d r / inf = 0`, and nothing else is infinite or NaN.
+        arx.update(&sample(1e30, 0.0));
+        arx.update(&sample(0.0, 0.0));
+        assert_eq!(arx.health().numeric_resets, 1);
+        let mut probe = arx.core;
+        probe.update(&arx.cfg, 0.0, 0.0, true);
+        assert_eq!(probe.rls().min_d(), 0.0);
+        assert!(probe.rls().theta().iter().all(|x| x.is_finite()) && probe.rls().trace().is_finite());
+        arx.update(&sample(0.0, 0.0));
+        assert_eq!(arx.health().numeric_resets, 2, "a factor of F zero");
+        assert_eq!(*arx.rls(), ArxRls::new(&arx.cfg).rls);
+    }
+
+    /// Coefficients with no stage hold the parameters at their last valid value, and the health says so.
+    #[test]
+    fn parameters_with_no_stage_are_held_and_reported_held() {
+        let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
+        let mut d = [1e-5, 0.0, 0.0, 0.0];
+        arx.core.rls.set_theta(d);
+        let valid = arx.params();
+        assert!(!arx.health().held && valid != arx.cfg.initial);
+        // `1 + A2 = -1e-3`: an unstable pair.
+        d[1] = -(1.0 + arx.cfg.nominal64[1]) - 1e-3;
+        arx.core.rls.set_theta(d);
+        let (params, health) = arx.report();
+        assert_eq!(params, valid);
+        assert!(health.held && arx.health().held);
+        assert_eq!(arx.params(), valid);
+    }
+
     #[test]
     fn zoh_arx_round_trips_to_the_stage() {
         for p in [StageParams::PAYLOAD, StageParams::NO_PAYLOAD, StageParams::INITIAL] {
