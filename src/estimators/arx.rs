@@ -552,6 +552,29 @@ mod tests {
         assert_eq!(*arx.rls(), ArxRls::new(&arx.cfg).rls);
     }
 
+    /// Frozen, the estimator keeps its estimate and `F` while the history still shifts (so that adapting resumes on
+    /// the signals' history at once), and its health says frozen; let adapt again, it adapts on the next sample.
+    #[test]
+    fn a_frozen_estimator_holds_its_estimate_and_resumes_when_let_adapt() {
+        let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
+        let u = |k: usize| [0.5, -0.3, 0.2, 0.7][k % 4];
+        for k in 0..20 {
+            arx.update(&sample(u(k), 1e-3 * k as f64));
+        }
+        arx.set_adapting(false);
+        assert_eq!(arx.health().adaptation, Adaptation::Frozen);
+        let frozen = *arx.rls();
+        for k in 20..40 {
+            arx.update(&sample(u(k), 1e-3 * k as f64));
+        }
+        assert_eq!(*arx.rls(), frozen);
+        assert_eq!(arx.core.phi, [1e-3 * 39.0, 1e-3 * 38.0, u(39), u(38)]);
+        arx.set_adapting(true);
+        assert_eq!(arx.health().adaptation, Adaptation::Adapting);
+        arx.update(&sample(u(40), 0.04));
+        assert_ne!(*arx.rls().theta(), *frozen.theta());
+    }
+
     /// Coefficients with no stage hold the parameters at their last valid value, and the health says so.
     #[test]
     fn parameters_with_no_stage_are_held_and_reported_held() {
