@@ -231,6 +231,42 @@ mod tests {
         );
     }
 
+    /// The rank test is relative to each column's weighted norm: column 2 is column 1 plus `eps` times a direction
+    /// orthogonal to it (`[1, -1, 1, -1]` against `[1, 1, 1, 1]`), so its independence `|R_22| / |column 2|` is `eps`.
+    /// At `eps = 1e-8` (a condition number near 1e8) the fit solves, at `1e-10` it names the column with that
+    /// independence; the same at every scale of the data. A zero column is named with independence 0.
+    #[test]
+    fn the_rank_test_is_relative_to_each_columns_norm() {
+        let fit = |eps: f64, scale: f64| {
+            let mut ls = WeightedLs::<f64, 4>::new(2);
+            for k in 0..4 {
+                let z = if k % 2 == 0 { 1.0 } else { -1.0 };
+                ls.add_row(&[scale, scale * (1.0 + eps * z)], scale * k as f64, 1.0);
+            }
+            assert_eq!(ls.rows(), 4);
+            ls.solve()
+        };
+        for scale in [1.0, 1e6, 1e-6] {
+            let s = fit(1e-8, scale).unwrap_or_else(|e| panic!("scale {scale}: {e:?}"));
+            assert_eq!(s.rows, 4);
+            match fit(1e-10, scale) {
+                Err(LsError::RankDeficient(r)) => {
+                    assert_eq!((r.column, r.combines), (1, 0b1), "scale {scale}");
+                    assert!((r.independence / 1e-10 - 1.0).abs() < 1e-4, "scale {scale}: {}", r.independence);
+                }
+                other => panic!("scale {scale}: {other:?}"),
+            }
+        }
+        let mut ls = WeightedLs::<f64, 4>::new(2);
+        for k in 0..3 {
+            ls.add_row(&[1.0 + k as f64, 0.0], 1.0, 1.0);
+        }
+        assert_eq!(
+            ls.solve(),
+            Err(LsError::RankDeficient(RankDeficient { column: 1, combines: 0, independence: 0.0 }))
+        );
+    }
+
     #[test]
     fn forgetting_equals_explicit_weights() {
         // gamma-forgetting row by row == each row weighted a gamma^(N-k) from the start.
