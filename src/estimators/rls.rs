@@ -235,3 +235,34 @@ impl<T: Scalar, const N: usize> DiscreteRls<T, N> {
         RlsErrors { a_priori, a_posteriori }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `trace F` from the factors is the trace of `F = U D U'` formed, with `U` full; and it is what bounds the
+    /// windup: with forgetting and no excitation `F` grows by `1 / lambda1` a sample until one more step would take
+    /// its trace past the bound, and then stays.
+    #[test]
+    fn the_trace_is_that_of_f_and_bounds_the_windup() {
+        let (lambda, bound) = (0.99, 50.0);
+        let gain = RlsGain::forgetting(lambda, bound);
+        let mut rls = DiscreteRls::<f64, 3>::new([0.0; 3], [1.0, 2.0, 3.0]);
+        let mut next = crate::xorshift64(0x7AC3_5EED);
+        for _ in 0..20 {
+            let phi = [0, 1, 2].map(|_| next() as f64 / u64::MAX as f64 - 0.5);
+            rls.update(&gain, &phi, 0.3);
+        }
+        let f = rls.covariance();
+        assert!(f.iter().flatten().all(|x| *x != 0.0), "{f:?}");
+        let formed = f[0][0] + f[1][1] + f[2][2];
+        assert!((rls.trace() / formed - 1.0).abs() < 1e-12, "{} against {formed}", rls.trace());
+        assert!(formed < lambda * bound);
+        for _ in 0..2_000 {
+            rls.update(&gain, &[0.0; 3], 0.0);
+        }
+        let f = rls.covariance();
+        let formed = f[0][0] + f[1][1] + f[2][2];
+        assert!(formed > lambda * bound && formed <= bound * (1.0 + 1e-12), "{formed}");
+    }
+}
