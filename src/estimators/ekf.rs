@@ -1314,6 +1314,57 @@ mod tests {
     use crate::estimator::PeLevel;
     use crate::filters::prefilter::Prefiltered;
 
+    /// The design states the physical tuning in samples and in the normalised units: each constant checked against
+    /// its value worked out by hand for the paper's tuning at 10 kHz with 4 substeps (the health logic's defaults:
+    /// a 5-sigma gate, 0.5 s level and hold-off, a drift test at 4 times the 10-s level after 5 s, a ceiling and a
+    /// reopening of 500 `P0` ramped over 10 ms, a floor of 1e-9 `P0`).
+    #[test]
+    fn the_design_states_the_tuning_in_samples_and_normalised_units() {
+        let design = EkfDesign::paper(EkfDesign::Q2);
+        let c = design.design::<f64>();
+        let close = |got: f64, want: f64, what: &str| {
+            assert!((got / want - 1.0).abs() < 1e-12, "{what}: {got} against {want}");
+        };
+        close(c.gate2, 25.0, "gate2");
+        close(c.nis_alpha, 2e-4, "nis_alpha");
+        close(c.drift_ratio, 4.0, "drift_ratio");
+        close(c.drift_alpha, 1e-5, "drift_alpha");
+        assert_eq!(
+            (c.change_samples, c.holdoff_samples, c.drift_wait_samples, c.innovation_block, c.ramp_samples),
+            (20, 5_000, 50_000, 10_000, 100)
+        );
+        // The innovation's sum over a block of 10 000 samples at the ceiling of 1e6 um stays in range.
+        close(c.innovation_to_range, f64::MAX / 1e16, "innovation_to_range");
+        close(c.h, 2.5e-5, "h");
+        close(c.period, 1e-4, "period");
+        close(c.inv_r, 1.0 / 1.5e-6, "inv_r");
+        close(c.r_d, 1.5e-2, "r_d");
+        // Normalised: the states by 1 and `1 / w`, the parameters by their initial values.
+        let p = StageParams::INITIAL;
+        let scale = [1.0, 1.0 / p.a0.sqrt(), 1.0 / p.a0, 1.0 / p.a1, 1.0 / p.b0];
+        for i in 0..5 {
+            let p0 = 10.0 * EkfDesign::Q2[i] * scale[i] * scale[i];
+            close(c.p0[i], p0, "p0");
+            close(c.q[i], EkfDesign::Q2[i] * scale[i] * scale[i], "q");
+            close(c.q_period[i], 1e-4 * c.q[i], "q_period");
+            close(c.p_ceiling[i], 500.0 * p0, "p_ceiling");
+            close(c.p_floor[i], 1e-9 * p0, "p_floor");
+            if i >= 2 {
+                // The reopening's widening, 500 P0 less the P0 there is, over 100 samples.
+                close(c.p_ramp_step[i - 2], 499.0 * p0 / 100.0, "p_ramp_step");
+            }
+        }
+        // The drift test off: an infinite ratio, which no level exceeds.
+        let off = EkfDesign { health: EkfHealthDesign { drift_ratio: 0.0, ..design.health }, ..design };
+        assert_eq!(off.design::<f64>().drift_ratio, f64::INFINITY);
+        // `Q2` for an input 4 times as strong in power: the parameters' entries a quarter, the states' as they are.
+        let q2x4 = EkfDesign::q2_for_strength(4.0);
+        for i in 0..5 {
+            let want = if i < 2 { EkfDesign::Q2[i] } else { EkfDesign::Q2[i] / 4.0 };
+            close(q2x4[i], want, "q2_for_strength");
+        }
+    }
+
     /// The first sample after a start, a reset or a resume sets the states, the filtered reading and its rate, and
     /// steps nothing; a reset also takes the parameters back to the initial ones, a resume keeps them.
     #[test]
