@@ -1354,6 +1354,21 @@ mod tests {
                 close(c.p_ramp_step[i - 2], 499.0 * p0 / 100.0, "p_ramp_step");
             }
         }
+        // The model's constants in the normalised state (`x2 = x' / w`) and the RK4's steps over the sample.
+        let w = p.a0.sqrt();
+        for (got, want, what) in [
+            (c.w, w, "w"),
+            (c.c0, p.a0 / w, "c0"),
+            (c.c1, p.a1, "c1"),
+            (c.c2, p.b0 / w, "c2"),
+            (c.c0w, p.a0, "c0w"),
+            (c.b0_scale, p.b0, "b0_scale"),
+            (c.period6, 1e-4 / 6.0, "period6"),
+            (c.half_period, 5e-5, "half_period"),
+            (c.bow_gain, -w * 1e-8 / 2.0, "bow_gain"),
+        ] {
+            close(got, want, what);
+        }
         // The drift test off: an infinite ratio, which no level exceeds.
         let off = EkfDesign { health: EkfHealthDesign { drift_ratio: 0.0, ..design.health }, ..design };
         assert_eq!(off.design::<f64>().drift_ratio, f64::INFINITY);
