@@ -363,13 +363,7 @@ mod tests {
     /// regression of the third is the first whose history is the signals'.
     #[test]
     fn the_arx_refills_its_history_before_it_adapts() {
-        use crate::estimator::PeLevel;
-        use crate::filters::prefilter::Prefiltered;
-        let at = |k: u32| {
-            let (u, y) = ([0.3, -0.2, 0.5, 0.1, -0.4][k as usize % 5], 0.01 * k as f64);
-            let f = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
-            FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: 1.0, single: false } }
-        };
+        let at = |k: u32| sample([0.3, -0.2, 0.5, 0.1, -0.4][k as usize % 5], 0.01 * k as f64);
         let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
         let theta = |a: &ArxEstimator<f64>| *a.rls().theta();
         let start = theta(&arx);
@@ -399,8 +393,6 @@ mod tests {
     /// ZOH-sampled stage with a random input and a little noise has made every entry of `F` non-zero.
     #[test]
     fn the_parameters_covariance_is_the_coefficients_covariance_carried_through_the_conversion() {
-        use crate::estimator::PeLevel;
-        use crate::filters::prefilter::Prefiltered;
         let p = StageParams::PAYLOAD;
         let (phi, psi) = zoh(&[[0.0, 1.0], [-p.a0, -p.a1]], 1e-4);
         let mut arx = ArxEstimator::<f64>::new(ArxDesign::default().design());
@@ -409,8 +401,7 @@ mod tests {
         for _ in 0..5_000 {
             let u = if next() % 2 == 0 { 1.0 } else { -1.0 };
             let y = x[0] + 1e-3 * (next() as f64 / u64::MAX as f64 - 0.5);
-            let f = |value| Prefiltered { value, d1: 0.0, d2: 0.0 };
-            arx.update(&FilteredSample { u, y, u_f: f(u), y_f: f(y), pe: PeLevel { power: 1.0, single: false } });
+            arx.update(&sample(u, y));
             x = zoh_step(&phi, &psi, p.b0, x, u);
         }
         let f = arx.core.rls().covariance();
