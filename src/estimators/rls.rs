@@ -253,16 +253,16 @@ mod tests {
             let phi = [0, 1, 2].map(|_| next() as f64 / u64::MAX as f64 - 0.5);
             rls.update(&gain, &phi, 0.3);
         }
+        let formed_trace = |rls: &DiscreteRls<f64, 3>| (0..3).map(|i| rls.covariance()[i][i]).sum::<f64>();
         let f = rls.covariance();
         assert!(f.iter().flatten().all(|x| *x != 0.0), "{f:?}");
-        let formed = f[0][0] + f[1][1] + f[2][2];
+        let formed = formed_trace(&rls);
         assert!((rls.trace() / formed - 1.0).abs() < 1e-12, "{} against {formed}", rls.trace());
         assert!(formed < lambda * bound);
         for _ in 0..2_000 {
             rls.update(&gain, &[0.0; 3], 0.0);
         }
-        let f = rls.covariance();
-        let formed = f[0][0] + f[1][1] + f[2][2];
+        let formed = formed_trace(&rls);
         assert!(formed > lambda * bound && formed <= bound * (1.0 + 1e-12), "{formed}");
     }
 }
