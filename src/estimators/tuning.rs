@@ -455,6 +455,68 @@ mod tests {
     }
 
     #[test]
+    fn each_range_takes_its_ends_and_refuses_what_lies_just_beyond() {
+        let ceiling = 500.0;
+        let max = 1e4;
+        // (range, accepted, refused): each end and the nearest number past it, and what is never a value.
+        let cases: [(Expected, &[f64], &[f64]); 9] = [
+            (Expected::Positive, &[f64::MIN_POSITIVE, 1e300], &[0.0, -0.0, -1e-300, f64::INFINITY]),
+            (Expected::NonNegative, &[0.0, -0.0, 1e300], &[-f64::MIN_POSITIVE, f64::INFINITY]),
+            (Expected::Substeps, &[1.0, 64.0], &[0.0, 65.0, 1.5, 64.0f64.next_up()]),
+            (Expected::Whole, &[0.0, u32::MAX as f64], &[-1.0, u32::MAX as f64 + 1.0, 0.5, f64::INFINITY]),
+            (Expected::Ratio, &[0.0, 65535.0], &[-1.0, 65536.0, 0.5]),
+            (Expected::DriftRatio, &[0.0, 1.0, 1e300], &[1.0f64.next_down(), f64::MIN_POSITIVE, f64::INFINITY]),
+            (Expected::Reopen { ceiling }, &[1.0, ceiling], &[1.0f64.next_down(), ceiling.next_up()]),
+            (Expected::Forgetting, &[f64::MIN_POSITIVE, 1.0], &[0.0, 1.0f64.next_up(), -1.0]),
+            (Expected::Rate { max }, &[f64::MIN_POSITIVE, max], &[0.0, max.next_up(), -1.0]),
+        ];
+        for (expected, accepted, refused) in cases {
+            for &x in accepted {
+                assert!(expected.accepts(x), "{expected:?} refused {x:e}");
+            }
+            for &x in refused.iter().chain(&[f64::NAN, f64::NEG_INFINITY]) {
+                assert!(!expected.accepts(x), "{expected:?} took {x:e}");
+            }
+            // Every refusal says what it wanted; the two ranges with a bound from the tuning name it.
+            let said = format!("{expected}");
+            assert!(said.len() > 10, "{expected:?}: '{said}'");
+            match expected {
+                Expected::Reopen { .. } => assert!(said.contains("and 500 "), "{said}"),
+                Expected::Rate { .. } => assert!(said.contains("at most 10000 /s"), "{said}"),
+                _ => {}
+            }
+        }
+    }
+
+    #[test]
+    fn each_key_restarts_the_estimators_whose_tuning_it_is_part_of_and_says_how_many_values_it_takes() {
+        for key in TuningKey::ALL {
+            let set = match key.path() {
+                ("", "initial") => EstimatorSet::ALL,
+                ("", "prefilter") | ("rls", _) => EstimatorSet(0b0001),
+                ("", _) => EstimatorSet(0),
+                ("ekf", _) => EstimatorSet(0b0110),
+                ("arx", _) => EstimatorSet(0b1000),
+                path => panic!("{path:?}"),
+            };
+            assert_eq!(key.estimators(), set, "{key}");
+            assert!(!key.is_empty(), "{key}");
+            // The hint counts the values as `len` does, and names them where there are several.
+            let (hint, count) = (key.values_hint(), key.len());
+            let counted = ["", "a number", "", "3 numbers", "", "5 numbers"][count];
+            assert!(!counted.is_empty() && hint.starts_with(counted), "{key}: '{hint}' for {count}");
+            let names = match key {
+                TuningKey::Initial => "b0 a1 a0",
+                TuningKey::Prefilter => "f_lc_hz f_p_hz zeta_p",
+                TuningKey::RlsP0 => "P(0) for b0 a1 a0",
+                TuningKey::EkfQ | TuningKey::EkfP0 => "x1 x2 a0 a1 b0",
+                _ => "a number",
+            };
+            assert!(hint.ends_with(names), "{key}: '{hint}'");
+        }
+    }
+
+    #[test]
     fn a_preset_with_the_stage_of_another_takes_exactly_the_stage_keys() {
         let mut stage = Tuning::of(TuningPreset::Prbs);
         stage.set(TuningKey::Initial, &[1e6, 90.0, 3.9e7]).unwrap();
