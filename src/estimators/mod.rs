@@ -351,7 +351,8 @@ mod tests {
         }
         let at_paper = rk4_dispersed_start(StageParams::INITIAL.a0, t);
         assert!((at_paper - 1.0 - 6e-5).abs() < 1e-6, "{at_paper}");
-        for a0 in [0.99e8, 1.01e8, 1e20, f64::MAX, 0.0, f64::NAN] {
+        // Also for a negative `a0` whose model would be beyond the series' turn (`u = -0.99`: `x = -1.007`).
+        for a0 in [0.99e8, 1.01e8, 1e20, f64::MAX, 0.0, f64::NAN, -0.99e8, -1e20] {
             assert_eq!(rk4_dispersed_start(a0, t), 1.0, "{a0}");
         }
     }
@@ -492,6 +493,9 @@ mod tests {
         assert!(!on.adapt(&weak, true, &mut h) && h.adaptation == Adaptation::Starved);
         assert!(on.adapt(&rich, true, &mut h) && h.adaptation == Adaptation::Adapting);
         assert!(!on.adapt(&single, true, &mut h) && h.adaptation == Adaptation::Starved);
+        // A power at the floor exactly is enough.
+        let at_floor = PeLevel { power: 1e-6, single: false };
+        assert!(on.adapt(&at_floor, true, &mut h) && h.adaptation == Adaptation::Adapting);
         let mut frozen = Health { adaptation: Adaptation::Frozen, ..Health::new() };
         assert!(!on.adapt(&rich, false, &mut frozen) && frozen.adaptation == Adaptation::Frozen);
         let off = PeFloor::<f32>::new(0.0);
