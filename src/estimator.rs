@@ -436,6 +436,32 @@ mod tests {
         }
     }
 
+    /// The power is the running mean of `u_f^2` over [`PE_TAU_S`]: a first-order average that settles on the square
+    /// of a constant (0.25 V^2 for 0.5 V) and, from rest, reaches `1 - 1/e` of it after `PE_TAU_S`.
+    #[test]
+    fn the_power_is_the_running_mean_of_the_prefiltered_inputs_square() {
+        let mut pe = PeMonitor::<f64>::new(1e-4, 0.0);
+        let tau = (PE_TAU_S / 1e-4) as usize;
+        let powers: Vec<f64> = (0..30 * tau).map(|k| pe.update(square(k as u32), &at(0.5)).power).collect();
+        let one_tau = powers[tau - 1] / 0.25;
+        assert!((one_tau - (1.0 - (-1.0f64).exp())).abs() < 0.01, "{one_tau}");
+        assert!((powers[30 * tau - 1] - 0.25).abs() < 1e-12, "{}", powers[30 * tau - 1]);
+        assert_eq!(pe.level().power, powers[30 * tau - 1]);
+    }
+
+    /// A slow sine held in the DAC's steps is a single sinusoid for a monitor told the step: there it is the rounding
+    /// floor over `<v^2>` (the `v''` units, [`PE_ROUNDING_FLOOR`]`[1]`) that decides, as BENCHMARKS and the
+    /// constant's doc say of slow sines.
+    #[test]
+    fn a_slow_rounded_sine_is_held_single_by_the_floor_over_its_power() {
+        let lsb = 4.8828125e-3;
+        let w = 2.0 * core::f64::consts::PI * 2.0;
+        let mut pe = PeMonitor::<f64>::new(1e-4, lsb);
+        let staircase = |k: u32| libm::round(libm::sin(w * k as f64 * 1e-4) / lsb) * lsb;
+        let levels: Vec<PeLevel<f64>> = (0..30_000).map(|k| pe.update(staircase(k), &at(1.0))).collect();
+        assert!(levels[10_000..].iter().all(|l| l.single));
+    }
+
     /// A non-finite input or pre-filtered input restarts the averages and the shaping filter from zero (no power:
     /// starving) instead of leaving them stuck, and they build up again from the next finite sample.
     #[test]
@@ -511,5 +537,87 @@ mod tests {
         };
         let (one, ten) = (single_fraction(1.0), single_fraction(10.0));
         assert!((0.7..0.9).contains(&one) && ten > 0.98, "{one} {ten}");
+    }
+
+    /// What the pipeline's filter gives the estimators: both signals through the pre-filter, the input's level, and
+    /// after a change of pre-filter both states taken over by [`Prefilter::retarget`].
+    #[test]
+    fn the_sample_filter_prefilters_both_signals_and_measures_the_input() {
+        let (from, to) = (PrefilterDesign::default().design::<f64>(1e-4), {
+            let d = PrefilterDesign { f_lc_hz: PrefilterDesign::default().f_lc_hz / 2.0, ..PrefilterDesign::default() };
+            d.design::<f64>(1e-4)
+        });
+        let mut filter = SampleFilter::<f64>::new(1e-4, 0.0);
+        let (mut su, mut sy, mut pe) =
+            (PrefilterState::default(), PrefilterState::default(), PeMonitor::new(1e-4, 0.0));
+        let mut check = |filter: &mut SampleFilter<f64>, prefilter: &Prefilter<f64>, su: &mut _, sy: &mut _, k: u32| {
+            let (u, y) = (0.3 * square(k), 2.0 + square(k + 37));
+            let u_f = prefilter.update(su, u);
+            let want = FilteredSample { u, y, u_f, y_f: prefilter.update(sy, y), pe: pe.update(u, &u_f) };
+            assert_eq!(filter.sample(prefilter, u, y), want, "sample {k}");
+            assert_eq!(filter.excitation(), want.pe, "sample {k}");
+        };
+        for k in 0..500 {
+            check(&mut filter, &from, &mut su, &mut sy, k);
+        }
+        assert!(filter.excitation().power > 0.0);
+        filter.retarget(&from, &to);
+        from.retarget(&mut su, &to);
+        from.retarget(&mut sy, &to);
+        for k in 500..1000 {
+            check(&mut filter, &to, &mut su, &mut sy, k);
+        }
+    }
+
+    /// An estimator that counts what it is given.
+    struct Counting {
+        updates: u32,
+        resumes: u32,
+    }
+
+    impl Estimator<f64> for Counting {
+        const NAME: &'static str = "count";
+        fn update(&mut self, _: &FilteredSample<f64>) {
+            self.updates += 1;
+        }
+        fn params(&self) -> StageParams<f64> {
+            StageParams { a0: self.updates as f64, a1: self.resumes as f64, b0: 1.0 }
+        }
+        fn param_covariance(&self) -> [[f64; 3]; 3] {
+            [[0.0; 3]; 3]
+        }
+        fn reset(&mut self) {
+            self.updates = 0;
+        }
+        fn resume(&mut self) {
+            self.resumes += 1;
+        }
+        fn set_adapting(&mut self, _: bool) {}
+        fn health(&self) -> Health {
+            Health { rejected_samples: self.updates, ..Health::new() }
+        }
+    }
+
+    /// A bank feeds every estimator, or those of a mask; resets and resumes each; the default report is the
+    /// estimate and the health of the same moment.
+    #[test]
+    fn a_bank_feeds_each_estimator_or_those_selected() {
+        let fresh = || Counting { updates: 0, resumes: 0 };
+        let mut bank = (fresh(), fresh(), fresh());
+        let counts = |b: &(Counting, Counting, Counting)| [b.0.updates, b.1.updates, b.2.updates];
+        let sample = FilteredSample::default();
+        bank.update(&sample);
+        assert_eq!(counts(&bank), [1, 1, 1]);
+        bank.update_selected(&sample, 0b101);
+        assert_eq!(counts(&bank), [2, 1, 2]);
+        let report = bank.0.report();
+        assert_eq!((report.0.a0, report.1.rejected_samples), (2.0, 2));
+        bank.resume();
+        assert_eq!([bank.0.resumes, bank.1.resumes, bank.2.resumes], [1, 1, 1]);
+        bank.reset();
+        assert_eq!(counts(&bank), [0, 0, 0]);
+        assert_eq!(<(Counting, Counting, Counting) as EstimatorBank<f64>>::LEN, 3);
+        assert!(<(Counting,) as EstimatorBank<f64>>::FILTERED && !<Unfiltered as EstimatorBank<f64>>::FILTERED);
+        assert_eq!(<() as EstimatorBank<f64>>::LEN + <Unfiltered as EstimatorBank<f64>>::LEN, 0);
     }
 }
