@@ -617,7 +617,7 @@ mod tests {
         bank.reset();
         assert_eq!(counts(&bank), [0, 0, 0]);
         assert_eq!(<(Counting, Counting, Counting) as EstimatorBank<f64>>::LEN, 3);
-        assert!(<(Counting,) as EstimatorBank<f64>>::FILTERED && !<Unfiltered as EstimatorBank<f64>>::FILTERED);
+        const { assert!(<(Counting,) as EstimatorBank<f64>>::FILTERED && !<Unfiltered as EstimatorBank<f64>>::FILTERED) };
         assert_eq!(<() as EstimatorBank<f64>>::LEN + <Unfiltered as EstimatorBank<f64>>::LEN, 0);
     }
 }
