@@ -329,9 +329,11 @@ mod tests {
             let wild = StageParams { a0, a1: -3e8, b0: 1e30 };
             assert_eq!(undo_rk4_dispersion(wild, t), wild);
         }
-        // At a turn of exactly 1 (a step of 2^-10, `a0` 2^20, both exact) the series no longer holds either.
-        let at_one = StageParams { a0: 1048576.0f32, a1: 70.0, b0: 5e5 };
-        assert_eq!(undo_rk4_dispersion(at_one, 1.0 / 1024.0), at_one);
+        // At a turn of exactly 1 or -1 (a step of 2^-10, `a0` +-2^20, all exact) the series no longer holds either.
+        for a0 in [1048576.0f32, -1048576.0] {
+            let at_one = StageParams { a0, a1: 70.0, b0: 5e5 };
+            assert_eq!(undo_rk4_dispersion(at_one, 1.0 / 1024.0), at_one);
+        }
     }
 
     /// A model started at [`rk4_dispersed_start`] reports the initial parameters (in f64 to its rounding), from a slow
