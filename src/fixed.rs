@@ -213,6 +213,7 @@ mod tests {
         let lsb = 2f64.powi(-32);
         for (a, b) in [(1.5, 2.25), (-3.7, 0.013), (123.456, -0.5), (1e-6, 7.0), (-2.0, -1e-3)] {
             assert_eq!((q(a) + q(b)).as_f64(), q(a).as_f64() + q(b).as_f64());
+            assert_eq!((q(a) - q(b)).as_f64(), q(a).as_f64() - q(b).as_f64());
             let exact_mul = q(a).as_f64() * q(b).as_f64();
             assert!(((q(a) * q(b)).as_f64() - exact_mul).abs() <= lsb / 2.0, "{a} * {b}");
             let exact_div = q(a).as_f64() / q(b).as_f64();
@@ -336,6 +337,14 @@ mod tests {
         assert_eq!((big * big).0, i64::MAX);
         assert_eq!((-big * big).0, i64::MIN);
         assert_eq!((big + big).0, i64::MAX);
+        assert_eq!((-big - big).0, i64::MIN);
+        assert_eq!((big - -big).0, i64::MAX);
+        assert_eq!((-Fx::<32>(i64::MIN)).0, i64::MAX);
+        let (mut up, mut down, mut times) = (big, -big, big);
+        up += big;
+        down -= big;
+        times *= big;
+        assert_eq!((up.0, down.0, times.0), (i64::MAX, i64::MIN, i64::MAX));
         assert_eq!((q(1.0) / Q32::zero()).0, i64::MAX);
         assert_eq!((-q(1.0) / Q32::zero()).0, i64::MIN);
         assert_eq!(Q32::greatest().0, i64::MAX);
