@@ -214,6 +214,11 @@ mod tests {
         for (a, b) in [(1.5, 2.25), (-3.7, 0.013), (123.456, -0.5), (1e-6, 7.0), (-2.0, -1e-3)] {
             assert_eq!((q(a) + q(b)).as_f64(), q(a).as_f64() + q(b).as_f64());
             assert_eq!((q(a) - q(b)).as_f64(), q(a).as_f64() - q(b).as_f64());
+            let (mut sum, mut difference, mut product) = (q(a), q(a), q(a));
+            sum += q(b);
+            difference -= q(b);
+            product *= q(b);
+            assert_eq!((sum, difference, product), (q(a) + q(b), q(a) - q(b), q(a) * q(b)), "{a}, {b}");
             let exact_mul = q(a).as_f64() * q(b).as_f64();
             assert!(((q(a) * q(b)).as_f64() - exact_mul).abs() <= lsb / 2.0, "{a} * {b}");
             let exact_div = q(a).as_f64() / q(b).as_f64();
@@ -329,6 +334,22 @@ mod tests {
         check::<33>(&mut next);
         check::<48>(&mut next);
         check::<62>(&mut next);
+    }
+
+    /// From f64 to the nearest step, ties away from zero, the same for both signs; beyond the range its ends, NaN 0.
+    #[test]
+    fn conversion_rounds_to_the_nearest_step_ties_away_from_zero() {
+        let step = 2f64.powi(-32);
+        for (x, raw) in [(2.5, 3), (1.5, 2), (2.3, 2), (2.7, 3), (0.5, 1), (0.49, 0)] {
+            assert_eq!(Q32::of(x * step).0, raw, "{x} steps");
+            assert_eq!(Q32::of(-x * step).0, -raw, "-{x} steps");
+        }
+        assert_eq!(q(-0.1).0, -q(0.1).0);
+        assert_eq!(q(-1.5).0, -3 << 31);
+        assert_eq!((q(1e30).0, q(-1e30).0, q(f64::NAN).0), (i64::MAX, i64::MIN, 0));
+        assert_eq!((Fx::<32>(1).as_f64(), Fx::<32>(-1 << 33).as_f64()), (step, -2.0));
+        assert_eq!((Q32::one(), Q32::zero()), (q(1.0), Fx(0)));
+        assert!(Q32::zero().is_zero() && !Fx::<32>(1).is_zero() && !Fx::<32>(-1).is_zero());
     }
 
     #[test]
