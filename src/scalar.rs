@@ -147,7 +147,43 @@ impl Real for f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::Real;
+    use super::{fmax, fmin, Real, Scalar};
+
+    /// The phase as a fraction of a cycle: its top 24 bits in f32, 53 in f64, from 0 to just below 1.
+    #[test]
+    fn a_phase_is_its_fraction_of_a_cycle_to_the_scalars_precision() {
+        for (phase, fraction) in [(0u64, 0.0f64), (1 << 62, 0.25), (1 << 63, 0.5), (3 << 62, 0.75)] {
+            assert_eq!((f32::phase_fraction(phase), f64::phase_fraction(phase)), (fraction as f32, fraction));
+        }
+        assert_eq!(f32::phase_fraction(u64::MAX), 1.0 - 2f32.powi(-24));
+        assert_eq!(f64::phase_fraction(u64::MAX), 1.0 - 2f64.powi(-53));
+        // What lies below the scalar's precision is dropped, not rounded up.
+        assert_eq!((f32::phase_fraction((1 << 40) - 1), f32::phase_fraction(1 << 40)), (0.0, 2f32.powi(-24)));
+        assert_eq!((f64::phase_fraction((1 << 11) - 1), f64::phase_fraction(1 << 11)), (0.0, 2f64.powi(-53)));
+        // f64's sine and cosine are libm's of that fraction of a turn.
+        let (s, c) = f64::phase_sin_cos(1 << 61);
+        // Within an ulp or two of the exact value: `pi / 4` itself is rounded.
+        assert!((s - 0.5f64.sqrt()).abs() < 3e-16 && (c - 0.5f64.sqrt()).abs() < 3e-16, "{s} {c}");
+        assert_eq!(f64::phase_sin(1 << 61), s);
+    }
+
+    /// One comparison each, and what a NaN does: a NaN second operand comes back, a NaN first one gives the second.
+    #[test]
+    fn fmax_and_fmin_pick_by_one_comparison() {
+        assert_eq!((fmax(1.0, 2.0), fmax(2.0, 1.0), fmin(1.0, 2.0), fmin(2.0, 1.0)), (2.0, 2.0, 1.0, 1.0));
+        assert!(fmax(1.0, f64::NAN).is_nan() && fmin(1.0, f64::NAN).is_nan());
+        assert_eq!((fmax(f64::NAN, 1.0), fmin(f64::NAN, 1.0)), (1.0, 1.0));
+        assert_eq!((fmax(-0.0f64, 0.0).to_bits(), fmin(-0.0f64, 0.0).to_bits()), (0.0f64.to_bits(), 0.0f64.to_bits()));
+    }
+
+    /// The conversions round once, the greatest value is unbounded, the names are the types'.
+    #[test]
+    fn each_float_converts_once_and_names_itself() {
+        assert_eq!((f32::of(0.1), f32::of(0.1).as_f64()), (0.1f32, 0.1f32 as f64));
+        assert_eq!((f64::of(0.1), 0.1f64.as_f64()), (0.1, 0.1));
+        assert_eq!((f32::greatest(), f64::greatest()), (f32::INFINITY, f64::INFINITY));
+        assert_eq!((f32::NAME, f64::NAME), ("f32", "f64"));
+    }
 
     #[test]
     fn f32_sine_and_cosine_of_a_phase_are_within_a_few_ulps_of_the_exact_ones() {
