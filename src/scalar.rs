@@ -167,6 +167,20 @@ mod tests {
         assert_eq!(f64::phase_sin(1 << 61), s);
     }
 
+    /// The remainder is rounded to the nearest 2^-27 of a cycle, not truncated: near a zero of the sine, where the
+    /// sine is the angle, it is within half that unit (2.34e-8 rad) of the exact one, on both sides of the zero.
+    #[test]
+    fn the_f32_phase_is_rounded_to_the_nearest_unit() {
+        let half_unit = core::f64::consts::PI / 134_217_728.0;
+        for k in 1..64u64 {
+            for p in [k << 34, (k << 34).wrapping_neg(), (1 << 63) + (k << 34)] {
+                let exact = libm::sin(core::f64::consts::TAU * (p as f64 / 18_446_744_073_709_551_616.0));
+                let s = f32::phase_sin_cos(p).0 as f64;
+                assert!((s - exact).abs() <= half_unit * (1.0 + 1e-6), "{p:#x}: {s:e} for {exact:e}");
+            }
+        }
+    }
+
     /// One comparison each, and what a NaN does: a NaN second operand comes back, a NaN first one gives the second.
     #[test]
     fn fmax_and_fmin_pick_by_one_comparison() {
