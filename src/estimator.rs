@@ -427,6 +427,13 @@ mod tests {
         Prefiltered { value, d1: 0.0, d2: 0.0 }
     }
 
+    /// The share of samples `10_000..n` of `input` that a monitor told the step `lsb_v` takes for a single sinusoid.
+    fn single_fraction(lsb_v: f64, n: u32, input: &dyn Fn(u32) -> f64) -> f64 {
+        let mut pe = PeMonitor::<f64>::new(1e-4, lsb_v);
+        let single = (0..n).map(|k| pe.update(input(k), &at(1.0))).skip(10_000).filter(|l| l.single).count();
+        single as f64 / (n - 10_000) as f64
+    }
+
     /// A 50 Hz square wave (its odd harmonics: rich), as the input and as its pre-filtered value.
     fn square(k: u32) -> f64 {
         if (k / 100) % 2 == 0 {
@@ -458,12 +465,7 @@ mod tests {
         let lsb = 4.8828125e-3;
         let w = 2.0 * core::f64::consts::PI;
         let staircase = |k: u32| libm::round(9.0 * libm::sin(w * k as f64 * 1e-4) / lsb) * lsb;
-        let single_fraction = |lsb_v: f64| {
-            let mut pe = PeMonitor::<f64>::new(1e-4, lsb_v);
-            let n = (0..30_000).map(|k| pe.update(staircase(k), &at(1.0))).skip(10_000).filter(|l| l.single).count();
-            n as f64 / 20_000.0
-        };
-        let (blind, told) = (single_fraction(0.0), single_fraction(lsb));
+        let (blind, told) = (single_fraction(0.0, 30_000, &staircase), single_fraction(lsb, 30_000, &staircase));
         assert!(blind < 0.5 && told == 1.0, "single: {blind} without the step, {told} with it");
     }
 
@@ -508,17 +510,12 @@ mod tests {
     fn the_dacs_rounding_is_not_taken_for_excitation() {
         let lsb = 4.8828125e-3;
         let rounded = |v: f64| libm::round(v / lsb) * lsb;
-        let single_fraction = |lsb_v: f64, input: &dyn Fn(u32) -> f64| {
-            let mut pe = PeMonitor::<f64>::new(1e-4, lsb_v);
-            let n = (0..20_000).map(|k| pe.update(input(k), &at(1.0))).skip(10_000).filter(|l| l.single).count();
-            n as f64 / 10_000.0
-        };
         let w = 2.0 * core::f64::consts::PI * 10.0;
         let staircase = |k: u32| rounded(0.02 * libm::sin(w * k as f64 * 1e-4));
-        let (blind, told) = (single_fraction(0.0, &staircase), single_fraction(lsb, &staircase));
+        let (blind, told) = (single_fraction(0.0, 20_000, &staircase), single_fraction(lsb, 20_000, &staircase));
         eprintln!("10 Hz, 20 mV staircase: single {blind} of the time without the step, {told} with it");
         assert!(blind < 0.5 && told == 1.0, "single: {blind} without the step, {told} with it");
-        assert_eq!(single_fraction(lsb, &|k| rounded(0.02 * square(k))), 0.0);
+        assert_eq!(single_fraction(lsb, 20_000, &|k| rounded(0.02 * square(k))), 0.0);
     }
 
     /// A documented limit: a slow sweep is one frequency at a time over the averages' 10 ms, so it is taken for a
