@@ -395,6 +395,13 @@ mod tests {
         }
     }
 
+    /// The PRBS preset with `key` set to `values`.
+    fn prbs_with(key: TuningKey, values: &[f64]) -> Tuning {
+        let mut t = Tuning::preset("prbs").unwrap();
+        t.set(key, values).unwrap();
+        t
+    }
+
     /// The presets by name, and the estimators a change of tuning restarts: those whose tuning it changed, bit by bit.
     #[test]
     fn a_change_of_tuning_restarts_the_estimators_whose_values_it_changed() {
@@ -406,11 +413,7 @@ mod tests {
         assert_eq!(base.restarted_by(&base), EstimatorSet(0));
         // Q1 and Q2 differ in the EKFs' `Q` (and `P0`) only.
         assert_eq!(base.restarted_by(&Tuning::of(TuningPreset::Triangle)), EstimatorSet(0b0110));
-        let changed = |key: TuningKey, values: &[f64]| {
-            let mut to = base;
-            to.set(key, values).unwrap();
-            base.restarted_by(&to)
-        };
+        let changed = |key: TuningKey, values: &[f64]| base.restarted_by(&prbs_with(key, values));
         assert_eq!(changed(TuningKey::Initial, &[1e6, 90.0, 3.9e7]), EstimatorSet::ALL);
         assert_eq!(changed(TuningKey::Prefilter, &[150.0, 1000.0, 0.2]), EstimatorSet(0b0001));
         assert_eq!(changed(TuningKey::ArxLambda, &[0.999]), EstimatorSet(0b1000));
@@ -426,25 +429,19 @@ mod tests {
     /// [`PrefilterDesign::MAX_TIME_CONSTANT_S`] (exactly it passes), a constant out of f32's range.
     #[test]
     fn a_tuning_the_estimators_cannot_run_is_refused_with_its_reason() {
-        let base = Tuning::preset("prbs").unwrap();
-        let with = |key: TuningKey, values: &[f64]| {
-            let mut t = base;
-            t.set(key, values).unwrap();
-            t
-        };
-        assert!(base.runnable::<f32>().is_ok());
+        assert!(Tuning::preset("prbs").unwrap().runnable::<f32>().is_ok());
         // A low-pass corner at 4.9 kHz: `lambda T = -3.08`, beyond RK4's interval of stability (-2.79).
-        let fast = with(TuningKey::Prefilter, &[4900.0, 450.0, 0.7]);
+        let fast = prbs_with(TuningKey::Prefilter, &[4900.0, 450.0, 0.7]);
         let growth = fast.rls.prefilter.rk4_amplification(fast.rls.sample_period_s);
         assert!(growth > 1.0 && fast.runnable::<f32>() == Err(Unrunnable::PrefilterRk4 { growth }), "{growth}");
         let said = format!("{}", Unrunnable::PrefilterRk4 { growth: 1.5 });
         assert!(said.contains("amplified 1.5 times a sample"), "{said}");
         // A low corner at 1e-20 Hz: its RK4 factor rounds to exactly 1, its time constant is for ever.
-        let slow = with(TuningKey::Prefilter, &[1e-20, 450.0, 0.7]);
+        let slow = prbs_with(TuningKey::Prefilter, &[1e-20, 450.0, 0.7]);
         assert_eq!(slow.rls.prefilter.rk4_amplification(slow.rls.sample_period_s), 1.0);
         assert!(matches!(slow.runnable::<f32>(), Err(Unrunnable::PrefilterSlow { tau_s }) if tau_s > 1e18));
         // At 1 Hz, 0.16 s; at the corner whose time constant is the bound to the last bit, accepted.
-        let one_hz = with(TuningKey::Prefilter, &[1.0, 450.0, 0.7]);
+        let one_hz = prbs_with(TuningKey::Prefilter, &[1.0, 450.0, 0.7]);
         let tau_s = one_hz.rls.prefilter.slowest_time_constant_s();
         assert!(tau_s > 0.15 && one_hz.runnable::<f64>() == Err(Unrunnable::PrefilterSlow { tau_s }), "{tau_s}");
         let said = format!("{}", Unrunnable::PrefilterSlow { tau_s });
@@ -452,12 +449,12 @@ mod tests {
         let near = 1.0 / (2.0 * core::f64::consts::PI * PrefilterDesign::MAX_TIME_CONSTANT_S);
         let ulps_away = |k: i32| (0..k.abs()).fold(near, |f, _| if k > 0 { f.next_up() } else { f.next_down() });
         let at_bound = (-8..=8)
-            .map(|k| with(TuningKey::Prefilter, &[ulps_away(k), 450.0, 0.7]))
+            .map(|k| prbs_with(TuningKey::Prefilter, &[ulps_away(k), 450.0, 0.7]))
             .find(|t| t.rls.prefilter.slowest_time_constant_s() == PrefilterDesign::MAX_TIME_CONSTANT_S)
             .expect("a corner within 8 ulps whose time constant rounds to the bound");
         assert!(at_bound.runnable::<f64>().is_ok());
         // In range for the tuning, out of f32's once normalised.
-        let tiny_r = with(TuningKey::EkfR, &[1e-45]);
+        let tiny_r = prbs_with(TuningKey::EkfR, &[1e-45]);
         assert_eq!(tiny_r.runnable::<f32>(), Err(Unrunnable::Range));
         assert!(tiny_r.runnable::<f64>().is_ok());
         assert!(format!("{}", Unrunnable::Range).contains("leaves the range of their arithmetic"));
@@ -467,8 +464,7 @@ mod tests {
     #[test]
     fn restart_bank_restarts_only_the_estimators_it_is_given() {
         let old = Tuning::preset("prbs").unwrap();
-        let mut new = old;
-        new.set(TuningKey::Initial, &[1e6, 90.0, 3.9e7]).unwrap();
+        let new = prbs_with(TuningKey::Initial, &[1e6, 90.0, 3.9e7]);
         let reports = |bank: &FullBank<f64>| [bank.0.params(), bank.1.params(), bank.2.params(), bank.3.params()];
         let before = reports(&full_bank::<f64>(&old.design()));
         let after = reports(&full_bank::<f64>(&new.design()));
