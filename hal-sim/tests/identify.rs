@@ -792,6 +792,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (0..100).map(|k| format!("{},0,0\n", k as f64 * 4e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
     )
     .unwrap();
+    // Sampled at 1 kHz: fast enough for the pre-filter's band, not for the board's 1 kHz filters' replicas.
+    std::fs::write(
+        d.join("khz.csv"),
+        (0..100).map(|k| format!("{},0,0\n", k as f64 * 1e-3)).fold("t,u,y\n".to_string(), |a, b| a + &b),
+    )
+    .unwrap();
     // Saved as UTF-16 (little-endian, with its byte-order mark).
     let utf16: Vec<u8> =
         [0xFF, 0xFE].into_iter().chain("t,u,y\n0,0,0\n".encode_utf16().flat_map(u16::to_le_bytes)).collect();
@@ -816,6 +822,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
             &["identify", "--input", "ok.csv", "--tuning", "above_nyquist.toml"],
             "ok.csv: a sample every 0.0001 s (10000 Hz) cannot show the pre-filter's band at 6000 Hz (above_nyquist.toml's \
              f_p), which needs more than 12000 samples a second: is above_nyquist.toml's f_p in Hz, and below 5000 Hz?",
+        ),
+        (
+            &["identify", "--input", "khz.csv"],
+            "khz.csv: sample period 0.001 s: reconstruction replica: frequencies must be positive and below the Nyquist \
+             frequency (identify replicates the board's analog filters, as the board does: they need more than 2000 \
+             samples a second)",
         ),
         (&["identify", "--input", "utf16.csv"], "utf16.csv: UTF-16 text (its first bytes say so"),
         (

@@ -57,7 +57,7 @@ use nanopos_id::estimators::ekf::EkfDesign;
 use nanopos_id::filters::PrefilterDesign;
 use nanopos_id::hal::StageBoard;
 use nanopos_id::linalg::zoh;
-use nanopos_id::pipeline::{Pipeline, PipelineSettings};
+use nanopos_id::pipeline::{Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
 use std::io::Write;
 use std::path::Path;
@@ -359,9 +359,25 @@ fn identify_blocks<T: Real>(
         settings.faults.spike_ratio = ratio;
     }
     let board = SimBoard::new(Default::default());
-    let mut cfg = settings
-        .design::<T>(&board.description())
-        .map_err(|e| CliError(format!("{source}: sample period {} s: {e}", show(dt))))?;
+    let mut cfg = settings.design::<T>(&board.description()).map_err(|e| {
+        // The replicas are the board's analog filters, not the record's: say so, and what they need.
+        let board_filters = match e {
+            SettingsError::FilterFrequency(which) if which.ends_with(" replica") => {
+                let highest = [settings.reconstruction, settings.antialias]
+                    .iter()
+                    .flat_map(|r| [r.cutoff_hz, r.prewarp_hz])
+                    .chain([settings.lags.match_hz])
+                    .fold(0.0, f64::max);
+                format!(
+                    " (identify replicates the board's analog filters, as the board does: they need more than {} \
+                     samples a second)",
+                    show(2.0 * highest)
+                )
+            }
+            _ => String::new(),
+        };
+        CliError(format!("{source}: sample period {} s: {e}{board_filters}", show(dt)))
+    })?;
     if let Some(step) = record.dac_step_v {
         cfg.command_lsb_v = step;
     }
