@@ -212,7 +212,7 @@ pub const fn ticks_since(count: u32, at: u32, period: u32) -> u32 {
 
 #[cfg(test)]
 mod tests {
-    use super::{clear_of_sample, entered_past, ticks_since, ConverterFormat};
+    use super::{clear_of_sample, entered_past, ticks_since, BoardDescription, ConverterFormat};
 
     /// The STM32 reference manuals' "Oversampler" section, its table of maximum results for a raw conversion of
     /// 0xFFF (the same in RM0351, RM0432, RM0444 and RM0453, read for this test; the G474's RM0440 was not
@@ -237,7 +237,9 @@ mod tests {
         let g474 = ConverterFormat::oversampled(12, 64, 2, 3.3);
         assert_eq!((g474.bits, g474.max_code), (16, 65_520));
         // One code is full scale / 2^bits whichever way the bits came.
-        assert_eq!(g474.volts_per_code(), ConverterFormat::new(16, 3.3).volts_per_code());
+        assert_eq!(g474.volts_per_code(), 3.3 / 65_536.0);
+        assert_eq!(ConverterFormat::new(16, 3.3).volts_per_code(), 3.3 / 65_536.0);
+        assert_eq!(ConverterFormat::new(12, 3.3).volts_per_code(), 3.3 / 4_096.0);
         assert_eq!(ConverterFormat::oversampled(12, 1, 0, 3.3), ConverterFormat::new(12, 3.3));
     }
 
@@ -278,6 +280,37 @@ mod tests {
         // After the update, before the moment: almost a period since the last one.
         assert_eq!(ticks_since(0, 2_432, 17_000), 14_568);
         assert_eq!(ticks_since(2_431, 2_432, 17_000), 16_999);
+        // Readings beyond the period are taken modulo it, to the last a u32 holds (2^32 - 1 = 17 000 * 252 645 +
+        // 2 295), without overflowing.
+        assert_eq!(ticks_since(u32::MAX, 2_432, 17_000), 16_863);
+        assert_eq!(ticks_since(2_295, 2_432 + 17_000, 17_000), 16_863);
+    }
+
+    /// The codes within the DAC's swing: the G474's buffered DAC (0.2 to 3.1 V of 3.3 V in 12 bits) writes 249 to
+    /// 3 847, the first code at or above the swing's bottom and the last at or below its top; a swing beyond the
+    /// DAC's codes is cut to them; one that is not a number or holds fewer than two codes gives none.
+    #[test]
+    fn the_dac_writes_the_codes_within_its_swing() {
+        let board = |low: f64, high: f64| BoardDescription {
+            probe: ConverterFormat::new(16, 3.3),
+            amplifier: ConverterFormat::new(12, 3.3),
+            amplifier_swing_v: [low, high],
+            actuation_delay_samples: 1,
+        };
+        assert_eq!(board(0.2, 3.1).amplifier_codes(), Some([249, 3_847]));
+        assert_eq!(board(0.0, 3.3).amplifier_codes(), Some([0, 4_095]));
+        assert_eq!(board(-1.0, 5.0).amplifier_codes(), Some([0, 4_095]));
+        // Exactly on a code: that code.
+        let lsb = 3.3 / 4_096.0;
+        assert_eq!(board(10.0 * lsb, 20.0 * lsb).amplifier_codes(), Some([10, 20]));
+        assert_eq!(board(10.0 * lsb, 11.0 * lsb).amplifier_codes(), Some([10, 11]));
+        // One code, none, a swing upside down, not a number.
+        assert_eq!(board(10.0 * lsb, 10.5 * lsb).amplifier_codes(), None);
+        assert_eq!(board(10.2 * lsb, 10.8 * lsb).amplifier_codes(), None);
+        assert_eq!(board(3.1, 0.2).amplifier_codes(), None);
+        assert_eq!(board(f64::NAN, 3.1).amplifier_codes(), None);
+        assert_eq!(board(0.2, f64::INFINITY).amplifier_codes(), None);
+        assert_eq!(board(f64::NEG_INFINITY, 3.1).amplifier_codes(), None);
     }
 
     #[test]
