@@ -284,6 +284,8 @@ mod tests {
         // 2 295), without overflowing.
         assert_eq!(ticks_since(u32::MAX, 2_432, 17_000), 16_863);
         assert_eq!(ticks_since(2_295, 2_432 + 17_000, 17_000), 16_863);
+        assert_eq!(ticks_since(2_295, u32::MAX, 17_000), 0);
+        assert_eq!(ticks_since(2_432, u32::MAX, 17_000), 137);
     }
 
     /// The codes within the DAC's swing: the G474's buffered DAC (0.2 to 3.1 V of 3.3 V in 12 bits) writes 249 to
