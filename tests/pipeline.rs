@@ -5,7 +5,7 @@ use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::estimator::{Estimator, EstimatorBank, FilteredSample, Health};
 use nanopos_id::excitation::ExcitationDesign;
 use nanopos_id::filters::{Biquad, BiquadState, PrefilterDesign};
-use nanopos_id::hal::{run_sample, BoardDescription, BoardFaults, StageBoard};
+use nanopos_id::hal::{run_sample, BoardDescription, BoardFaults, ConverterFormat, StageBoard};
 use nanopos_id::pipeline::{Faults, OutputLimits, Pipeline, PipelineSettings, SettingsError};
 use nanopos_id::{Real, StageParams};
 
@@ -282,6 +282,104 @@ fn the_samples_the_limits_change_are_counted() {
     }
     assert!(sim.pipeline.command_v().abs() < 0.0025);
     assert_eq!(sim.pipeline.fault_counters().limited, 1);
+}
+
+/// Each check of the design, one setting at a time (the others the defaults): every frequency the filters and the
+/// excitation take must be a number in `(0, fs / 2)`, every gain finite and non-zero, every offset and limit finite.
+/// A setting that only one clause of a check refuses is refused by that clause alone.
+#[test]
+fn each_unusable_setting_is_refused_by_its_own_check() {
+    use nanopos_id::excitation::Waveform;
+    let desc = SimBoard::new(BoardSettings::default()).description();
+    let ok = PipelineSettings::default();
+    assert!(ok.design::<f64>(&desc).is_ok());
+    let refused = |change: &dyn Fn(&mut PipelineSettings), want: SettingsError| {
+        let mut s = ok;
+        change(&mut s);
+        assert_eq!(s.design::<f64>(&desc).err(), Some(want), "{s:?}");
+    };
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        refused(&|s| s.sample_rate_hz = bad, SettingsError::SampleRate);
+    }
+    // Each filter frequency: not positive, at or above the Nyquist frequency (5 kHz), not a number.
+    for bad in [0.0, -1.0, 5_000.0, 7_000.0, f64::NAN, f64::INFINITY] {
+        let frequency = SettingsError::FilterFrequency;
+        refused(&|s| s.reconstruction.cutoff_hz = bad, frequency("reconstruction replica"));
+        refused(&|s| s.reconstruction.prewarp_hz = bad, frequency("reconstruction replica"));
+        refused(&|s| s.antialias.cutoff_hz = bad, frequency("anti-aliasing replica"));
+        refused(&|s| s.antialias.prewarp_hz = bad, frequency("anti-aliasing replica"));
+        refused(&|s| s.lags.match_hz = bad, frequency("lag replica"));
+        refused(&|s| s.prefilter.f_lc_hz = bad, frequency("pre-filter"));
+        refused(&|s| s.prefilter.f_p_hz = bad, frequency("pre-filter"));
+        refused(&|s| s.excitation = ExcitationDesign::sine(bad, 1.0), SettingsError::Excitation);
+        let triangle = Waveform::Triangle { freq_hz: bad, max_hz: 1_000.0 };
+        refused(&|s| s.excitation.waveform = triangle, SettingsError::Excitation);
+        let low = Waveform::Multisine { f_lo_hz: bad, f_hi_hz: 800.0 };
+        refused(&|s| s.excitation.waveform = low, SettingsError::Excitation);
+        let high = Waveform::Multisine { f_lo_hz: 200.0, f_hi_hz: bad };
+        refused(&|s| s.excitation.waveform = high, SettingsError::Excitation);
+    }
+    // A lag pole not a positive number (a pole the replica does not have is `None`, and allowed).
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        refused(&|s| s.lags.poles_hz[0] = Some(bad), SettingsError::FilterFrequency("lag replica"));
+        refused(&|s| s.lags.poles_hz[1] = Some(bad), SettingsError::FilterFrequency("lag replica"));
+    }
+    for bad in [0.0, -0.1, f64::NAN, f64::INFINITY] {
+        refused(&|s| s.prefilter.zeta_p = bad, SettingsError::PrefilterDamping);
+    }
+    // The limits: finite, min below max, the safe value between them, a positive slew limit.
+    for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        refused(&|s| s.limits.min_v = bad, SettingsError::Limits);
+        refused(&|s| s.limits.max_v = bad, SettingsError::Limits);
+        refused(&|s| s.limits.safe_v = bad, SettingsError::Limits);
+        refused(&|s| s.limits.max_slew_v_per_s = bad, SettingsError::Limits);
+    }
+    refused(&|s| (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (1.0, 1.0, 1.0), SettingsError::Limits);
+    refused(&|s| (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (2.0, -2.0, 0.0), SettingsError::Limits);
+    refused(&|s| (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (-2.0, 2.0, -2.5), SettingsError::Limits);
+    refused(&|s| (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (-2.0, 2.0, 2.5), SettingsError::Limits);
+    refused(&|s| s.limits.max_slew_v_per_s = 0.0, SettingsError::Limits);
+    refused(&|s| s.limits.max_slew_v_per_s = -1.0, SettingsError::Limits);
+    // The safe value may be either limit.
+    for (min, max, safe) in [(-2.0, 2.0, -2.0), (-2.0, 2.0, 2.0)] {
+        let mut s = ok;
+        (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (min, max, safe);
+        assert!(s.design::<f64>(&desc).is_ok(), "{:?}", s.limits);
+    }
+    // The front ends: gains finite and non-zero (a negative gain is an inverting stage, and allowed), offsets finite.
+    for bad in [0.0, f64::NAN, f64::INFINITY] {
+        refused(&|s| s.probe.um_per_v = bad, SettingsError::FrontEnd("probe"));
+        refused(&|s| s.probe.adc_v_per_sensor_v = bad, SettingsError::FrontEnd("probe"));
+        refused(&|s| s.amplifier.dac_v_per_command_v = bad, SettingsError::FrontEnd("amplifier"));
+    }
+    for bad in [f64::NAN, f64::INFINITY] {
+        refused(&|s| s.probe.adc_offset_v = bad, SettingsError::FrontEnd("probe"));
+        refused(&|s| s.amplifier.dac_offset_v = bad, SettingsError::FrontEnd("amplifier"));
+        refused(&|s| s.excitation.amplitude_v = bad, SettingsError::Excitation);
+        refused(&|s| s.excitation.offset_v = bad, SettingsError::Excitation);
+        let triangle = Waveform::Triangle { freq_hz: 10.0, max_hz: bad };
+        refused(&|s| s.excitation.waveform = triangle, SettingsError::Excitation);
+    }
+    for inverting in [
+        |s: &mut PipelineSettings| s.probe.um_per_v = -s.probe.um_per_v,
+        |s: &mut PipelineSettings| s.probe.adc_v_per_sensor_v = -s.probe.adc_v_per_sensor_v,
+    ] {
+        let mut s = ok;
+        inverting(&mut s);
+        assert!(s.design::<f64>(&desc).is_ok(), "{:?}", s.probe);
+    }
+    // Each converter checked: the amplifier's as well as the probe's.
+    for bad in [
+        BoardDescription { amplifier: ConverterFormat::new(0, 3.3), ..desc },
+        BoardDescription { probe: ConverterFormat::new(12, f64::NAN), ..desc },
+    ] {
+        assert_eq!(ok.design::<f64>(&bad).err(), Some(SettingsError::Converter), "{bad:?}");
+    }
+    // Delays of 0 and 1 sample are the two the pipeline models.
+    for (delay, fine) in [(0, true), (1, true), (2, false), (255, false)] {
+        let d = BoardDescription { actuation_delay_samples: delay, ..desc };
+        assert_eq!(ok.design::<f64>(&d).err(), (!fine).then_some(SettingsError::ActuationDelay), "{delay}");
+    }
 }
 
 #[test]
