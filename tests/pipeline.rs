@@ -380,6 +380,33 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
         let d = BoardDescription { actuation_delay_samples: delay, ..desc };
         assert_eq!(ok.design::<f64>(&d).err(), (!fine).then_some(SettingsError::ActuationDelay), "{delay}");
     }
+    // The slew limit's floor, as the refusal gives it, is accepted, and so is anything down to a millionth below it
+    // (the floor printed to 6 digits); just below that, refused.
+    let slew = |v: f64| {
+        let mut s = ok;
+        s.limits.max_slew_v_per_s = v;
+        s.design::<f64>(&desc).err()
+    };
+    let Some(SettingsError::SlowSlew(floor)) = slew(1.0) else { panic!("a slew of 1 V/s is too slow") };
+    // From -8.784 V, the far end of the DAC's reach, to the safe 0 V within 0.1 s.
+    assert!((floor - 87.842).abs() < 1e-3, "{floor}");
+    let lowest = floor * (1.0 - 1e-6);
+    assert_eq!((slew(floor), slew(lowest)), (None, None));
+    assert_eq!(slew(lowest.next_down()), Some(SettingsError::SlowSlew(floor)));
+    let printed: f64 = nanopos_id::text::Num(floor, 6).to_string().parse().unwrap();
+    assert!(slew(printed).is_none(), "{printed} of {floor}");
+    // What the design derives from the front ends: the spike gate's floor, 16 ADC codes in um (3.3 V / 65 536 a code,
+    // through 0.165 V a sensor volt and 5 um a sensor volt: 1.53 nm a code), and the command's step for one DAC code
+    // (3.3 V / 4 096 through 0.165 V a command volt: 4.88 mV), positive also through inverting stages.
+    for sign in [1.0, -1.0] {
+        let mut s = ok;
+        s.probe.um_per_v *= sign;
+        s.amplifier.dac_v_per_command_v *= sign;
+        let cfg = s.design::<f64>(&desc).unwrap();
+        let code_um = 3.3 / 65_536.0 / 0.165 * 5.0;
+        assert!((cfg.spike.floor_um / (16.0 * code_um) - 1.0).abs() < 1e-12, "{}", cfg.spike.floor_um);
+        assert!((cfg.command_lsb_v / (3.3 / 4_096.0 / 0.165) - 1.0).abs() < 1e-12, "{}", cfg.command_lsb_v);
+    }
 }
 
 #[test]
