@@ -838,6 +838,17 @@ fn commands_writes_the_console_lines_of_a_tuning_or_says_why_not() {
         String::from_utf8(out.stdout).unwrap(),
         "tuning prbs\ntune initial 5e5 70 6e6\ntune prefilter 100 450 0.1\ntune spike_ratio 32\n"
     );
+    // The triangle's preset, named or a file's, is given as that preset (not as the PRBS one with its Q changed).
+    std::fs::write(d.join("tri.toml"), "preset = \"triangle\"\n[arx]\nlambda = 0.999\n").unwrap();
+    for (tuning, more) in [("triangle", ""), ("tri.toml", "tune arx lambda 0.999\n")] {
+        let out = nanopos_sim(&["commands", "--tuning", tuning], d);
+        assert!(out.status.success() && out.stderr.is_empty(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert_eq!(
+            String::from_utf8(out.stdout).unwrap(),
+            "tuning triangle\ntune initial 5e5 70 6e6\ntune prefilter 100 450 0.1\ntune spike_ratio 32\n".to_string()
+                + more
+        );
+    }
     // Five values of 17 significant digits: 11 + 5 * 23 bytes, beyond the console's 96.
     let long = "[ekf]\nq = [1.0000000000000002e-12, 1.0000000000000002e-6, 1500000000.0000002, 0.25000000000000006, \
                 500000000.00000006]\n";
@@ -859,6 +870,14 @@ fn commands_writes_the_console_lines_of_a_tuning_or_says_why_not() {
         ("r.toml", "[ekf]\nr = 1e-45\n", "r.toml: at the board's 10000 Hz, in f32: "),
         ("key.toml", "[ekf]\nkappa = 1\n", "key.toml:2: unknown field `kappa`"),
         ("pre.toml", "preset = \"sine\"\n", "pre.toml: preset 'sine' unknown"),
+        // A tuning the board can run whose lines, in the console's order, pass through one it cannot: `q` at the top of
+        // f32 with its own `p0` (`tune ekf q` sets `p0` to 10 Q first, beyond f32).
+        (
+            "q.toml",
+            "[ekf]\nq = [3.4e38, 1e-6, 1.5e9, 0.25, 5e8]\np0 = [1e-11, 1e-5, 1.5e10, 2.5, 5e9]\n",
+            "q.toml: [ekf] q set before the keys after it leaves a tuning the board cannot run, and the console refuses \
+             such a line (`tune ekf q` also sets p0 to 10 Q): this order of the lines cannot give the board this tuning",
+        ),
     ] {
         std::fs::write(d.join(file), text).unwrap();
         assert_clean_failure(&nanopos_sim(&["commands", "--tuning", file], d), says);
