@@ -761,6 +761,33 @@ mod tests {
         }
     }
 
+    /// A header without a column asked for says so; it names another separator only when the header is one field
+    /// holding it (Excel in a locale with a decimal comma writes ';'), not for a single name, nor for a ';' inside one
+    /// of several fields.
+    #[test]
+    fn a_missing_column_names_another_separator_only_when_it_is_the_reason() {
+        let missing = |name: &str, header: &str| {
+            read_columns(&file(name, &format!("{header}\n1\n")), &["u", "y"], Time::IfPresent).unwrap_err().0
+        };
+        let note = ": its fields are separated by";
+        assert!(missing("semi.csv", "t;u;y").ends_with(
+            "(found: t;u;y): its fields are separated by ';'; this reads commas, and '.' as the decimal point"
+        ));
+        assert!(missing("tabs.csv", "t\tu\ty").contains(": its fields are separated by tabs;"));
+        for (name, header) in [("one.csv", "time"), ("inside.csv", "u;v,t")] {
+            let e = missing(name, header);
+            assert!(e.contains("1: no column '") && !e.contains(note), "{e}");
+        }
+    }
+
+    /// `t` may be asked for like any column: it is then the one whose steps are checked, in its place in the output.
+    #[test]
+    fn time_asked_for_by_name_is_the_time_checked() {
+        let text = "u,t\n5,0\n3,0.5\n8,1\n";
+        let got = read_columns(&file("t_named.csv", text), &["t", "u"], Time::Required).unwrap();
+        assert_eq!((got.data, got.sample_period_s), (vec![vec![0.0, 0.5, 1.0], vec![5.0, 3.0, 8.0]], Some(0.5)));
+    }
+
     /// A column named twice, or part of a group of columns that go together (the truth's `a0, a1, b0`), is refused,
     /// not resolved by a guess.
     #[test]
