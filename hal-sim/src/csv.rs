@@ -729,6 +729,12 @@ mod tests {
         let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
         assert!(e.0.ends_with("blank.csv: empty file (a header line naming u is needed)"), "{}", e.0);
         assert_eq!(read("t,u\n\"0\",\"1\"\n\"0.5\",\"2\"\n"), Some(0.5), "quoted");
+        // Beyond the 64 KiB read from the end: the last line of a long file; and none when the last line is longer
+        // than that (the tail starts inside it: here its 70 000 zeros cut, `0.000...05` would read as 5).
+        let long = rows(3_000);
+        assert!(long.len() > 1 << 16);
+        assert_eq!(read(&long), Some(2_999e-4));
+        assert_eq!(read(&format!("t,u\n0,1\n0.{}5,2\n", "0".repeat(70_000))), None, "a last line beyond the tail");
     }
 
     /// Blank lines before anything else, beyond one read (64 KiB) too: an empty file if nothing follows; otherwise
