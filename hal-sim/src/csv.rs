@@ -767,6 +767,24 @@ mod tests {
         }
     }
 
+    /// Progress counts the bytes parsed against the file's length: the header's on opening, each block's as it is
+    /// read, the whole file at the end.
+    #[test]
+    fn progress_counts_the_bytes_parsed() {
+        let text = rows(500);
+        let path = file("progress.csv", &text);
+        let mut r = Reader::open_in(&path, &["u"], &[], Time::Required, TINY).unwrap();
+        let len = text.len() as u64;
+        assert_eq!(r.progress(), ("t, u ,y,extra\n".len() as u64, len));
+        let mut last = r.progress().0;
+        while r.next_block().unwrap().is_some() {
+            let (done, of) = r.progress();
+            assert!(done > last && done <= len && of == len, "{done} of {of}, after {last}");
+            last = done;
+        }
+        assert_eq!(r.progress(), (len, len));
+    }
+
     /// A header without a column asked for says so; it names another separator only when the header is one field
     /// holding it (Excel in a locale with a decimal comma writes ';'), not for a single name, nor for a ';' inside one
     /// of several fields.
