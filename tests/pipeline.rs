@@ -293,10 +293,15 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
     let desc = SimBoard::new(BoardSettings::default()).description();
     let ok = PipelineSettings::default();
     assert!(ok.design::<f64>(&desc).is_ok());
-    let refused = |change: &dyn Fn(&mut PipelineSettings), want: SettingsError| {
+    // The default settings with one change, designed.
+    let with = |change: &dyn Fn(&mut PipelineSettings)| {
         let mut s = ok;
         change(&mut s);
-        assert_eq!(s.design::<f64>(&desc).err(), Some(want), "{s:?}");
+        (s.design::<f64>(&desc), s)
+    };
+    let refused = |change: &dyn Fn(&mut PipelineSettings), want: SettingsError| {
+        let (design, s) = with(change);
+        assert_eq!(design.err(), Some(want), "{s:?}");
     };
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
         refused(&|s| s.sample_rate_hz = bad, SettingsError::SampleRate);
@@ -342,9 +347,8 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
     refused(&|s| s.limits.max_slew_v_per_s = -1.0, SettingsError::Limits);
     // The safe value may be either limit.
     for (min, max, safe) in [(-2.0, 2.0, -2.0), (-2.0, 2.0, 2.0)] {
-        let mut s = ok;
-        (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (min, max, safe);
-        assert!(s.design::<f64>(&desc).is_ok(), "{:?}", s.limits);
+        let (design, s) = with(&|s| (s.limits.min_v, s.limits.max_v, s.limits.safe_v) = (min, max, safe));
+        assert!(design.is_ok(), "{:?}", s.limits);
     }
     // The front ends: gains finite and non-zero (a negative gain is an inverting stage, and allowed), offsets finite.
     for bad in [0.0, f64::NAN, f64::INFINITY] {
@@ -364,9 +368,8 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
         |s: &mut PipelineSettings| s.probe.um_per_v = -s.probe.um_per_v,
         |s: &mut PipelineSettings| s.probe.adc_v_per_sensor_v = -s.probe.adc_v_per_sensor_v,
     ] {
-        let mut s = ok;
-        inverting(&mut s);
-        assert!(s.design::<f64>(&desc).is_ok(), "{:?}", s.probe);
+        let (design, s) = with(&inverting);
+        assert!(design.is_ok(), "{:?}", s.probe);
     }
     // Each converter checked: the amplifier's as well as the probe's.
     for bad in [
@@ -382,11 +385,7 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
     }
     // The slew limit's floor, as the refusal gives it, is accepted, and so is anything down to a millionth below it
     // (the floor printed to 6 digits); just below that, refused.
-    let slew = |v: f64| {
-        let mut s = ok;
-        s.limits.max_slew_v_per_s = v;
-        s.design::<f64>(&desc).err()
-    };
+    let slew = |v: f64| with(&|s| s.limits.max_slew_v_per_s = v).0.err();
     let Some(SettingsError::SlowSlew(floor)) = slew(1.0) else { panic!("a slew of 1 V/s is too slow") };
     // From -8.784 V, the far end of the DAC's reach, to the safe 0 V within 0.1 s.
     assert!((floor - 87.842).abs() < 1e-3, "{floor}");
@@ -399,10 +398,12 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
     // through 0.165 V a sensor volt and 5 um a sensor volt: 1.53 nm a code), and the command's step for one DAC code
     // (3.3 V / 4 096 through 0.165 V a command volt: 4.88 mV), positive also through inverting stages.
     for sign in [1.0, -1.0] {
-        let mut s = ok;
-        s.probe.um_per_v *= sign;
-        s.amplifier.dac_v_per_command_v *= sign;
-        let cfg = s.design::<f64>(&desc).unwrap();
+        let cfg = with(&|s| {
+            s.probe.um_per_v *= sign;
+            s.amplifier.dac_v_per_command_v *= sign;
+        })
+        .0
+        .unwrap();
         let code_um = 3.3 / 65_536.0 / 0.165 * 5.0;
         assert!((cfg.spike.floor_um / (16.0 * code_um) - 1.0).abs() < 1e-12, "{}", cfg.spike.floor_um);
         assert!((cfg.command_lsb_v / (3.3 / 4_096.0 / 0.165) - 1.0).abs() < 1e-12, "{}", cfg.command_lsb_v);
