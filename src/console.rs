@@ -499,11 +499,14 @@ impl Controller {
         from: &'static str,
     ) -> Result<Change<T>, Refusal> {
         let restart = self.tuning.restarted_by(&t);
+        // A frequency the pipeline cannot hold (above the Nyquist frequency) is refused as such, before the RLS's
+        // step would refuse the pole it makes.
+        let s = self.settings.with_stage_of(&t);
+        s.check_frequencies()?;
         let mut change = Change { tuning: Some(t.runnable()?), restart, ..Change::default() };
         // The stage's pre-filter: the pipeline's (with its replicas' match) and the continuous-time RLS's change
         // together, in one sample; the spike gate's ratio with them.
         if t.rls.prefilter != self.settings.prefilter || t.spike_ratio != self.settings.faults.spike_ratio {
-            let s = self.settings.with_stage_of(&t);
             change.config = Some(self.design(&s, self.running)?);
             self.settings = s;
         }

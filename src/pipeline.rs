@@ -206,8 +206,17 @@ impl Default for PipelineSettings {
 pub enum SettingsError {
     /// Sample rate not finite and positive.
     SampleRate,
-    /// A filter frequency not inside (0, Nyquist); names the filter.
-    FilterFrequency(&'static str),
+    /// A filter frequency not inside (0, Nyquist), or a lag pole not positive and finite: names the filter and
+    /// carries the frequency, Hz, and the bound it must stay below (the Nyquist frequency; `None` for a lag pole,
+    /// which may lie above it).
+    FilterFrequency {
+        /// The filter: `"reconstruction replica"`, `"anti-aliasing replica"`, `"lag replica"` or `"pre-filter"`.
+        filter: &'static str,
+        /// The frequency refused, Hz.
+        hz: f64,
+        /// The Nyquist frequency, Hz; `None` for a lag pole.
+        below_hz: Option<f64>,
+    },
     /// Pre-filter damping not positive.
     PrefilterDamping,
     /// `min_v < max_v`, `safe_v` inside, slew positive: one of these fails.
@@ -237,8 +246,14 @@ impl core::fmt::Display for SettingsError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             SettingsError::SampleRate => write!(f, "sample rate must be a positive number of Hz"),
-            SettingsError::FilterFrequency(which) => {
-                write!(f, "{which}: frequencies must be positive and below the Nyquist frequency")
+            SettingsError::FilterFrequency { filter, hz, below_hz: Some(nyquist) } => write!(
+                f,
+                "{filter}: {} Hz: frequencies must be positive and below the Nyquist frequency, {} Hz",
+                crate::text::Num(*hz, 6),
+                crate::text::Num(*nyquist, 6)
+            ),
+            SettingsError::FilterFrequency { filter, hz, below_hz: None } => {
+                write!(f, "{filter}: a pole at {} Hz: poles must be positive and finite", crate::text::Num(*hz, 6))
             }
             SettingsError::PrefilterDamping => {
                 write!(f, "pre-filter damping ratio must be positive")
@@ -352,6 +367,11 @@ pub struct PipelineConfig<T> {
     pub estimators: u8,
 }
 
+/// Whether `hz` lies inside (0, `nyquist`).
+fn in_band(hz: f64, nyquist: f64) -> bool {
+    hz.is_finite() && hz > 0.0 && hz < nyquist
+}
+
 /// `x` rounded up, as a count (`as u32` saturates: 0 for NaN and below 0). Not libm's `ceil`: 200 B of flash for one
 /// use in the designs.
 fn ceil_u32(x: f64) -> u32 {
@@ -410,6 +430,41 @@ impl PipelineSettings {
         code_of(&self.amplifier.code_map(dac.volts_per_code()), dac.max_code, T::of(self.limits.safe_v))
     }
 
+    /// The sample rate, then every filter's frequencies: the first of [`Self::design`]'s checks, without the design.
+    pub fn check_frequencies(&self) -> Result<(), SettingsError> {
+        let fs = self.sample_rate_hz;
+        if !(fs.is_finite() && fs > 0.0) {
+            return Err(SettingsError::SampleRate);
+        }
+        let nyquist = fs / 2.0;
+        let (rec, aa, lag, pf) = ("reconstruction replica", "anti-aliasing replica", "lag replica", "pre-filter");
+        let (r, a, p) = (&self.reconstruction, &self.antialias, &self.prefilter);
+        let band = |filter, hz| match in_band(hz, nyquist) {
+            true => Ok(()),
+            false => Err(SettingsError::FilterFrequency { filter, hz, below_hz: Some(nyquist) }),
+        };
+        // The pre-filter's first: the replicas are matched at its `f_p` ([`Self::with_stage_of`]), so a refusal of that
+        // names what was set.
+        let filters = [
+            (pf, p.f_lc_hz),
+            (pf, p.f_p_hz),
+            (rec, r.cutoff_hz),
+            (rec, r.prewarp_hz),
+            (aa, a.cutoff_hz),
+            (aa, a.prewarp_hz),
+            (lag, self.lags.match_hz),
+        ];
+        for (filter, hz) in filters {
+            band(filter, hz)?;
+        }
+        for &hz in self.lags.poles_hz.iter().flatten() {
+            if !(hz.is_finite() && hz > 0.0) {
+                return Err(SettingsError::FilterFrequency { filter: lag, hz, below_hz: None });
+            }
+        }
+        Ok(())
+    }
+
     /// Validate and design for the board's converters.
     #[inline(never)]
     pub fn design<T: Real>(&self, board: &BoardDescription) -> Result<PipelineConfig<T>, SettingsError> {
@@ -417,24 +472,8 @@ impl PipelineSettings {
         if board.actuation_delay_samples > 1 {
             return Err(SettingsError::ActuationDelay);
         }
-        let fs = self.sample_rate_hz;
-        if !(fs.is_finite() && fs > 0.0) {
-            return Err(SettingsError::SampleRate);
-        }
-        let nyquist = fs / 2.0;
-        let in_band = |f: f64| f.is_finite() && f > 0.0 && f < nyquist;
-        for (name, r) in [("reconstruction replica", self.reconstruction), ("anti-aliasing replica", self.antialias)] {
-            if !(in_band(r.cutoff_hz) && in_band(r.prewarp_hz)) {
-                return Err(SettingsError::FilterFrequency(name));
-            }
-        }
-        let lags_ok = self.lags.poles_hz.iter().flatten().all(|f| f.is_finite() && *f > 0.0);
-        if !(lags_ok && in_band(self.lags.match_hz)) {
-            return Err(SettingsError::FilterFrequency("lag replica"));
-        }
-        if !(in_band(self.prefilter.f_lc_hz) && in_band(self.prefilter.f_p_hz)) {
-            return Err(SettingsError::FilterFrequency("pre-filter"));
-        }
+        self.check_frequencies()?;
+        let (fs, nyquist) = (self.sample_rate_hz, self.sample_rate_hz / 2.0);
         if !(self.prefilter.zeta_p.is_finite() && self.prefilter.zeta_p > 0.0) {
             return Err(SettingsError::PrefilterDamping);
         }
@@ -469,6 +508,7 @@ impl PipelineSettings {
             return Err(SettingsError::SlowSlew(min_slew));
         }
         let e = &self.excitation;
+        let in_band = |hz| in_band(hz, nyquist);
         let freq_ok = match e.waveform {
             crate::excitation::Waveform::Sine { freq_hz } => in_band(freq_hz),
             crate::excitation::Waveform::Triangle { freq_hz, max_hz } => in_band(freq_hz) && max_hz.is_finite(),

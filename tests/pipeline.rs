@@ -299,16 +299,17 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
         change(&mut s);
         (s.design::<f64>(&desc), s)
     };
+    // Compared as Debug text: an error carrying the NaN it refused is not equal to itself.
     let refused = |change: &dyn Fn(&mut PipelineSettings), want: SettingsError| {
         let (design, s) = with(change);
-        assert_eq!(design.err(), Some(want), "{s:?}");
+        assert_eq!(format!("{:?}", design.err()), format!("{:?}", Some(want)), "{s:?}");
     };
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
         refused(&|s| s.sample_rate_hz = bad, SettingsError::SampleRate);
     }
     // Each filter frequency: not positive, at or above the Nyquist frequency (5 kHz), not a number.
     for bad in [0.0, -1.0, 5_000.0, 7_000.0, f64::NAN, f64::INFINITY] {
-        let frequency = SettingsError::FilterFrequency;
+        let frequency = |filter| SettingsError::FilterFrequency { filter, hz: bad, below_hz: Some(5_000.0) };
         refused(&|s| s.reconstruction.cutoff_hz = bad, frequency("reconstruction replica"));
         refused(&|s| s.reconstruction.prewarp_hz = bad, frequency("reconstruction replica"));
         refused(&|s| s.antialias.cutoff_hz = bad, frequency("anti-aliasing replica"));
@@ -326,8 +327,9 @@ fn each_unusable_setting_is_refused_by_its_own_check() {
     }
     // A lag pole not a positive number (a pole the replica does not have is `None`, and allowed).
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
-        refused(&|s| s.lags.poles_hz[0] = Some(bad), SettingsError::FilterFrequency("lag replica"));
-        refused(&|s| s.lags.poles_hz[1] = Some(bad), SettingsError::FilterFrequency("lag replica"));
+        let pole = SettingsError::FilterFrequency { filter: "lag replica", hz: bad, below_hz: None };
+        refused(&|s| s.lags.poles_hz[0] = Some(bad), pole);
+        refused(&|s| s.lags.poles_hz[1] = Some(bad), pole);
     }
     for bad in [0.0, -0.1, f64::NAN, f64::INFINITY] {
         refused(&|s| s.prefilter.zeta_p = bad, SettingsError::PrefilterDamping);
@@ -419,7 +421,19 @@ fn unusable_settings_are_rejected_with_what_was_wrong() {
     check(PipelineSettings { sample_rate_hz: 0.0, ..ok }, SettingsError::SampleRate);
     let mut s = ok;
     s.reconstruction.prewarp_hz = 6000.0;
-    check(s, SettingsError::FilterFrequency("reconstruction replica"));
+    let filter = "reconstruction replica";
+    check(s, SettingsError::FilterFrequency { filter, hz: 6000.0, below_hz: Some(5000.0) });
+    // The message gives the frequency refused and the bound (a lag pole has none but 0).
+    assert_eq!(
+        s.design::<f32>(&desc).unwrap_err().to_string(),
+        "reconstruction replica: 6000 Hz: frequencies must be positive and below the Nyquist frequency, 5000 Hz"
+    );
+    let mut s = ok;
+    s.lags.poles_hz[1] = Some(-2.5e4);
+    assert_eq!(
+        s.design::<f32>(&desc).unwrap_err().to_string(),
+        "lag replica: a pole at -25000 Hz: poles must be positive and finite"
+    );
     let mut s = ok;
     s.prefilter.zeta_p = 0.0;
     check(s, SettingsError::PrefilterDamping);

@@ -362,7 +362,7 @@ fn identify_blocks<T: Real>(
     let mut cfg = settings.design::<T>(&board.description()).map_err(|e| {
         // The replicas are the board's analog filters, not the record's: say so, and what they need.
         let board_filters = match e {
-            SettingsError::FilterFrequency(which) if which.ends_with(" replica") => {
+            SettingsError::FilterFrequency { filter, .. } if filter.ends_with(" replica") => {
                 let highest = [settings.reconstruction, settings.antialias]
                     .iter()
                     .flat_map(|r| [r.cutoff_hz, r.prewarp_hz])
