@@ -322,3 +322,71 @@ fn noise_floor_at_rest_is_the_modelled_one() {
     // estimate of an RMS from 2e5 values has a 0.2 % standard error.
     assert!((rms / model - 1.0).abs() < 0.01, "measured {rms}, model {model}");
 }
+
+/// What the simulated board adds to the reading, each as its settings say: Student's t noise at the RMS set, with
+/// its heavy tails (kurtosis 9 for 5 degrees of freedom, 3 for Gaussian noise); mains hum as `A sin(2 pi f t)` from
+/// the first sample, each tone at its amplitude and phase. And what the board reports: its sample rate, its settings
+/// and the voltage it drove, which is the pipeline's `u_v`.
+#[test]
+fn the_reading_carries_the_noise_and_the_hum_as_set() {
+    use hal_sim::board::{SimBoard, Tone};
+    use nanopos_id::hal::{run_sample, StageBoard};
+    // Moments of `n` readings at rest (the safe output), or in-phase and quadrature parts at `f` Hz.
+    let at_rest = |board: BoardSettings, n: usize| {
+        let mut board = SimBoard::new(board);
+        let settings = PipelineSettings { excitation: ExcitationDesign::OFF, ..PipelineSettings::default() };
+        let cfg = settings.design::<f64>(&board.description()).unwrap();
+        let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
+        let y: Vec<f64> = (0..n).map(|_| run_sample(&mut board, &mut pipeline, &cfg).y_um).collect();
+        (board, y)
+    };
+    let moments = |y: &[f64]| {
+        let mean = y.iter().sum::<f64>() / y.len() as f64;
+        let m = |p: i32| y.iter().map(|v| (v - mean).powi(p)).sum::<f64>() / y.len() as f64;
+        (m(2).sqrt(), m(4) / m(2).powi(2))
+    };
+    // 50 nm of noise, far above the ADC's 3 nm: the tails are the noise's.
+    let noisy = |dof| BoardSettings { noise_um_rms: 0.05, noise_tail_dof: dof, ..BoardSettings::default() };
+    for (dof, kurtosis) in [(None, 2.9..3.1), (Some(5), 5.0..20.0)] {
+        let (board, y) = at_rest(noisy(dof), 200_000);
+        let (rms, k) = moments(&y);
+        eprintln!(
+            "noise {dof:?}: rms {:.3} nm (model {:.3}), kurtosis {k:.2}",
+            rms * 1e3,
+            board.noise_floor_um() * 1e3
+        );
+        assert!((rms / board.noise_floor_um() - 1.0).abs() < 0.02, "{dof:?}: rms {rms}");
+        assert!(kurtosis.contains(&k), "{dof:?}: kurtosis {k}");
+    }
+    // 20 s of hum: whole periods of both tones, so the stage's constant output drops out.
+    let hum = [Tone { amplitude_um: 0.02, freq_hz: 50.0 }, Tone { amplitude_um: 0.01, freq_hz: 150.0 }];
+    let (board, y) = at_rest(BoardSettings { hum, ..BoardSettings::default() }, 200_000);
+    assert_eq!(board.settings().hum, hum);
+    let fs = board.sample_rate_hz();
+    assert_eq!(fs, 10_000.0);
+    for Tone { amplitude_um, freq_hz } in hum {
+        let part = |phase: fn(f64) -> f64| {
+            let w = 2.0 * std::f64::consts::PI * freq_hz / fs;
+            2.0 / y.len() as f64 * y.iter().enumerate().map(|(k, v)| v * phase(w * k as f64)).sum::<f64>()
+        };
+        let (in_phase, quadrature) = (part(f64::sin), part(f64::cos));
+        eprintln!("hum at {freq_hz} Hz: {in_phase:.6} um in phase, {quadrature:.2e} in quadrature");
+        // The noise's share: 3.3 nm sqrt(2 / n), 1e-5 um. A sample late would put 2 pi f / fs of the amplitude, 6e-4
+        // um at 50 Hz, in quadrature.
+        assert!((in_phase - amplitude_um).abs() < 1e-4, "{freq_hz} Hz: {in_phase}");
+        assert!(quadrature.abs() < 1e-4, "{freq_hz} Hz: {quadrature}");
+    }
+    let fast = PlantSettings { sample_period_s: 5e-5, ..PlantSettings::default() };
+    assert_eq!(SimBoard::new(BoardSettings { plant: fast, ..BoardSettings::default() }).sample_rate_hz(), 20_000.0);
+    // The voltage the board drove over each sample is the command the pipeline says was in effect.
+    let mut board = SimBoard::new(BoardSettings::default());
+    let cfg = PipelineSettings::default().design::<f64>(&board.description()).unwrap();
+    let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
+    let mut moved = 0;
+    for _ in 0..2_000 {
+        let out = run_sample(&mut board, &mut pipeline, &cfg);
+        assert!((board.last_u_v() - out.u_v).abs() < 1e-9, "{} against {}", board.last_u_v(), out.u_v);
+        moved += usize::from(out.u_v.abs() > 0.5);
+    }
+    assert!(moved > 1_000, "{moved}");
+}
