@@ -378,15 +378,29 @@ fn the_reading_carries_the_noise_and_the_hum_as_set() {
     }
     let fast = PlantSettings { sample_period_s: 5e-5, ..PlantSettings::default() };
     assert_eq!(SimBoard::new(BoardSettings { plant: fast, ..BoardSettings::default() }).sample_rate_hz(), 20_000.0);
-    // The voltage the board drove over each sample is the command the pipeline says was in effect.
-    let mut board = SimBoard::new(BoardSettings::default());
-    let cfg = PipelineSettings::default().design::<f64>(&board.description()).unwrap();
-    let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
-    let mut moved = 0;
-    for _ in 0..2_000 {
-        let out = run_sample(&mut board, &mut pipeline, &cfg);
-        assert!((board.last_u_v() - out.u_v).abs() < 1e-9, "{} against {}", board.last_u_v(), out.u_v);
-        moved += usize::from(out.u_v.abs() > 0.5);
+    // The voltage the board drove over each sample is the command the pipeline says was in effect, with the DAC's
+    // holding register (the default) or without.
+    for delay in [0, 1] {
+        let mut board = SimBoard::new(BoardSettings { actuation_delay_samples: delay, ..BoardSettings::default() });
+        let cfg = PipelineSettings::default().design::<f64>(&board.description()).unwrap();
+        let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
+        let mut moved = 0;
+        for _ in 0..2_000 {
+            let out = run_sample(&mut board, &mut pipeline, &cfg);
+            assert!((board.last_u_v() - out.u_v).abs() < 1e-9, "{delay}: {} against {}", board.last_u_v(), out.u_v);
+            moved += usize::from(out.u_v.abs() > 0.5);
+        }
+        assert!(moved > 1_000, "{delay}: {moved}");
+        // A code written goes out now, or at the next write (mid-scale before the first).
+        let mut board = SimBoard::new(BoardSettings { actuation_delay_samples: delay, ..BoardSettings::default() });
+        let volts = |code: u32| {
+            let dac = board.description().amplifier;
+            board.settings().amplifier.command_v(code as f64 * dac.volts_per_code())
+        };
+        let (mid, high) = (volts(2048), volts(3000));
+        board.write_amplifier(3000);
+        assert_eq!(board.last_u_v(), if delay == 0 { high } else { mid }, "{delay}");
+        board.write_amplifier(2048);
+        assert_eq!(board.last_u_v(), if delay == 0 { mid } else { high }, "{delay}");
     }
-    assert!(moved > 1_000, "{moved}");
 }
