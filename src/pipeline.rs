@@ -508,11 +508,13 @@ impl PipelineSettings {
             return Err(SettingsError::SlowSlew(min_slew));
         }
         let e = &self.excitation;
-        let in_band = |hz| in_band(hz, nyquist);
+        let below_nyquist = |hz| in_band(hz, nyquist);
         let freq_ok = match e.waveform {
-            crate::excitation::Waveform::Sine { freq_hz } => in_band(freq_hz),
-            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => in_band(freq_hz) && max_hz.is_finite(),
-            crate::excitation::Waveform::Multisine { f_lo_hz, f_hi_hz } => in_band(f_lo_hz) && in_band(f_hi_hz),
+            crate::excitation::Waveform::Sine { freq_hz } => below_nyquist(freq_hz),
+            crate::excitation::Waveform::Triangle { freq_hz, max_hz } => below_nyquist(freq_hz) && max_hz.is_finite(),
+            crate::excitation::Waveform::Multisine { f_lo_hz, f_hi_hz } => {
+                below_nyquist(f_lo_hz) && below_nyquist(f_hi_hz)
+            }
             _ => true,
         };
         if !(freq_ok && e.amplitude_v.is_finite() && e.offset_v.is_finite()) {

@@ -826,8 +826,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (
             &["identify", "--input", "khz.csv"],
             "khz.csv: sample period 0.001 s: reconstruction replica: 1000 Hz: frequencies must be positive and below the \
-             Nyquist frequency, 500 Hz (identify replicates the board's analog filters, as the board does: they need more than 2000 \
-             samples a second)",
+             Nyquist frequency, 500 Hz (identify replicates the board's analog filters, as the board does: they need \
+             more than 2000 samples a second)",
         ),
         (&["identify", "--input", "utf16.csv"], "utf16.csv: UTF-16 text (its first bytes say so"),
         (

@@ -1,11 +1,12 @@
 //! The simulated stage against independent references: the float64 reference's data, fine numerical integration,
 //! and a frequency sweep through the real pipeline.
 
-use hal_sim::board::BoardSettings;
+use hal_sim::board::{BoardSettings, SimBoard, Tone};
 use hal_sim::noise::NormalStream;
 use hal_sim::plant::{Plant, PlantSettings, STATES};
 use hal_sim::sim::Simulation;
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
+use nanopos_id::hal::{run_sample, StageBoard};
 use nanopos_id::pipeline::PipelineSettings;
 use nanopos_id::StageParams;
 
@@ -298,23 +299,29 @@ fn hysteresis_makes_the_static_response_depend_on_the_path() {
     assert!((settle(&mut a, 0.0) - settle(&mut b, 0.0)).abs() < 1e-9);
 }
 
-#[test]
-fn noise_floor_at_rest_is_the_modelled_one() {
-    use nanopos_id::hal::StageBoard;
-    // Stage at rest, output at the safe code: the readings' spread is the probe noise, the averaged ADC noise and
-    // the 16-bit quantisation, which SimBoard::noise_floor_um adds up (3.3 nm with the defaults).
-    let mut board = hal_sim::board::SimBoard::new(BoardSettings::default());
+/// `n` readings of a board at rest (no excitation, the output at the safe code) through the pipeline, um.
+fn readings_at_rest(settings: BoardSettings, n: usize) -> (SimBoard, Vec<f64>) {
+    let mut board = SimBoard::new(settings);
     let settings = PipelineSettings { excitation: ExcitationDesign::OFF, ..PipelineSettings::default() };
     let cfg = settings.design::<f64>(&board.description()).unwrap();
     let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
-    let n = 200_000;
-    let (mut s1, mut s2) = (0.0, 0.0);
-    for _ in 0..n {
-        let y = nanopos_id::hal::run_sample(&mut board, &mut pipeline, &cfg).y_um;
-        s1 += y;
-        s2 += y * y;
-    }
-    let rms = (s2 / n as f64 - (s1 / n as f64).powi(2)).sqrt();
+    let y = (0..n).map(|_| run_sample(&mut board, &mut pipeline, &cfg).y_um).collect();
+    (board, y)
+}
+
+/// The RMS about the mean and the kurtosis of `y`.
+fn rms_and_kurtosis(y: &[f64]) -> (f64, f64) {
+    let mean = y.iter().sum::<f64>() / y.len() as f64;
+    let m = |p: i32| y.iter().map(|v| (v - mean).powi(p)).sum::<f64>() / y.len() as f64;
+    (m(2).sqrt(), m(4) / m(2).powi(2))
+}
+
+#[test]
+fn noise_floor_at_rest_is_the_modelled_one() {
+    // Stage at rest, output at the safe code: the readings' spread is the probe noise, the averaged ADC noise and
+    // the 16-bit quantisation, which SimBoard::noise_floor_um adds up (3.3 nm with the defaults).
+    let (board, y) = readings_at_rest(BoardSettings::default(), 200_000);
+    let rms = rms_and_kurtosis(&y).0;
     let model = board.noise_floor_um();
     eprintln!("noise floor: measured {:.3} nm, model {:.3} nm", rms * 1e3, model * 1e3);
     assert!((model * 1e3 - 3.33).abs() < 0.01);
@@ -329,27 +336,11 @@ fn noise_floor_at_rest_is_the_modelled_one() {
 /// and the voltage it drove, which is the pipeline's `u_v`.
 #[test]
 fn the_reading_carries_the_noise_and_the_hum_as_set() {
-    use hal_sim::board::{SimBoard, Tone};
-    use nanopos_id::hal::{run_sample, StageBoard};
-    // Moments of `n` readings at rest (the safe output), or in-phase and quadrature parts at `f` Hz.
-    let at_rest = |board: BoardSettings, n: usize| {
-        let mut board = SimBoard::new(board);
-        let settings = PipelineSettings { excitation: ExcitationDesign::OFF, ..PipelineSettings::default() };
-        let cfg = settings.design::<f64>(&board.description()).unwrap();
-        let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
-        let y: Vec<f64> = (0..n).map(|_| run_sample(&mut board, &mut pipeline, &cfg).y_um).collect();
-        (board, y)
-    };
-    let moments = |y: &[f64]| {
-        let mean = y.iter().sum::<f64>() / y.len() as f64;
-        let m = |p: i32| y.iter().map(|v| (v - mean).powi(p)).sum::<f64>() / y.len() as f64;
-        (m(2).sqrt(), m(4) / m(2).powi(2))
-    };
     // 50 nm of noise, far above the ADC's 3 nm: the tails are the noise's.
     let noisy = |dof| BoardSettings { noise_um_rms: 0.05, noise_tail_dof: dof, ..BoardSettings::default() };
     for (dof, kurtosis) in [(None, 2.9..3.1), (Some(5), 5.0..20.0)] {
-        let (board, y) = at_rest(noisy(dof), 200_000);
-        let (rms, k) = moments(&y);
+        let (board, y) = readings_at_rest(noisy(dof), 200_000);
+        let (rms, k) = rms_and_kurtosis(&y);
         eprintln!(
             "noise {dof:?}: rms {:.3} nm (model {:.3}), kurtosis {k:.2}",
             rms * 1e3,
@@ -360,7 +351,7 @@ fn the_reading_carries_the_noise_and_the_hum_as_set() {
     }
     // 20 s of hum: whole periods of both tones, so the stage's constant output drops out.
     let hum = [Tone { amplitude_um: 0.02, freq_hz: 50.0 }, Tone { amplitude_um: 0.01, freq_hz: 150.0 }];
-    let (board, y) = at_rest(BoardSettings { hum, ..BoardSettings::default() }, 200_000);
+    let (board, y) = readings_at_rest(BoardSettings { hum, ..BoardSettings::default() }, 200_000);
     assert_eq!(board.settings().hum, hum);
     let fs = board.sample_rate_hz();
     assert_eq!(fs, 10_000.0);
@@ -381,7 +372,8 @@ fn the_reading_carries_the_noise_and_the_hum_as_set() {
     // The voltage the board drove over each sample is the command the pipeline says was in effect, with the DAC's
     // holding register (the default) or without.
     for delay in [0, 1] {
-        let mut board = SimBoard::new(BoardSettings { actuation_delay_samples: delay, ..BoardSettings::default() });
+        let delayed = BoardSettings { actuation_delay_samples: delay, ..BoardSettings::default() };
+        let mut board = SimBoard::new(delayed);
         let cfg = PipelineSettings::default().design::<f64>(&board.description()).unwrap();
         let mut pipeline = nanopos_id::pipeline::Pipeline::new(&cfg, ());
         let mut moved = 0;
@@ -392,7 +384,7 @@ fn the_reading_carries_the_noise_and_the_hum_as_set() {
         }
         assert!(moved > 1_000, "{delay}: {moved}");
         // A code written goes out now, or at the next write (mid-scale before the first).
-        let mut board = SimBoard::new(BoardSettings { actuation_delay_samples: delay, ..BoardSettings::default() });
+        let mut board = SimBoard::new(delayed);
         let volts = |code: u32| {
             let dac = board.description().amplifier;
             board.settings().amplifier.command_v(code as f64 * dac.volts_per_code())
