@@ -64,7 +64,8 @@ impl Default for Hysteresis {
     }
 }
 
-const PLAYS: usize = 8;
+/// The hysteresis' play operators, `n` in [`Hysteresis`]'s formula.
+pub const PLAYS: usize = 8;
 
 /// Piezo creep: `v_out = v + per_decade * sum_i lag_i(v)`, `lag_i` the first-order lag of `v` with the time constant
 /// `first_tau_s * 10^i`, `i = 0..CREEP_LAGS`. After a step of the drive the output grows by about `per_decade` of

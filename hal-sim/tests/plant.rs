@@ -142,6 +142,43 @@ fn zoh_plant_matches_a_finely_integrated_analog_chain() {
     assert!(worst < 1e-7 * peak, "worst {worst:e} of peak {peak:e}");
 }
 
+/// A held input settles, through every filter of the chain (each of unit static gain), at the stage's static
+/// response `b0 / a0` plus the second mode's, with the input's sign: what the ZOH test above cannot see (it checks the
+/// discretisation against the same continuous model) nor the sweep (magnitudes near the resonance, where the
+/// second mode's 3.5 % of the static gain is a fraction of a percent).
+#[test]
+fn a_held_input_settles_at_the_two_modes_static_gains() {
+    use hal_sim::plant::SecondMode;
+    let full = PlantSettings::default();
+    // The whole chain, and with each filter left out in turn: every block couples to the next with its own sign.
+    let chains = [
+        full,
+        PlantSettings { reconstruction_hz: None, ..full },
+        PlantSettings { amplifier_hz: None, ..full },
+        PlantSettings { sensor_hz: None, ..full },
+        PlantSettings { antialias_hz: None, ..full },
+    ];
+    for (params, chain) in
+        [StageParams::PAYLOAD, StageParams::NO_PAYLOAD].into_iter().flat_map(|p| chains.map(|c| (p, c)))
+    {
+        for second_mode in [Some(SecondMode::default()), None] {
+            let settings = PlantSettings { before: params, second_mode, ..chain };
+            for u in [1.0, -2.5] {
+                let mut plant = Plant::new(settings);
+                // 1 s: the payload mode's envelope decays as exp(-a1 t / 2), to below 1e-16.
+                for _ in 0..10_000 {
+                    plant.advance(u);
+                }
+                let stage = u * params.b0 / params.a0;
+                let want = stage + u * second_mode.map_or(0.0, |m| m.dc_gain_um_per_v);
+                let (y, x1) = (plant.output_um(), plant.stage_x1_um());
+                assert!((y / want - 1.0).abs() < 1e-9, "{settings:?} u {u}: y {y} um, want {want}");
+                assert!((x1 / stage - 1.0).abs() < 1e-9, "{settings:?} u {u}: x1 {x1} um, want {stage}");
+            }
+        }
+    }
+}
+
 /// Amplitude of `|Y/U|` at `f_hz` through the real pipeline and the simulated board: a stepped sine, settled, then
 /// demodulated over a whole number of periods.
 fn gain_at(board: BoardSettings, f_hz: f64) -> f64 {
@@ -284,14 +321,23 @@ fn hysteresis_makes_the_static_response_depend_on_the_path() {
         plant.output_um()
     };
     let mut up = Plant::new(settings);
-    settle(&mut up, -1.0);
+    let bottom = settle(&mut up, -1.0);
     let from_below = settle(&mut up, 0.0);
     let mut down = Plant::new(settings);
-    settle(&mut down, 1.0);
+    let top = settle(&mut down, 1.0);
     let from_above = settle(&mut down, 0.0);
-    // 10 % of the drive through plays up to 0.5 V wide: at 0 V the two branches differ by about
-    // 0.1 * mean play width * 2 * DC gain = 0.1 * 0.28 * 2 * 0.114 um ~ 6.5 nm.
-    assert!(from_above - from_below > 0.005, "{from_above} vs {from_below}");
+    // 10 % of the drive through plays of half-widths r_i = 0.5 V i / n, i = 1..n (their mean 0.5 (n + 1) / 2n V): a
+    // swing of 1 V beyond each leaves each play r_i behind the input, so at -1 and +1 V the drive is short by 10 % of
+    // the mean width, and at 0 V it keeps that much of where it came from. The two branches at 0 V differ by
+    // 0.1 * 0.281 V * 2 * 0.114 um/V, 6.4 nm.
+    let h = hal_sim::plant::Hysteresis::default();
+    let n = hal_sim::plant::PLAYS as f64;
+    let lag_v = h.fraction * h.width_v * (n + 1.0) / (2.0 * n);
+    let gain = StageParams::PAYLOAD.b0 / StageParams::PAYLOAD.a0;
+    for (y, drive_v) in [(top, 1.0 - lag_v), (from_above, lag_v), (bottom, lag_v - 1.0), (from_below, -lag_v)] {
+        assert!((y - drive_v * gain).abs() < 1e-12, "{y} um, want {} um", drive_v * gain);
+    }
+    assert!(from_above - from_below > 0.006, "{from_above} vs {from_below}");
     let linear = PlantSettings::ideal(StageParams::PAYLOAD, StageParams::PAYLOAD, u64::MAX);
     let (mut a, mut b) = (Plant::new(linear), Plant::new(linear));
     settle(&mut a, -1.0);
