@@ -5,7 +5,7 @@
 //! Needs `qemu-system-arm` and `defmt-print` on the PATH and the targets `thumbv7em-none-eabihf`,
 //! `thumbv7m-none-eabi` and `thumbv6m-none-eabi` (`.ci/run` installs them).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
@@ -65,7 +65,19 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     for path in [&json_path, &latency_path, &m3_path, &m0_path] {
         let _ = std::fs::remove_file(path);
     }
-    let out = Command::new(root.join("qemu/run")).current_dir(&root).output().expect("run qemu/run");
+    // The generator of the harness's input: the example `cargo test` built beside this test (in `examples/`, next
+    // to this binary's `deps/`), which saves `qemu/run` building the simulated board's crate again in a target
+    // directory of its own (about 80 s); `qemu/run` builds it itself where it is not there (`--test qemu` alone).
+    let exe = std::env::current_exe().expect("the test's own path");
+    let generator = exe
+        .parent()
+        .and_then(Path::parent)
+        .map(|profile| profile.join("examples").join(format!("qemu-vectors{}", std::env::consts::EXE_SUFFIX)));
+    let mut run = Command::new(root.join("qemu/run"));
+    if let Some(generator) = generator.filter(|g| g.is_file()) {
+        run.env("NANOPOS_QEMU_GENERATOR", generator);
+    }
+    let out = run.current_dir(&root).output().expect("run qemu/run");
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     println!("{stdout}");
     assert!(out.status.success(), "qemu/run failed ({}):\n{stdout}\n{stderr}", out.status);
