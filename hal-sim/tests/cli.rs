@@ -382,6 +382,8 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--hum", "50", "--out", "x.csv"], "'50': expected HZ:NM"),
         (&["simulate", "--scenario", "prbs", "--hum", "0:20", "--out", "x.csv"], "'0:20': expected HZ:NM"),
         (&["simulate", "--scenario", "prbs", "--hum", "6000:20", "--out", "x.csv"], "Nyquist"),
+        (&["simulate", "--scenario", "prbs", "--hum", "5000:20", "--out", "x.csv"], "'5000:20': expected HZ:NM"),
+        (&["simulate", "--scenario", "prbs", "--hum", "50:50001", "--out", "x.csv"], "'50:50001': expected HZ:NM"),
         (&["simulate", "--scenario", "prbs", "--hum", "50:-1", "--out", "x.csv"], "'50:-1'"),
         (&["simulate", "--scenario", "prbs", "--hum", "50:NaN", "--out", "x.csv"], "'50:NaN'"),
         (

@@ -809,7 +809,8 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     std::fs::write(d.join("near_dc.toml"), "prefilter = [100, 1e-6, 0.1]\n").unwrap();
     std::fs::write(d.join("fast_rls.toml"), "[rls]\ngamma = 15000\n").unwrap();
     let cases: &[(&[&str], &str)] = &[
-        (&["identify", "--input", "missing.csv"], "missing.csv: cannot open"),
+        // (The whole line: the hint of the next case is for `-` alone.)
+        (&["identify", "--input", "missing.csv"], "nanopos-sim: missing.csv: cannot open: No such file or directory\n"),
         (&["identify", "--input", "-"], "-: cannot open: No such file or directory (standard input is /dev/stdin here, not -)"),
         (&["identify", "--input", "no_t.csv"], "no_t.csv:1: no column 't'"),
         (
@@ -933,6 +934,11 @@ fn an_output_never_replaces_an_input_or_another_output() {
         for name in ["e.csv", "s.json"] {
             assert!(!d.join(name).exists(), "{args:?}: {name}");
         }
+    }
+    // A device named twice is a stream written twice, not one file replacing another: no conflict.
+    if cfg!(unix) {
+        let out = nanopos_sim(&["identify", "--input", "prbs.csv", "--out", "/dev/null", "--summary", "/dev/null"], d);
+        assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
     }
     // The output's directory is missing and the record is bad at its end: the output is what is said.
     let mut bad = record.clone();

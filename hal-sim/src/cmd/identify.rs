@@ -1408,6 +1408,15 @@ mod tests {
         assert_eq!(s.wild(), None, "999 is not more than 1 000 times the level");
         s.add(-2000.0, 1001.0);
         assert_eq!((s.largest, s.largest_at, s.wild()), (2000.0, 1001.0, Some(2000.0)));
+        // At a level other than 1 (a quarter: samples over 0 to 0.25), the bound is 1 000 times the level, itself
+        // not wild, and the ratio is the largest's to the level.
+        let mut q = Spread::default();
+        (0..1000).for_each(|k| q.add((k as f64 + 0.5) / 4000.0, k as f64));
+        assert_eq!(q.level(0.9), 0.25);
+        q.add(250.0, 1000.0);
+        assert_eq!(q.wild(), None, "250 is 1 000 times the level, not more");
+        q.add(251.0, 1001.0);
+        assert_eq!(q.wild(), Some(1004.0));
         // A record of zeros has no level to compare with.
         let mut z = Spread::default();
         (0..10).for_each(|k| z.add(0.0, k as f64));
