@@ -5,7 +5,7 @@
 //! Needs `qemu-system-arm` and `defmt-print` on the PATH and the targets `thumbv7em-none-eabihf`,
 //! `thumbv7m-none-eabi` and `thumbv6m-none-eabi` (`.ci/run` installs them).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 
 /// The kernels the issue asks for, and the ones the table adds.
@@ -65,16 +65,10 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
     for path in [&json_path, &latency_path, &m3_path, &m0_path] {
         let _ = std::fs::remove_file(path);
     }
-    // The generator of the harness's input: the example `cargo test` built beside this test (in `examples/`, next
-    // to this binary's `deps/`), which saves `qemu/run` building the simulated board's crate again in a target
-    // directory of its own (about 80 s); `qemu/run` builds it itself where it is not there (`--test qemu` alone).
-    let exe = std::env::current_exe().expect("the test's own path");
-    let generator = exe
-        .parent()
-        .and_then(Path::parent)
-        .map(|profile| profile.join("examples").join(format!("qemu-vectors{}", std::env::consts::EXE_SUFFIX)));
+    // The generator of the harness's input: the example `cargo test` built (see `built_generator`), which saves
+    // `qemu/run` building the simulated board's crate again in a target directory of its own (about 80 s).
     let mut run = Command::new(root.join("qemu/run"));
-    if let Some(generator) = generator.filter(|g| g.is_file()) {
+    if let Some(generator) = built_generator() {
         run.env("NANOPOS_QEMU_GENERATOR", generator);
     }
     let out = run.current_dir(&root).output().expect("run qemu/run");
@@ -129,6 +123,26 @@ fn the_core_on_qemu_matches_the_host_bit_for_bit_and_reports_every_kernel() {
         "the command is written {to_write} instructions into the interrupt, beyond the {COMMAND_DEADLINE_CYCLES} \
          cycles of its deadline"
     );
+}
+
+/// The example `qemu-vectors` as `cargo test` built it beside this test (in `examples/`, next to this binary's
+/// `deps/`), if it is as new as the two libraries it is made of: a `cargo test --test qemu` after a change to the core
+/// rebuilds them and not the example, whose results would then be the old code's (the harness would fail on them).
+/// `None`: `qemu/run` builds the generator itself.
+fn built_generator() -> Option<PathBuf> {
+    let deps = std::env::current_exe().ok()?.parent()?.to_path_buf();
+    let generator = deps.parent()?.join("examples").join(format!("qemu-vectors{}", std::env::consts::EXE_SUFFIX));
+    let built = std::fs::metadata(&generator).ok()?.modified().ok()?;
+    let newest_library = std::fs::read_dir(&deps)
+        .ok()?
+        .filter_map(Result::ok)
+        .filter(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            (name.starts_with("libnanopos_id-") || name.starts_with("libhal_sim-")) && name.ends_with(".rlib")
+        })
+        .filter_map(|e| e.metadata().ok()?.modified().ok())
+        .max()?;
+    (built >= newest_library).then_some(generator)
 }
 
 /// `field` of kernel `k` in the harness's JSON.
