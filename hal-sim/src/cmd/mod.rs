@@ -549,4 +549,24 @@ mod tests {
         assert_eq!(clip("−5", 40), "−5");
         assert_eq!(clip("abcdef", 3), "abc... (6 characters)");
     }
+
+    /// An output committed or dropped forgets its own temporary only: those of the others still being written stay
+    /// listed, for a Ctrl-C between two outputs' commits to remove.
+    #[test]
+    fn an_output_done_leaves_the_others_temporaries_listed() {
+        let dir = tempfile::tempdir().unwrap();
+        let [a, b, c] = ["a.csv", "b.csv", "c.csv"].map(|name| dir.path().join(name));
+        let [fa, fb, fc] = [&a, &b, &c].map(|path| OutputFile::create(path).unwrap());
+        let [ta, tb, tc] = [&fa, &fb, &fc].map(|f| f.temp.clone().expect("a file, not a stream"));
+        let listed = |temp: &PathBuf| partials().contains(temp);
+        assert!(listed(&ta) && listed(&tb) && listed(&tc));
+        fa.commit().unwrap();
+        assert!(a.exists() && !ta.exists());
+        assert!(!listed(&ta) && listed(&tb) && listed(&tc));
+        drop(fb);
+        assert!(!b.exists() && !tb.exists());
+        assert!(!listed(&tb) && listed(&tc));
+        fc.commit().unwrap();
+        assert!(!listed(&tc));
+    }
 }
