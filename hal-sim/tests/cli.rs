@@ -735,7 +735,7 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
     let no_frames: Vec<&str> = lines.iter().filter(|l| !l.starts_with('R')).copied().collect();
     // Every line behind a terminal's timestamp.
     let stamped: Vec<String> = lines.iter().map(|l| format!("[12:00:00.123] {l}")).collect();
-    let cases: [(String, &[&str], &str); 18] = [
+    let cases: [(String, &[&str], &str); 22] = [
         (damaged.join("\n"), &[], "cap.txt:4: checksum mismatch"),
         (gap.join("\n"), &[], "cap.txt:5: frame starts at sample 96, expected 48: 48 samples missing"),
         ("ok status\n".into(), &[], "no recording in the capture"),
@@ -760,6 +760,19 @@ fn decode_refuses_damage_and_gaps_naming_the_line() {
         ),
         (v1(&good).replace("delay=1", "delay=2.5"), &[], "cap.txt:2: delay=2.5: not a whole number"),
         (v1(&good).replace("delay=1", "delay=1e300"), &[], "cap.txt:2: delay=1e300: not a whole number"),
+        // A rate or a scaling no sample could be read with (a negative scaling is an inverting front end: read).
+        (v1(&good).replace("rate_hz=10000", "rate_hz=0"), &[], "cap.txt:2: rate_hz=0: a recording header needs a"),
+        (v1(&good).replace("rate_hz=10000", "rate_hz=-10000"), &[], "cap.txt:2: rate_hz=-10000: a recording"),
+        (
+            v1(&good).replace("u_v_per_code=0.0048828125", "u_v_per_code=0"),
+            &[],
+            "cap.txt:2: u_v_per_code=0: a recording header needs a positive rate and scalings other than 0",
+        ),
+        (
+            v1(&good).replace("y_um_per_code=0.00152587890625", "y_um_per_code=0"),
+            &[],
+            "cap.txt:2: y_um_per_code=0: a recording header needs",
+        ),
         // The end line changed in transfer, and frames lost at the recording's end, which no frame's index shows.
         (
             good.replace("samples=200 overflow=0", "samples=200 overflow=1"),

@@ -126,8 +126,17 @@ fn parse_header(name: &str, line_no: usize, line: &str) -> Result<RecordHeader, 
         y_um_per_code: v("y_um_per_code")?,
         y_um_offset: v("y_um_offset")?,
     };
-    if header.rate_hz <= 0.0 || header.u_v_per_code == 0.0 || header.y_um_per_code == 0.0 {
-        return fail(format!("{name}:{line_no}: recording header with a zero rate or scale"));
+    // A negative scaling is an inverting front end; a zero one would make every sample read the same.
+    let refused = [
+        ("rate_hz", header.rate_hz, header.rate_hz <= 0.0),
+        ("u_v_per_code", header.u_v_per_code, header.u_v_per_code == 0.0),
+        ("y_um_per_code", header.y_um_per_code, header.y_um_per_code == 0.0),
+    ];
+    if let Some((key, value, _)) = refused.into_iter().find(|&(_, _, bad)| bad) {
+        return fail(format!(
+            "{name}:{line_no}: {key}={}: a recording header needs a positive rate and scalings other than 0",
+            show(value)
+        ));
     }
     Ok(header)
 }
@@ -828,6 +837,7 @@ mod tests {
         std::fs::write(&cap, two.concat()).unwrap();
         let (rec, _) = run(&cap, &out, 1, Damage::Refuse).unwrap();
         assert_eq!(rec.len(), 200);
+        assert!(!rec.is_empty() && Recording { segments: Vec::new(), ..rec.clone() }.is_empty());
         let note = format!("cap.txt:{}: frames outside any recording before this one", frame + 1);
         assert!(
             rec.notes.iter().any(|n| n.contains(&note) && n.ends_with("numbered one lower than the board's")),
