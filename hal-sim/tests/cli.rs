@@ -587,6 +587,8 @@ fn decode_segments_keeps_every_intact_run_of_a_damaged_capture() {
         assert!(stderr.contains(&note), "{stderr}");
         assert_eq!(std::fs::read_to_string(dir.path().join(stale)).unwrap(), "t,u,y\n");
     }
+    // Only those: not this decode's own files, nor one after a number that is not there (run-7.csv after no run-6).
+    assert_eq!(stderr.matches("is from an earlier decode").count(), 2, "{stderr}");
     for msg in [
         "skipped: cap.txt:6: frame starts at sample 7144, expected 7096: 48 samples missing",
         "skipped: cap.txt:9: checksum mismatch",
