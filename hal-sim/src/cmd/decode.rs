@@ -814,6 +814,22 @@ mod tests {
         }
     }
 
+    /// The shortest recording written has [`MIN_SAMPLES`] (a sample period for `identify`); one sample is refused.
+    #[test]
+    fn a_recording_of_two_samples_is_written_and_one_sample_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cap, out) = (dir.path().join("cap.txt"), dir.path().join("run.csv"));
+        std::fs::write(&cap, capture(2).concat()).unwrap();
+        let (rec, written) = run(&cap, &out, 1, Damage::Refuse).unwrap();
+        assert_eq!((rec.len(), written), (2, vec![Some(out.clone())]));
+        let text = std::fs::read_to_string(&out).unwrap();
+        let t: Vec<&str> = text.lines().map(|row| row.split(',').next().unwrap()).collect();
+        assert_eq!(t, ["t", "0", "0.0001"]);
+        std::fs::write(&cap, capture(1).concat()).unwrap();
+        let e = run(&cap, &out, 1, Damage::Refuse).unwrap_err().0;
+        assert!(e.ends_with("cap.txt: recording 1 holds no run of 2 or more samples"), "{e}");
+    }
+
     /// Frames outside any recording (a header lost or damaged beyond recognition, or a capture begun after it) are
     /// said: in the refusal when no recording is left to decode, in a note when the one decoded may be numbered one
     /// lower than the board's.
