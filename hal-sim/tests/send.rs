@@ -248,6 +248,38 @@ fn a_line_without_a_verdict_ends_the_script_at_the_timeout() {
     assert_eq!(link.0, b"\x15status\n", "Ctrl-U first, then line 1 alone");
 }
 
+/// A link that fails, reading or writing: the script ends with a message naming the link (`the link` unless its
+/// [`Link::name`] says otherwise), which way it failed and why.
+#[test]
+fn a_failing_link_is_named_with_what_failed() {
+    struct Broken {
+        reads: bool,
+    }
+    impl Link for Broken {
+        fn receive(&mut self, _: &mut [u8]) -> std::io::Result<usize> {
+            if self.reads {
+                return Ok(0);
+            }
+            Err(std::io::Error::other("the cable came out"))
+        }
+        fn transmit(&mut self, _: &[u8]) -> std::io::Result<()> {
+            if self.reads {
+                return Err(std::io::Error::other("the cable came out"));
+            }
+            Ok(())
+        }
+    }
+    let options = SendOptions { timeout: Duration::from_millis(300), interrupted: None, echo: false };
+    for (reads, said) in
+        [(true, "the link: cannot write: the cable came out"), (false, "the link: cannot read: the cable came out")]
+    {
+        let e = send::run(&mut &b"status\n"[..], "script.txt", &mut Broken { reads }, &mut Vec::new(), None, &options)
+            .expect_err("a link that fails")
+            .0;
+        assert_eq!(e, said);
+    }
+}
+
 /// A board that sends `early` at once, and `answer` once a line has come, a chunk per read, whatever the line.
 #[derive(Default)]
 struct Scripted {

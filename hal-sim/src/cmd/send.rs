@@ -573,6 +573,19 @@ impl Link for SerialLink {
 mod tests {
     use super::*;
 
+    /// A frame is `R`, its first sample's 12 hex digits and more: those 13 characters alone are not one, nor a reply
+    /// that starts with `R`.
+    #[test]
+    fn a_frame_is_told_by_its_start() {
+        use nanopos_id::record::{encode_frame, RawSample, FRAME_MAX_BYTES};
+        let mut buf = [0u8; FRAME_MAX_BYTES];
+        let n = encode_frame(0x30, &[RawSample::default(); 3], &mut buf);
+        let frame = std::str::from_utf8(&buf[..n]).unwrap().trim_end();
+        assert!(is_frame(frame) && is_recording_line(frame), "{frame}");
+        assert!(!is_frame(&frame[..13]) && is_frame(&frame[..14]), "{frame}");
+        assert!(!is_frame("Rate 000000000000 Hz") && !is_frame("r000000000030 AAAA"));
+    }
+
     #[test]
     fn the_stlinks_ports_are_told_from_the_others() {
         use serialport::{SerialPortInfo, SerialPortType, UsbPortInfo};
