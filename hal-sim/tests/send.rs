@@ -340,6 +340,11 @@ fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
     assert_eq!(sent.accepted, 1);
     let lines: Vec<usize> = String::from_utf8(out).unwrap().lines().map(str::len).collect();
     assert_eq!(lines, [4096, 4096, 1808, 2]);
+    // What came after the last verdict without its line's end is shown at the end, ended.
+    let mut link = Scripted::answering(&[b"ok status\nhalf a li"]);
+    let mut out = Vec::new();
+    send::run(&mut &b"status\n"[..], "s", &mut link, &mut out, None, &options).expect("ok");
+    assert_eq!(String::from_utf8(out).unwrap(), "ok status\nhalf a li\n");
 
     // A board already recording, and one ending a reply to someone else: dropped for 0.2 s, and said which.
     for (early, note) in [
