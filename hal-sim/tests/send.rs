@@ -349,6 +349,8 @@ fn verdicts_are_found_in_a_stream_that_arrives_in_pieces() {
     // A board already recording, and one ending a reply to someone else: dropped for 0.2 s, and said which.
     for (early, note) in [
         (&b"R000000000030 AAAA 0000\n"[..], "a recording was running on the board before the script began (24 bytes"),
+        // A line not yet ended when the script began counts too.
+        (b"R000000000030 AAAA 0000\nR0000000000", "a recording was running on the board before the script began (35 "),
         (b"ok status samples=1\n", "the board was sending before the script began (20 bytes; the end of a reply)"),
     ] {
         let mut link = Scripted::answering(&[b"ok status\n"]);
