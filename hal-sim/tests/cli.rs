@@ -306,10 +306,10 @@ fn outputs_to_devices_and_pipes_are_streamed_and_their_errors_reported() {
     }
 
     // `decode --segments` names its files after --out: a device is no name to number.
-    // Without --segments the samples go to the stream, and the board's tuning nowhere (no /dev/stdout.tuning.toml).
     std::fs::write(d.join("capture.txt"), with_tuning(&capture(300, 0))).unwrap();
     let out = nanopos_sim(&["decode", "--input", "capture.txt", "--out", "/dev/stdout", "--segments"], d);
     assert_clean_failure(&out, "--out /dev/stdout: not a file name: --segments writes one file per run");
+    // Without --segments the samples go to the stream, and the board's tuning nowhere (no /dev/stdout.tuning.toml).
     let out = nanopos_sim(&["decode", "--input", "capture.txt", "--out", "/dev/stdout"], d);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success() && out.stdout.starts_with(b"t,u,y\n"), "{stderr}");

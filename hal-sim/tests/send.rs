@@ -258,15 +258,17 @@ fn a_failing_link_is_named_with_what_failed() {
     impl Link for Broken {
         fn receive(&mut self, _: &mut [u8]) -> std::io::Result<usize> {
             if self.reads {
-                return Ok(0);
+                Ok(0)
+            } else {
+                Err(std::io::Error::other("the cable came out"))
             }
-            Err(std::io::Error::other("the cable came out"))
         }
         fn transmit(&mut self, _: &[u8]) -> std::io::Result<()> {
             if self.reads {
-                return Err(std::io::Error::other("the cable came out"));
+                Err(std::io::Error::other("the cable came out"))
+            } else {
+                Ok(())
             }
-            Ok(())
         }
     }
     let options = SendOptions { timeout: Duration::from_millis(300), interrupted: None, echo: false };
