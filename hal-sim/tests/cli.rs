@@ -348,6 +348,50 @@ fn an_output_through_a_symbolic_link_writes_the_file_it_names() {
     assert_eq!(names, ["new.csv", "run.csv"], "no temporary left");
 }
 
+/// On a terminal, `simulate` and `identify` show how far they are on standard error, a percentage redrawn in place,
+/// and clear the line when done; on a pipe (every other test here) they show nothing.
+#[cfg(unix)]
+#[test]
+fn progress_is_shown_on_a_terminal_and_cleared() {
+    use std::io::Read;
+    let dir = tempfile::tempdir().unwrap();
+    let on_a_terminal = |args: &[&str]| {
+        let pty = nix::pty::openpty(None, None).expect("a pseudo-terminal");
+        let mut command = Command::new(env!("CARGO_BIN_EXE_nanopos-sim"));
+        command.args(args).current_dir(dir.path()).stderr(std::process::Stdio::from(pty.slave));
+        let mut child = command.spawn().expect("run nanopos-sim");
+        drop(command); // the terminal's last other end: its reads end when the program's does
+        let (mut master, mut shown, mut buf) = (std::fs::File::from(pty.master), Vec::new(), [0; 4096]);
+        loop {
+            match master.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => shown.extend_from_slice(&buf[..n]),
+                Err(e) if e.raw_os_error() == Some(libc::EIO) => break, // Linux: the other end closed
+                Err(e) => panic!("reading the terminal: {e}"),
+            }
+        }
+        assert!(child.wait().unwrap().success(), "{}", String::from_utf8_lossy(&shown));
+        String::from_utf8(shown).unwrap()
+    };
+    // 200 000 samples, shown every 65 536.
+    let shown = on_a_terminal(&["simulate", "--scenario", "prbs", "--duration", "20", "--out", "run.csv"]);
+    assert_eq!(
+        shown,
+        format!("\rsimulate:   0%\rsimulate:  32%\rsimulate:  65%\rsimulate:  98%\r{}\r", " ".repeat(14))
+    );
+    // Shown per block read (8 MiB: this file's 12 MB in two), cleared before the notes that follow on their own lines.
+    let shown = on_a_terminal(&["identify", "--input", "run.csv", "--out", "est.csv"]);
+    let (progress, notes) = shown.split_once(&format!("\r{}\r", " ".repeat(14))).expect(&shown);
+    let percents: Vec<u32> = progress
+        .strip_prefix('\r')
+        .expect(&shown)
+        .split('\r')
+        .map(|p| p.strip_prefix("identify: ").and_then(|p| p.strip_suffix('%')).expect(&shown).trim().parse().unwrap())
+        .collect();
+    assert!(percents.len() >= 2 && percents.windows(2).all(|w| w[0] < w[1]) && percents.ends_with(&[100]), "{shown:?}");
+    assert!(notes.lines().all(|l| l.starts_with("nanopos-sim: note: ")), "{shown:?}");
+}
+
 #[test]
 fn same_seed_gives_the_same_file_and_another_seed_does_not() {
     let dir = tempfile::tempdir().unwrap();
