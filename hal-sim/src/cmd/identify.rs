@@ -1492,6 +1492,58 @@ mod tests {
         assert_eq!(got.estimates, rows);
     }
 
+    /// The validation's four figures on a record made of model (1)'s own response (integrated here by RK4 in 50
+    /// substeps a sample, the input held: not the exact discretisation the validation uses), an offset and a noise
+    /// of alternating sign: the RMSE is the offset's and the noise's together, the response's RMS is the model's own,
+    /// the residual's mean is the offset and its RMS about that mean the noise's, each to 1e-7. The window takes its
+    /// first sample and not its last (a sample more or less moves the noise's mean), the model starts a second before
+    /// it, and an offset of a centimetre leaves the nanometres of the noise as they are.
+    #[test]
+    fn the_validation_figures_of_a_known_response() {
+        let p = StageParams { a0: 7.06e6, a1: 77.6, b0: 8.08e5 };
+        let dt = 1e-4;
+        let t: Vec<f64> = (0..21_000).map(|k| k as f64 / 1e4).collect();
+        let mut rng = nanopos_id::xorshift64(7);
+        let u: Vec<f64> = t.iter().map(|_| if rng() & 1 == 0 { 1.0 } else { -1.0 }).collect();
+        let (mut x, mut response) = ([0.0f64; 2], Vec::new());
+        for &uk in &u {
+            response.push(x[0]);
+            let f = |x: [f64; 2]| [x[1], -p.a0 * x[0] - p.a1 * x[1] + p.b0 * uk];
+            let h = dt / 50.0;
+            for _ in 0..50 {
+                let k1 = f(x);
+                let k2 = f([x[0] + h / 2.0 * k1[0], x[1] + h / 2.0 * k1[1]]);
+                let k3 = f([x[0] + h / 2.0 * k2[0], x[1] + h / 2.0 * k2[1]]);
+                let k4 = f([x[0] + h * k3[0], x[1] + h * k3[1]]);
+                x = [0, 1].map(|i| x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]));
+            }
+        }
+        // 5 000 samples from 1.5 s (the record goes on to 2.1 s): the noise's mean over them is 0.
+        let w = Window { t0: 1.5, t1: 2.0 };
+        let in_window = &response[15_000..20_000];
+        let mean = in_window.iter().sum::<f64>() / 5e3;
+        let model_rms_nm = 1e3 * (in_window.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / 5e3).sqrt();
+        assert!(model_rms_nm > 100.0, "the response is well above the noise: {model_rms_nm} nm");
+        let noise_um = 0.003;
+        for offset_um in [0.05, -0.02, 1e4] {
+            let y: Vec<f64> =
+                (0..t.len()).map(|k| response[k] + offset_um + if k % 2 == 0 { noise_um } else { -noise_um }).collect();
+            let got = validation_nm(&p, &t, &u, &y, dt, &w);
+            let rmse_nm = 1e3 * (offset_um * offset_um + noise_um * noise_um).sqrt();
+            let want = [rmse_nm, model_rms_nm, 1e3 * offset_um, 1e3 * noise_um];
+            for i in 0..4 {
+                assert!((got[i] / want[i] - 1.0).abs() < 1e-7, "offset {offset_um} um: {got:?} against {want:?}");
+            }
+            assert_eq!(validation_rmse_nm(&p, &t, &u, &y, dt, &w), got[0]);
+        }
+        // No sample in the window: nothing to say. A model that runs away (a negative stiffness): no fit.
+        let y = response.clone();
+        assert!(validation_nm(&p, &t, &u, &y, dt, &Window { t0: 2.5, t1: 3.0 }).iter().all(|v| v.is_nan()));
+        let unstable = StageParams { a0: -7.06e6, ..p };
+        let got = validation_nm(&unstable, &t, &u, &y, dt, &w);
+        assert!(got[3].is_nan() && !got[0].is_finite(), "{got:?}");
+    }
+
     /// 20 s of PRBS on the full board, the payload on throughout.
     fn prbs_without_change_20_s() -> crate::cmd::paper::Simulated {
         let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
