@@ -1379,6 +1379,19 @@ mod tests {
         assert_eq!(tidy(1.000_000_000_01, 1e-4), 1.0);
     }
 
+    /// A window takes the samples from its start, included, to its end, excluded, on the bounds or between samples.
+    #[test]
+    fn a_window_holds_its_start_and_not_its_end() {
+        let t = [0.0, 0.5, 1.0, 1.5, 2.0];
+        let x = ['a', 'b', 'c', 'd', 'e'];
+        let at = |t0, t1| inside(&t, &x, &Window { t0, t1 }).iter().collect::<String>();
+        assert_eq!(at(0.5, 1.5), "bc");
+        assert_eq!(at(0.4, 1.6), "bcd");
+        assert_eq!(at(0.0, 2.0), "abcd");
+        assert_eq!(at(1.2, 1.3), "");
+        assert_eq!(at(2.0, 9.0), "e");
+    }
+
     #[test]
     fn the_input_rms_frequency_of_a_sine_is_its_frequency() {
         let dt = 1e-4;
