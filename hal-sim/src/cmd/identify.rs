@@ -1392,6 +1392,20 @@ mod tests {
         assert_eq!(at(2.0, 9.0), "e");
     }
 
+    /// The reading's RMS is taken about its mean over the window, in nanometres: 3 nm of noise read a centimetre off
+    /// zero (a probe's absolute position) is 3 nm, where the mean of the squares less the square of the mean would
+    /// have lost it to rounding.
+    #[test]
+    fn a_readings_rms_is_about_its_mean_even_a_centimetre_off_zero() {
+        let t: Vec<f64> = (0..3000).map(|k| k as f64 / 1e4).collect();
+        for offset_um in [0.0, -250.0, 1e4 + 0.1] {
+            let y: Vec<f64> = (0..t.len()).map(|k| offset_um + if k % 2 == 0 { 0.003 } else { -0.003 }).collect();
+            let rms = reading_rms_nm(&t, &y, &Window { t0: 0.1, t1: 0.2 });
+            assert!((rms / 3.0 - 1.0).abs() < 1e-6, "{offset_um} um: {rms} nm");
+        }
+        assert!(reading_rms_nm(&t, &vec![0.0; t.len()], &Window { t0: 0.5, t1: 0.6 }).is_nan(), "no sample");
+    }
+
     #[test]
     fn the_input_rms_frequency_of_a_sine_is_its_frequency() {
         let dt = 1e-4;
