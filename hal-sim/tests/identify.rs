@@ -561,7 +561,8 @@ fn a_slow_input_with_the_prbs_tuning_is_given_the_triangle_tuning() {
 /// A record of a PRBS of 8 V (`simulate --amplitude 8`, ramped by the default slew limit) identified with the
 /// paper's Q2, made for 1 V: the EKFs' parameters wander twice as far (the board's console notes it at `excite`;
 /// `tests/instrument.rs` measures it). `identify` notes it per window with the strength it sees (the pre-filtered
-/// power against the 1 V PRBS's: 46.8-47.3 here) and the `q` for it; with that `q`, without an EKF, or at 1 V, not.
+/// power against the 1 V PRBS's over a period of it: 45.5-46.0 here) and the `q` for it; with that `q`, without an
+/// EKF, or at 1 V, not.
 #[test]
 fn a_strong_input_with_the_papers_q_is_noted_with_the_q_for_it() {
     let dir = tempfile::tempdir().unwrap();

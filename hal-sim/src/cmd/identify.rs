@@ -707,14 +707,19 @@ fn tidy(x: f64, dt: f64) -> f64 {
 }
 
 /// The pre-filtered power (V^2) of the paper's PRBS of 1 V through a pipeline of `cfg`, as its excitation monitor
-/// measures it: the mean over 1 s after 0.2 s of settling (2.53 V^2 with the defaults at 10 kHz). What
-/// [`WindowFigures::input_strength`] compares a record's input with: the input the paper's `Q2` was made for.
+/// measures it: the mean over one whole period of the sequence (163 835 samples, 16.4 s at 10 kHz) after 0.2 s of
+/// settling, the periodic input's power (2.513 V^2 with the defaults at 10 kHz, 3.119 at 5 kHz). What
+/// [`WindowFigures::input_strength`] compares a record's input with: the input the paper's `Q2` was made for. It was
+/// the mean over 1 s, a sample of the sequence's spectrum near the resonance rather than its power: 2.7 % low at 10
+/// kHz, 14 % at 5 kHz, so that every strength read that much high. About 20 ms on the host.
 pub fn prbs_power_v2<T: Real>(cfg: &nanopos_id::pipeline::PipelineConfig<T>) -> f64 {
+    use nanopos_id::excitation::{ExcitationDesign, Waveform, PRBS_PERIOD_BITS};
     let fs = 1.0 / cfg.sample_period_s;
-    let prbs = nanopos_id::excitation::ExcitationDesign::PAPER_PRBS.design::<T>(fs);
+    let Waveform::Prbs { hold } = ExcitationDesign::PAPER_PRBS.waveform else { unreachable!("the paper's PRBS") };
+    let prbs = ExcitationDesign::PAPER_PRBS.design::<T>(fs);
     let mut state = Default::default();
     let mut pipeline = Pipeline::new(cfg, ());
-    let (settle, count) = ((0.2 * fs).round() as usize, (fs.round() as usize).max(1));
+    let (settle, count) = ((0.2 * fs).round() as usize, PRBS_PERIOD_BITS as usize * hold as usize);
     let mut sum = 0.0;
     for k in 0..settle + count {
         let s = pipeline.replay(cfg, prbs.next(&mut state), T::zero());
@@ -1569,6 +1574,26 @@ mod tests {
         let unstable = StageParams { a0: -7.06e6, ..p };
         let got = validation_nm(&unstable, &t, &u, &y, dt, &w);
         assert!(got[3].is_nan() && !got[0].is_finite(), "{got:?}");
+    }
+
+    /// The paper's PRBS of 1 V reads as strength 1 over a window of one whole period of the sequence, wherever it
+    /// starts; the reference it is compared with was a 1-s sample of it, and read the board's 1 V as 1.028.
+    #[test]
+    fn the_papers_prbs_has_strength_one_over_its_period() {
+        let s = prbs_without_change_20_s();
+        let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: None };
+        let tuning = Tuning::preset("prbs").unwrap();
+        let strength = |t0: f64, span_s: f64| {
+            let got = identify(&rec, &["arx"], &tuning, &[Window { t0, t1: t0 + span_s }]).unwrap();
+            got.windows[0].1[0].input_strength
+        };
+        // One period (163 835 samples): 1.002 (the board's DAC), the same from either start.
+        let (a, b) = (strength(1.0, 16.3835), strength(3.5, 16.3835));
+        assert!((a - 1.0).abs() < 0.005 && (b / a - 1.0).abs() < 1e-9, "{a} {b}");
+        // A window of 1 s is a sample of the sequence: 0.987 to 1.047 from these four starts.
+        for t0 in [1.0, 3.5, 7.0, 12.0] {
+            assert!((strength(t0, 1.0) - 1.0).abs() < 0.06, "{t0}");
+        }
     }
 
     /// 20 s of PRBS on the full board, the payload on throughout.
