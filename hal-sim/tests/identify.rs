@@ -591,6 +591,14 @@ fn a_strong_input_with_the_papers_q_is_noted_with_the_q_for_it() {
     quiet(&["--input", "strong.csv", "--estimators", "rls,arx"]);
     simulate_prbs(d, "8");
     quiet(&["--input", "run.csv"]);
+    // At the board console's edge, 2 V, noted for a PRBS and a multisine; a PRBS of 1.8 V is not.
+    for (scenario, amplitude, noted) in [("prbs", "2", true), ("multisine", "2", true), ("prbs", "1.8", false)] {
+        let args = ["simulate", "--scenario", scenario, "--duration", "8", "--amplitude", amplitude, "--out", "e.csv"];
+        assert!(nanopos_sim(&args, d).status.success());
+        let notes = identify_notes(d, "e.csv");
+        let lines = notes.lines().filter(|l| l.contains(": the input reaches the estimators ")).count();
+        assert_eq!(lines, if noted { 2 } else { 0 }, "{scenario} of {amplitude} V: {notes}");
+    }
 }
 
 /// A reading millions of times the stage's (`y` in pm where um is read): the EKFs reset on innovations beyond a metre,
