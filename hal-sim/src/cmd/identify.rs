@@ -1581,7 +1581,7 @@ mod tests {
     }
 
     /// The paper's PRBS of 1 V reads as strength 1 over a window of one whole period of the sequence, wherever it
-    /// starts; the reference it is compared with was a 1-s sample of it, and read the board's 1 V as 1.028.
+    /// starts; the reference it is compared with was a 1-s sample of it, and read the board's 1 V as 1.030.
     #[test]
     fn the_papers_prbs_has_strength_one_over_its_period() {
         let s = prbs_without_change_20_s();
@@ -1591,7 +1591,8 @@ mod tests {
             let got = identify(&rec, &["arx"], &tuning, &[Window { t0, t1: t0 + span_s }]).unwrap();
             got.windows[0].1[0].input_strength
         };
-        // One period (163 835 samples): 1.002 (the board's DAC), the same from either start.
+        // One period (163 835 samples): 1.002 (the record's input is the board's, through its DAC), the same from
+        // either start.
         let (a, b) = (strength(1.0, 16.3835), strength(3.5, 16.3835));
         assert!((a - 1.0).abs() < 0.005 && (b / a - 1.0).abs() < 1e-9, "{a} {b}");
         // A window of 1 s is a sample of the sequence: 0.987 to 1.047 from these four starts.
