@@ -1415,6 +1415,33 @@ mod tests {
         assert!(reading_rms_nm(&t, &vec![0.0; t.len()], &Window { t0: 0.5, t1: 0.6 }).is_nan(), "no sample");
     }
 
+    /// An estimator fits a window badly when its fit about the reading's offset is more than `MISFIT` times the
+    /// best's, or not finite; against a best fit of exactly 0 (a record without noise) no ratio says so.
+    #[test]
+    fn a_misfit_is_more_than_three_times_the_best_fit() {
+        let fig = |fit_nm: f64| WindowFigures {
+            mean: StageParams { a0: 7e6, a1: 80.0, b0: 8e5 },
+            rmse_nm: fit_nm,
+            innovation_rms_nm: f64::NAN,
+            starved: 0.0,
+            held: 0.0,
+            resets: 0,
+            reading_rms_nm: 500.0,
+            input_rms_hz: 1000.0,
+            input_strength: 1.0,
+            model_rms_nm: 500.0,
+            offset_nm: 0.0,
+            fit_nm,
+        };
+        let figs = [fig(12.0), fig(4.0), fig(12.01), fig(f64::NAN), fig(f64::INFINITY)];
+        assert_eq!(best_fit(&figs), Some(1));
+        let got: Vec<_> = figs.iter().map(|f| misfit(&figs, f)).collect();
+        assert_eq!(got, [None, None, Some(1), Some(1), Some(1)]);
+        let exact = [fig(0.0), fig(1.0)];
+        assert_eq!((best_fit(&exact), misfit(&exact, &exact[1])), (Some(0), None));
+        assert_eq!(misfit(&[fig(f64::NAN)], &fig(f64::NAN)), None, "nothing fits: no best to compare with");
+    }
+
     #[test]
     fn the_input_rms_frequency_of_a_sine_is_its_frequency() {
         let dt = 1e-4;
