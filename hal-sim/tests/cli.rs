@@ -373,15 +373,13 @@ fn progress_is_shown_on_a_terminal_and_cleared() {
         assert!(child.wait().unwrap().success(), "{}", String::from_utf8_lossy(&shown));
         String::from_utf8(shown).unwrap()
     };
+    let cleared = format!("\r{}\r", " ".repeat(14));
     // 200 000 samples, shown every 65 536.
     let shown = on_a_terminal(&["simulate", "--scenario", "prbs", "--duration", "20", "--out", "run.csv"]);
-    assert_eq!(
-        shown,
-        format!("\rsimulate:   0%\rsimulate:  32%\rsimulate:  65%\rsimulate:  98%\r{}\r", " ".repeat(14))
-    );
+    assert_eq!(shown, format!("\rsimulate:   0%\rsimulate:  32%\rsimulate:  65%\rsimulate:  98%{cleared}"));
     // Shown per block read (8 MiB: this file's 12 MB in two), cleared before the notes that follow on their own lines.
     let shown = on_a_terminal(&["identify", "--input", "run.csv", "--out", "est.csv"]);
-    let (progress, notes) = shown.split_once(&format!("\r{}\r", " ".repeat(14))).expect(&shown);
+    let (progress, notes) = shown.split_once(&cleared).expect(&shown);
     let percents: Vec<u32> = progress
         .strip_prefix('\r')
         .expect(&shown)

@@ -451,11 +451,8 @@ fn random_scripts_keep_the_promises_of_send() {
 fn without_a_port_send_looks_for_the_stlink() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("empty.txt"), "").unwrap();
-    let listed = if cfg!(target_os = "linux") && !Path::new("/sys/class/tty").is_dir() {
-        None
-    } else {
-        serialport::available_ports().ok()
-    };
+    let unlistable = cfg!(target_os = "linux") && !Path::new("/sys/class/tty").is_dir();
+    let listed = if unlistable { None } else { serialport::available_ports().ok() };
     let found = listed.as_deref().map(send::stlink_ports);
     if found.as_ref().is_some_and(|f| f.len() == 1) {
         // A board on this machine: `send` would take it and send it the script. Not run here.
@@ -467,7 +464,7 @@ fn without_a_port_send_looks_for_the_stlink() {
     assert_eq!(stderr.lines().count(), 1, "{stderr}");
     match found.as_deref() {
         // A machine without the system's list of ports (a container without /sys/class/tty): said, not a panic.
-        None if cfg!(target_os = "linux") && !Path::new("/sys/class/tty").is_dir() => assert_eq!(
+        None if unlistable => assert_eq!(
             stderr,
             "nanopos-sim: no --port given, and the serial ports cannot be listed: no /sys/class/tty: name the port \
              with --port\n"

@@ -1618,9 +1618,10 @@ mod tests {
             let got = identify(&rec, &["arx"], &tuning, &[Window { t0, t1: t0 + span_s }]).unwrap();
             got.windows[0].1[0].input_strength
         };
-        // One period (163 835 samples): 1.002 (the record's input is the board's, through its DAC), the same from
-        // either start.
-        let (a, b) = (strength(1.0, 16.3835), strength(3.5, 16.3835));
+        // One period (32 767 bits of 5 samples): 1.002 (the record's input is the board's, through its DAC), the same
+        // from either start.
+        let period_s = (nanopos_id::excitation::PRBS_PERIOD_BITS * 5) as f64 / 1e4;
+        let (a, b) = (strength(1.0, period_s), strength(3.5, period_s));
         assert!((a - 1.0).abs() < 0.005 && (b / a - 1.0).abs() < 1e-9, "{a} {b}");
         // A window of 1 s is a sample of the sequence: 0.987 to 1.047 from these four starts.
         for t0 in [1.0, 3.5, 7.0, 12.0] {
