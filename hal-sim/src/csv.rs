@@ -2,8 +2,8 @@
 //! uniformly sampled in `t`. Every problem is reported as `FILE:LINE: what` and nothing is guessed: a missing
 //! column, one named twice, part of a group of columns that go together, a field that is not a number, NaN or
 //! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
-//! other tools write is read: a UTF-8 byte-order mark before the header, and fields in double quotes (`"t"`,
-//! `"0.5"`; a field never holds a comma here).
+//! other tools write is read: a UTF-8 byte-order mark before the header, a header after a comment mark (numpy's
+//! `savetxt` writes `# t,u,y`), and fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
 
 use crate::cmd::{clip, show, CliError};
 use std::io::Read;
@@ -186,7 +186,9 @@ impl Reader {
         let header = std::str::from_utf8(&r.carry[..header_end])
             .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
         // A spreadsheet's UTF-8 export starts with a byte-order mark, which would otherwise be part of the first name.
-        let header = header.strip_prefix('\u{feff}').unwrap_or(header);
+        let written = header.strip_prefix('\u{feff}').unwrap_or(header);
+        // numpy's `savetxt` writes its header after its comment mark, `# t,u,y`, unless told `comments=''`.
+        let header = written.strip_prefix('#').unwrap_or(written);
         let fields: Vec<String> = header.split(',').map(|f| unquote(f.trim()).to_string()).collect();
         let has = |name: &str| fields.iter().any(|f| f == name);
         let mut wanted: Vec<&str> = names.to_vec();
@@ -224,11 +226,12 @@ impl Reader {
                     }
                 }
                 None => {
-                    // One field holding the others: another separator (Excel in a locale with a decimal comma
-                    // writes ';').
-                    let other = [(';', "';'"), ('\t', "tabs")]
+                    // One field holding the others, this one among them: another separator (Excel in a locale with
+                    // a decimal comma writes ';', numpy's `savetxt` spaces by default).
+                    let apart = |sep: char| fields[0].split(sep).any(|f| unquote(f.trim()) == *name);
+                    let other = [(';', "';'"), ('\t', "tabs"), (' ', "spaces")]
                         .into_iter()
-                        .find(|(sep, _)| fields.len() == 1 && fields[0].contains(*sep))
+                        .find(|&(sep, _)| fields.len() == 1 && apart(sep))
                         .map_or(String::new(), |(_, what)| {
                             format!(
                                 ": its fields are separated by {what}; this reads commas, and '.' as the decimal point"
@@ -237,7 +240,7 @@ impl Reader {
                     return Err(CliError(format!(
                         "{}:1: no column '{name}' in the header (found: {}){other}",
                         r.shown,
-                        clip(&fields.join(","), 120)
+                        clip(written.trim(), 120)
                     )));
                 }
             }
@@ -773,13 +776,16 @@ mod tests {
     }
 
     /// What a spreadsheet writes reads as the plain file does: a byte-order mark before the header, quoted names and
-    /// numbers, CRLF line ends.
+    /// numbers, CRLF line ends; and so does what numpy's `savetxt(..., delimiter=',', header='t,u,y')` writes: the
+    /// header after `# `, the numbers in exponent form.
     #[test]
     fn a_spreadsheets_export_reads_as_the_plain_file() {
         let plain = read_columns(&file("plain.csv", "t,u,y\n0,1,2\n0.5,3,4\n"), &["u", "y"], Time::Required).unwrap();
+        let numpy = "# t,u,y\n0.0e+00,1.0e+00,2.0e+00\n5.0e-01,3.0e+00,4.0e+00\n";
         for (name, text) in [
             ("bom.csv", "\u{feff}t,u,y\n0,1,2\n0.5,3,4\n"),
             ("quoted.csv", "\u{feff}\"t\",\"u\",\"y\"\r\n\"0\",\"1\",\"2\"\r\n\"0.5\",\"3\",\"4\"\r\n"),
+            ("numpy.csv", numpy),
         ] {
             let got = read_columns(&file(name, text), &["u", "y"], Time::Required).unwrap();
             assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{name}");
@@ -804,9 +810,9 @@ mod tests {
         assert_eq!(r.progress(), (len, len));
     }
 
-    /// A header without a column asked for says so; it names another separator only when the header is one field
-    /// holding it (Excel in a locale with a decimal comma writes ';'), not for a single name, nor for a ';' inside one
-    /// of several fields.
+    /// A header without a column asked for says so, as written; it names another separator only when the header is
+    /// one field that holds the column when split by it (Excel in a locale with a decimal comma writes ';'), not for a
+    /// single name, nor for a ';' inside one of several fields, nor for a line of words without the column.
     #[test]
     fn a_missing_column_names_another_separator_only_when_it_is_the_reason() {
         let missing = |name: &str, header: &str| {
@@ -817,6 +823,16 @@ mod tests {
             "(found: t;u;y): its fields are separated by ';'; this reads commas, and '.' as the decimal point"
         ));
         assert!(missing("tabs.csv", "t\tu\ty").contains(": its fields are separated by tabs;"));
+        // numpy's `savetxt` without `delimiter=','`: its header too after `# `.
+        assert!(missing("spaces.csv", "# t u y").ends_with(
+            "(found: # t u y): its fields are separated by spaces; \
+             this reads commas, and '.' as the decimal point"
+        ));
+        // A comment line before the header is not a header of another separator.
+        for (name, header) in [("comment.csv", "# logger 7, run 3"), ("words.csv", "time volts microns")] {
+            let e = missing(name, header);
+            assert!(e.ends_with(&format!("(found: {header})")), "{e}");
+        }
         for (name, header) in [("one.csv", "time"), ("inside.csv", "u;v,t")] {
             let e = missing(name, header);
             assert!(e.contains("1: no column '") && !e.contains(note), "{e}");
