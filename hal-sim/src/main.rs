@@ -56,8 +56,9 @@ enum Command {
         /// the board's beside its CSV) [default: prbs].
         #[arg(long)]
         tuning: Option<String>,
-        /// Averaging window T0:T1 in seconds (repeatable) [default: the last quarter of each half].
-        #[arg(long = "window", value_name = "T0:T1")]
+        /// Averaging window T0:T1 in seconds (repeatable; T0 may be negative, as a record's time may be)
+        /// [default: the last quarter of each half].
+        #[arg(long = "window", value_name = "T0:T1", allow_hyphen_values = true)]
         windows: Vec<hal_sim::cmd::identify::Window>,
         /// Estimates at 100 Hz: t,estimator,a0,a1,b0,f0_hz,zeta,dc_gain.
         #[arg(long)]

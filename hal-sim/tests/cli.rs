@@ -227,7 +227,9 @@ fn simulate_runs_the_boards_multisine_and_identify_finds_it_rich() {
 }
 
 /// A window the record does not wholly cover is still reported (its figures are of the part that is there), with a
-/// note naming what the figures are of; a window inside the record, or ending one sample after its last, has none.
+/// note naming what the figures are of; a window inside the record, or ending one sample after its last, or starting
+/// less than half a sample before its first, has none. A window may start at a negative time (`--window -1:2`, as a
+/// record's time may be negative: not taken for an option).
 #[test]
 fn identify_says_when_a_window_reaches_beyond_the_record() {
     let dir = tempfile::tempdir().unwrap();
@@ -242,9 +244,12 @@ fn identify_says_when_a_window_reaches_beyond_the_record() {
         assert!(String::from_utf8(out.stdout).unwrap().contains(&format!("\"t1\": {t1}")));
         String::from_utf8(out.stderr).unwrap()
     };
-    for inside in ["0:2", "1:1.5"] {
+    for inside in ["0:2", "1:1.5", "-0.00004:1"] {
         assert_eq!(identify(inside), "", "{inside}");
     }
+    let before =
+        "nanopos-sim: note: window -0.0001:1 reaches beyond the record (0 to 1.9999 s): its figures are of 0 to 1 s\n";
+    assert_eq!(identify("-0.0001:1"), before);
     let note =
         "nanopos-sim: note: window 1.5:2.0002 reaches beyond the record (0 to 1.9999 s): its figures are of 1.5 \
                 to 1.9999 s\n";
