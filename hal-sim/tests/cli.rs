@@ -437,6 +437,7 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--hum", "50:50001", "--out", "x.csv"], "'50:50001': expected HZ:NM"),
         (&["simulate", "--scenario", "prbs", "--hum", "50:-1", "--out", "x.csv"], "'50:-1'"),
         (&["simulate", "--scenario", "prbs", "--hum", "50:NaN", "--out", "x.csv"], "'50:NaN'"),
+        (&["simulate", "--scenario", "prbs", "--hum", "-50:1", "--out", "x.csv"], "'-50:1': expected HZ:NM"),
         (
             &["simulate", "--scenario", "prbs", "--hum", "50:1", "--hum", "150:1", "--hum", "250:1", "--out", "x.csv"],
             "--hum: at most 2 tones (3 given)",
@@ -462,6 +463,10 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
             "invalid value '-3' for '--noise-tail",
         ),
         (&["simulate", "--scenario", "prbs", "--seed", "x", "--out", "x.csv"], "--seed"),
+        (&["identify", "--input", "r.csv", "--window", "100:75"], "'100:75': expected T0:T1 in seconds with T0 < T1"),
+        (&["identify", "--input", "r.csv", "--window", "75-100"], "'75-100': expected T0:T1"),
+        (&["identify", "--input", "r.csv", "--window", "1:inf"], "'1:inf': expected T0:T1"),
+        (&["identify", "--input", "r.csv", "--window", "-2:-3"], "'-2:-3': expected T0:T1"),
         (&["simulate", "--scenario", "prbs", "--out", "no/such/dir/x.csv"], "no/such/dir/x.csv"),
         (&["simulate", "--scenario", "prbs", "--out", "."], "."),
         (&["simulate", "--scenario", "prbs", "--bogus", "--out", "x.csv"], "--bogus"),

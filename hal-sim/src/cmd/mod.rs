@@ -228,7 +228,7 @@ pub struct Disturbances {
     pub gain_drift_pct_per_min: f64,
     /// Add mains pickup to the probe's reading: a sinusoid of HZ Hz and NM nm peak (up to two: --hum 50:20
     /// --hum 150:5)
-    #[arg(long, value_name = "HZ:NM")]
+    #[arg(long, value_name = "HZ:NM", allow_hyphen_values = true)]
     pub hum: Vec<HumArg>,
     /// The probe's noise on the displacement, nm RMS (0 to 50 000) [default: 1.25, the paper's]
     #[arg(long = "noise", value_name = "NM", allow_negative_numbers = true)]
