@@ -106,7 +106,7 @@ enum Command {
         #[arg(long)]
         input: PathBuf,
         /// Orders NA,NB,NK: y(k) = a1 y(k-1)+..+a_NA y(k-NA) + b1 u(k-NK)+..+b_NB u(k-NK-NB+1).
-        #[arg(long, value_name = "NA,NB,NK")]
+        #[arg(long, value_name = "NA,NB,NK", allow_hyphen_values = true)]
         arx: hal_sim::cmd::fit::ArxOrders,
         /// Use every row, with the signals taken as zero before the first sample.
         #[arg(long)]

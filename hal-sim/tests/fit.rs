@@ -235,6 +235,8 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
             "rank-deficient fit: column u(k-2) is (nearly) a combination of u(k-1)",
         ),
         (&["fit", "--input", "t.csv", "--arx", "2,2"], "NA,NB,NK"),
+        // Refused as --arx's value, not as an unknown option '-1'.
+        (&["fit", "--input", "t.csv", "--arx", "-1,2,1"], "'-1,2,1': expected NA,NB,NK"),
         (&["fit", "--input", "t.csv", "--arx", "0,0,1"], "at least one parameter"),
         (&["fit", "--input", "t.csv", "--arx", "20,20,1"], "at most 32 parameters"),
         (&["fit", "--input", "t.csv", "--arx", "2,2,1", "--weight", "0.2,1.5"], "0 < GAMMA <= 1"),
