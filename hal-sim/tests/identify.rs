@@ -471,7 +471,8 @@ fn a_reading_that_never_changes_is_noted_as_such() {
         let note = format!("note: window {w}: y does not change over it: there is nothing to identify from");
         assert!(stderr.contains(&note), "{stderr}");
     }
-    assert!(!stderr.contains("times worse"), "{stderr}");
+    // Nor is it asked whether y is in um: it does not move at all, not too little.
+    assert!(!stderr.contains("times worse") && !stderr.contains("is y in um"), "{stderr}");
 }
 
 /// A reading in metres where um is read (a logger's SI units) moves 5e-4 nm RMS: the notes said that the reading
@@ -500,7 +501,8 @@ fn a_reading_in_another_unit_is_asked_about() {
 }
 
 /// A command in mV or in DAC codes: every gain the estimators give reads that scale too small, and nothing else
-/// said so. A note asks whether `u` is in V; none for the record in V, nor for the command about an offset of 8 V.
+/// said so. A note asks whether `u` is in V; none for the record in V, nor for the command about an offset of 8 V,
+/// nor for one up to twice the +-10 V.
 #[test]
 fn a_command_in_another_unit_is_asked_about() {
     let dir = tempfile::tempdir().unwrap();
@@ -520,7 +522,10 @@ fn a_command_in_another_unit_is_asked_about() {
     rewrite_column(d, "codes.csv", 1, scaled(204.8, 2048.0));
     assert!(identify_notes(d, "codes.csv").contains(asked));
     rewrite_column(d, "offset.csv", 1, scaled(1.0, 8.0));
-    for name in ["run.csv", "offset.csv"] {
+    // Up to twice the +-10 V (an amplifier that takes more): the 1-V PRBS as 17.6 V, whose level reads 20 V, the
+    // bound itself.
+    rewrite_column(d, "twice.csv", 1, scaled(17.6, 0.0));
+    for name in ["run.csv", "offset.csv", "twice.csv"] {
         let notes = identify_notes(d, name);
         assert!(!notes.contains(asked), "{name}: {notes}");
     }
