@@ -1655,6 +1655,36 @@ mod tests {
         assert!(summary_json(&got).contains(&format!("\"rmse_nm\": {:?}}}", truth.rmse_nm)));
     }
 
+    /// An estimator whose means over a window are not a stage's (`a0` not above zero, or a parameter not finite) is
+    /// said to have diverged, for each of those alone; one whose means are a stage's is not.
+    #[test]
+    fn means_that_are_not_a_stage_are_said_to_have_diverged() {
+        let (board, settings) = Scenario::Prbs.settings(2.0, Scenario::Prbs.default_seed());
+        let mut sim = Simulation::new(board, &settings, nanopos_id::estimator::Unfiltered).unwrap();
+        let s = crate::cmd::paper::record(&mut sim, 20_000);
+        let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: None };
+        let w = Window { t0: 1.5, t1: 2.0 };
+        let mut got = identify(&rec, &["ekf", "hekf"], &Tuning::preset("prbs").unwrap(), &[w]).unwrap();
+        let diverged = |r: &Identified| {
+            let notes = health_notes(r);
+            let said = notes.iter().any(|n| n.starts_with("ekf's means over window 1.5:2 are not of a stage (a0 "));
+            (said, notes)
+        };
+        let (said, notes) = diverged(&got);
+        assert!(!said, "{notes:?}");
+        let m = got.windows[0].1[0].mean;
+        for broken in [
+            StageParams { a0: -m.a0, ..m },
+            StageParams { a0: f64::INFINITY, ..m },
+            StageParams { a1: f64::NAN, ..m },
+            StageParams { b0: f64::NEG_INFINITY, ..m },
+        ] {
+            got.windows[0].1[0].mean = broken;
+            let (said, notes) = diverged(&got);
+            assert!(said, "{broken:?}: {notes:?}");
+        }
+    }
+
     /// The command reads its file a block at a time (16 s of `simulate` is two blocks of 8 MiB): the result is the
     /// one of the whole record in memory, bit for bit, and so it is when the record's end is not known beforehand
     /// (the default windows are then placed at the end, from everything kept).
