@@ -1675,6 +1675,7 @@ mod tests {
         let m = got.windows[0].1[0].mean;
         for broken in [
             StageParams { a0: -m.a0, ..m },
+            StageParams { a0: 0.0, ..m },
             StageParams { a0: f64::INFINITY, ..m },
             StageParams { a1: f64::NAN, ..m },
             StageParams { b0: f64::NEG_INFINITY, ..m },
