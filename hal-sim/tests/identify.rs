@@ -459,6 +459,25 @@ fn wild_samples_are_noted() {
     assert!(notes(&run).is_empty(), "the record as simulated");
 }
 
+/// A record of fewer than 4 samples is refused for its count; one of 4 passes the count and is refused for what it is
+/// then: too short for an estimate (one every 0.01 s) in its window.
+#[test]
+fn a_record_of_fewer_than_four_samples_is_refused_for_its_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for (rows, said) in [
+        (3, "short.csv: too few rows (3): identification needs a record of at least 4 samples"),
+        (4, "short.csv: window 0:1 holds no estimate (the record covers 0 to 0.0003 s;"),
+    ] {
+        let body: String = (0..rows).map(|k| format!("{:.4},0.5,0.01\n", k as f64 * 1e-4)).collect();
+        std::fs::write(d.join("short.csv"), format!("t,u,y\n{body}")).unwrap();
+        let out = nanopos_sim(&["identify", "--input", "short.csv", "--window", "0:1", "--summary", "s.json"], d);
+        let stderr = String::from_utf8(out.stderr).unwrap();
+        assert!(out.status.code() == Some(2) && stderr.contains(said), "{rows} rows: {stderr}");
+        assert!(!d.join("s.json").exists(), "{rows} rows: no summary");
+    }
+}
+
 /// A reading that never changes (a stuck probe, or the wrong column: here `y` all zeros under the PRBS) is said to
 /// be one, per window; the models' misfits against each other, which every model fitting zeros to within rounding
 /// made ratios of 1e45 and more, are not.
