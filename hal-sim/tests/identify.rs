@@ -836,6 +836,11 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         [0xFF, 0xFE].into_iter().chain("t,u,y\n0,0,0\n".encode_utf16().flat_map(u16::to_le_bytes)).collect();
     std::fs::write(d.join("utf16.csv"), utf16).unwrap();
     std::fs::write(d.join("semicolons.csv"), "t;u;y\n0;0;0\n0,0001;0;0\n").unwrap();
+    std::fs::write(
+        d.join("hz500.csv"),
+        (0..100).map(|k| format!("{:.3},0,0\n", k as f64 * 2e-3)).fold("t,u,y\n".to_string(), |a, b| a + &b),
+    )
+    .unwrap();
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     std::fs::write(d.join("above_nyquist.toml"), "prefilter = [100, 6000, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();
@@ -850,6 +855,12 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
             &["identify", "--input", "ms.csv"],
             "ms.csv: a sample every 0.1 s (10 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's f_p), \
              which needs more than 900 samples a second: is t in seconds?",
+        ),
+        // Too slow for the paper's band too (more than 2 f_p = 900 Hz needed): the time is questioned.
+        (
+            &["identify", "--input", "hz500.csv"],
+            "hz500.csv: a sample every 0.002 s (500 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's \
+             f_p), which needs more than 900 samples a second: is t in seconds?",
         ),
         // A record fast enough for the paper's band: the tuning's band is the one questioned.
         (
