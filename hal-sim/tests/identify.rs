@@ -459,6 +459,31 @@ fn wild_samples_are_noted() {
     assert!(notes(&run).is_empty(), "the record as simulated");
 }
 
+/// A record's time may start anywhere: the default windows are the last quarter of each half of the record's own
+/// span (from 10 s to 18 s: 13-14 s and 17-18 s, as 3-4 s and 7-8 s from 0), and the estimates there are those of
+/// the same record from 0 (to the rounding of its sample period, read from the times).
+#[test]
+fn the_default_windows_follow_a_record_that_starts_late() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_prbs(d, "8");
+    rewrite_column(d, "late.csv", 0, |t| format!("{:.4}", t.parse::<f64>().unwrap() + 10.0));
+    let summary = |name: &str| {
+        let out = nanopos_sim(&["identify", "--input", name, "--estimators", "hekf", "--summary", "s.json"], d);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        std::fs::read_to_string(d.join("s.json")).unwrap()
+    };
+    let (early, late) = (summary("run.csv"), summary("late.csv"));
+    let a0 = |json: &str, t0: &str| -> f64 {
+        let window = json.split(&format!("{{\"t0\": {t0}, \"t1\": ")).nth(1).expect(json);
+        window.split("\"a0\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap()
+    };
+    for (from_0, from_10) in [("3.0", "13.0"), ("7.0", "17.0")] {
+        let (e, l) = (a0(&early, from_0), a0(&late, from_10));
+        assert!((l / e - 1.0).abs() < 1e-9, "window from {from_10} s: a0 {l} against {e}");
+    }
+}
+
 /// A record of fewer than 4 samples is refused for its count; one of 4 passes the count and is refused for what it is
 /// then: too short for an estimate (one every 0.01 s) in its window.
 #[test]
