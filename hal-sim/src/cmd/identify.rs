@@ -1657,11 +1657,29 @@ mod tests {
 
     /// `estimators` (the `prbs` tuning) on 2 s of the paper's PRBS on the full board, one window, 1.5 to 2 s.
     fn identified_2_s(estimators: &[&'static str]) -> Identified {
+        identified_2_s_over(estimators, Window { t0: 1.5, t1: 2.0 })
+    }
+
+    /// [`identified_2_s`] over the window `w`.
+    fn identified_2_s_over(estimators: &[&'static str], w: Window) -> Identified {
         let (board, settings) = Scenario::Prbs.settings(2.0, Scenario::Prbs.default_seed());
         let mut sim = Simulation::new(board, &settings, nanopos_id::estimator::Unfiltered).unwrap();
         let s = crate::cmd::paper::record(&mut sim, 20_000);
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: None };
-        identify(&rec, estimators, &Tuning::preset("prbs").unwrap(), &[Window { t0: 1.5, t1: 2.0 }]).unwrap()
+        identify(&rec, estimators, &Tuning::preset("prbs").unwrap(), &[w]).unwrap()
+    }
+
+    /// A window's innovation RMS is the mean of its 100 Hz rows' (in nm), over the rows from its start to before its
+    /// end: a window ending on a row's time leaves that row out.
+    #[test]
+    fn a_windows_innovation_rms_is_the_mean_of_its_rows() {
+        let times = identified_2_s(&["hekf"]).times;
+        let w = Window { t0: times[150], t1: times[190] };
+        let got = identified_2_s_over(&["hekf"], w);
+        let rows = &got.healths[150..190];
+        let mean = 1e3 * rows.iter().map(|h| h[0].innovation_rms_um as f64).sum::<f64>() / rows.len() as f64;
+        assert_eq!(got.windows[0].1[0].innovation_rms_nm, mean);
+        assert!(mean > 0.0 && got.healths[190][0].innovation_rms_um as f64 * 1e3 != mean);
     }
 
     /// The slow input's note (the EKFs with `Q2` on a triangle) names the EKFs whose models fit worse than the best, a
