@@ -26,6 +26,12 @@ fn rewrite_column(dir: &Path, name: &str, column: usize, f: impl Fn(&str) -> Str
     std::fs::write(dir.join(name), text).unwrap();
 }
 
+/// The number after the first `"key": ` in a summary's JSON text.
+fn number_after(json: &str, key: &str) -> f64 {
+    let rest = json.split(&format!("\"{key}\": ")).nth(1).unwrap_or_else(|| panic!("no {key}: {json}"));
+    rest.split([',', '}']).next().unwrap().parse().unwrap()
+}
+
 /// What `identify` says of an 8 s PRBS record (`run.csv` in `dir`) whose `y` went through `f`, written to `name`.
 fn notes_with_y(dir: &Path, name: &str, f: impl Fn(&str) -> String) -> String {
     simulate_prbs(dir, "8");
@@ -474,10 +480,8 @@ fn the_default_windows_follow_a_record_that_starts_late() {
         std::fs::read_to_string(d.join("s.json")).unwrap()
     };
     let (early, late) = (summary("run.csv"), summary("late.csv"));
-    let a0 = |json: &str, t0: &str| -> f64 {
-        let window = json.split(&format!("{{\"t0\": {t0}, \"t1\": ")).nth(1).expect(json);
-        window.split("\"a0\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap()
-    };
+    let a0 =
+        |json: &str, t0: &str| number_after(json.split(&format!("{{\"t0\": {t0}, \"t1\": ")).nth(1).expect(json), "a0");
     for (from_0, from_10) in [("3.0", "13.0"), ("7.0", "17.0")] {
         let (e, l) = (a0(&early, from_0), a0(&late, from_10));
         assert!((l / e - 1.0).abs() < 1e-9, "window from {from_10} s: a0 {l} against {e}");
@@ -688,7 +692,7 @@ fn an_offset_of_the_reading_is_noted_and_the_estimators_compared_about_it() {
         assert!(stderr.contains(&format!("note: rls's model fits window {w} ")), "{stderr}");
     }
     let summary = std::fs::read_to_string(d.join("s.json")).unwrap();
-    let rmse: f64 = summary.split("\"rmse_nm\": ").nth(1).unwrap().split([',', '}']).next().unwrap().parse().unwrap();
+    let rmse = number_after(&summary, "rmse_nm");
     assert!((rmse / 5e4 - 1.0).abs() < 1e-3, "the summary's RMSE is the SPEC's, offset included: {rmse}");
     // Without the offset: the same misfits, no offset note.
     let stderr = identify_notes(d, "run.csv");
@@ -831,41 +835,26 @@ fn validation_rmse_on_noise_only_data_is_the_noise() {
 fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    std::fs::write(
-        d.join("ok.csv"),
-        (0..100).map(|k| format!("{},0,0\n", k as f64 * 1e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
-    )
-    .unwrap();
+    // 100 rows of zeros every `dt` s, the times to `decimals` places.
+    let zeros = |name: &str, dt: f64, decimals: usize| {
+        let rows: String = (0..100).map(|k| format!("{:.*},0,0\n", decimals, k as f64 * dt)).collect();
+        std::fs::write(d.join(name), format!("t,u,y\n{rows}")).unwrap();
+    };
+    zeros("ok.csv", 1e-4, 4);
     std::fs::write(d.join("no_t.csv"), "u,y\n0,0\n").unwrap();
     // `t` in ms.
-    std::fs::write(
-        d.join("ms.csv"),
-        (0..100).map(|k| format!("{:.1},0,0\n", k as f64 * 0.1)).fold("t,u,y\n".to_string(), |a, b| a + &b),
-    )
-    .unwrap();
+    zeros("ms.csv", 0.1, 1);
     std::fs::write(d.join("late.csv"), "t,u,y\n1e300,0,0\n1.0000000000000001e300,0,0\n").unwrap();
     // A pre-filter the RLS's RK4 follows at the board's 10 kHz (|lambda T| = 0.75) but not at this record's 2.5 kHz.
-    std::fs::write(
-        d.join("slow.csv"),
-        (0..100).map(|k| format!("{},0,0\n", k as f64 * 4e-4)).fold("t,u,y\n".to_string(), |a, b| a + &b),
-    )
-    .unwrap();
+    zeros("slow.csv", 4e-4, 4);
     // Sampled at 1 kHz: fast enough for the pre-filter's band, not for the board's 1 kHz filters' replicas.
-    std::fs::write(
-        d.join("khz.csv"),
-        (0..100).map(|k| format!("{},0,0\n", k as f64 * 1e-3)).fold("t,u,y\n".to_string(), |a, b| a + &b),
-    )
-    .unwrap();
+    zeros("khz.csv", 1e-3, 3);
     // Saved as UTF-16 (little-endian, with its byte-order mark).
     let utf16: Vec<u8> =
         [0xFF, 0xFE].into_iter().chain("t,u,y\n0,0,0\n".encode_utf16().flat_map(u16::to_le_bytes)).collect();
     std::fs::write(d.join("utf16.csv"), utf16).unwrap();
     std::fs::write(d.join("semicolons.csv"), "t;u;y\n0;0;0\n0,0001;0;0\n").unwrap();
-    std::fs::write(
-        d.join("hz500.csv"),
-        (0..100).map(|k| format!("{:.3},0,0\n", k as f64 * 2e-3)).fold("t,u,y\n".to_string(), |a, b| a + &b),
-    )
-    .unwrap();
+    zeros("hz500.csv", 2e-3, 3);
     std::fs::write(d.join("fast_band.toml"), "prefilter = [100, 1200, 0.1]\n").unwrap();
     std::fs::write(d.join("above_nyquist.toml"), "prefilter = [100, 6000, 0.1]\n").unwrap();
     std::fs::write(d.join("tiny.toml"), "initial = [1e-160, 70, 6e6]\n").unwrap();

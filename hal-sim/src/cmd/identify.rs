@@ -1631,10 +1631,18 @@ mod tests {
 
     /// 20 s of PRBS on the full board, the payload on throughout.
     fn prbs_without_change_20_s() -> crate::cmd::paper::Simulated {
-        let (mut board, settings) = Scenario::Prbs.settings(20.0, Scenario::Prbs.default_seed());
-        board.plant.change_at_sample = u64::MAX;
+        prbs_record(20.0, false)
+    }
+
+    /// `seconds` of the paper's PRBS on the full board, the payload removed at half of them or (`change` false) on
+    /// throughout.
+    fn prbs_record(seconds: f64, change: bool) -> crate::cmd::paper::Simulated {
+        let (mut board, settings) = Scenario::Prbs.settings(seconds, Scenario::Prbs.default_seed());
+        if !change {
+            board.plant.change_at_sample = u64::MAX;
+        }
         let mut sim = Simulation::new(board, &settings, nanopos_id::estimator::Unfiltered).unwrap();
-        crate::cmd::paper::record(&mut sim, 200_000)
+        crate::cmd::paper::record(&mut sim, (seconds * 1e4) as usize)
     }
 
     /// The truth's own validation RMSE is reported with it: the least model (1) can reach on the data. On the full
@@ -1657,14 +1665,11 @@ mod tests {
 
     /// `estimators` (the `prbs` tuning) on 2 s of the paper's PRBS on the full board, one window, 1.5 to 2 s.
     fn identified_2_s(estimators: &[&'static str]) -> Identified {
-        identified_2_s_over(estimators, Window { t0: 1.5, t1: 2.0 })
+        identified_2_s_over(&prbs_record(2.0, true), estimators, Window { t0: 1.5, t1: 2.0 })
     }
 
-    /// [`identified_2_s`] over the window `w`.
-    fn identified_2_s_over(estimators: &[&'static str], w: Window) -> Identified {
-        let (board, settings) = Scenario::Prbs.settings(2.0, Scenario::Prbs.default_seed());
-        let mut sim = Simulation::new(board, &settings, nanopos_id::estimator::Unfiltered).unwrap();
-        let s = crate::cmd::paper::record(&mut sim, 20_000);
+    /// [`identified_2_s`] over the window `w`, of the record `s` (`prbs_record(2.0, true)`).
+    fn identified_2_s_over(s: &crate::cmd::paper::Simulated, estimators: &[&'static str], w: Window) -> Identified {
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: None };
         identify(&rec, estimators, &Tuning::preset("prbs").unwrap(), &[w]).unwrap()
     }
@@ -1673,9 +1678,10 @@ mod tests {
     /// end: a window ending on a row's time leaves that row out.
     #[test]
     fn a_windows_innovation_rms_is_the_mean_of_its_rows() {
-        let times = identified_2_s(&["hekf"]).times;
+        let s = prbs_record(2.0, true);
+        let times = identified_2_s_over(&s, &["hekf"], Window { t0: 1.5, t1: 2.0 }).times;
         let w = Window { t0: times[150], t1: times[190] };
-        let got = identified_2_s_over(&["hekf"], w);
+        let got = identified_2_s_over(&s, &["hekf"], w);
         let rows = &got.healths[150..190];
         let mean = 1e3 * rows.iter().map(|h| h[0].innovation_rms_um as f64).sum::<f64>() / rows.len() as f64;
         assert_eq!(got.windows[0].1[0].innovation_rms_nm, mean);
