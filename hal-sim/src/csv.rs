@@ -2,8 +2,9 @@
 //! uniformly sampled in `t`. Every problem is reported as `FILE:LINE: what` and nothing is guessed: a missing
 //! column, one named twice, part of a group of columns that go together, a field that is not a number, NaN or
 //! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
-//! other tools write is read: a UTF-8 byte-order mark before the header, a header after a comment mark (numpy's
-//! `savetxt` writes `# t,u,y`), and fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
+//! other tools write is read: a UTF-8 byte-order mark before the header, blank lines and `#` comments before it (a
+//! logger's notes), a header after a comment mark (numpy's `savetxt` writes `# t,u,y`), and fields in double quotes
+//! (`"t"`, `"0.5"`; a field never holds a comma here).
 
 use crate::cmd::{clip, show, CliError};
 use std::io::Read;
@@ -150,32 +151,15 @@ impl Reader {
             t0: None,
             step: None,
         };
-        // The header: the first line, whatever its length.
-        let header_end = loop {
-            if let Some(i) = r.carry.iter().position(|&b| b == b'\n') {
-                break i;
-            }
-            if r.eof {
-                break r.carry.len();
-            }
-            r.fill(1 << 16)?;
-        };
-        if is_blank(&r.carry[..header_end]) {
-            // Blank: an empty file, unless rows follow; then the first line is where the header should be.
-            while !r.eof && is_blank(&r.carry) {
-                r.fill(1 << 16)?;
-            }
-            let message = if is_blank(&r.carry) {
-                format!("{}: empty file (a header line naming {} is needed)", r.shown, names.join(","))
-            } else {
-                format!(
-                    "{}:1: blank, and rows follow: the first line must be the header, naming {}",
-                    r.shown,
-                    names.join(",")
-                )
-            };
-            return Err(CliError(message));
-        }
+        // Every column the header must name: `t` first when it is required.
+        let needed: Vec<&str> = (time == Time::Required && !names.contains(&"t"))
+            .then_some("t")
+            .into_iter()
+            .chain(names.iter().copied())
+            .collect();
+        // Whether a line names them all, separated by `sep`.
+        let names_all = |line: &str, sep: char| needed.iter().all(|n| line.split(sep).any(|f| unquote(f.trim()) == *n));
+        r.fill(1 << 16)?;
         if utf16(&r.carry) {
             return Err(CliError(format!(
                 "{}: UTF-16 text (its first bytes say so: Excel's \"Unicode text\" and a redirection in Windows \
@@ -183,10 +167,68 @@ impl Reader {
                 r.shown
             )));
         }
-        let header = std::str::from_utf8(&r.carry[..header_end])
-            .map_err(|_| CliError(format!("{}:1: the header is not text", r.shown)))?;
         // A spreadsheet's UTF-8 export starts with a byte-order mark, which would otherwise be part of the first name.
-        let written = header.strip_prefix('\u{feff}').unwrap_or(header);
+        let mut start = if r.carry.starts_with("\u{feff}".as_bytes()) { 3 } else { 0 };
+        // The header: the first line, whatever its length, that is neither blank nor a comment. A comment starts with
+        // '#' (numpy's `savetxt` writes its `header=` lines so, a logger its run's details) unless it names every
+        // column needed: numpy's header itself, `# t,u,y`. One that names them separated otherwise (`savetxt`'s
+        // default spaces) is kept, in case no line names them with commas: it is then the header refused below.
+        let (mut skipped, mut comments) = (0, 0);
+        let mut otherwise: Option<(usize, String)> = None;
+        let (header_start, header_end) = loop {
+            if start >= r.carry.len() && r.eof && otherwise.is_some() {
+                break (start, start);
+            }
+            if start >= r.carry.len() && r.eof {
+                let message = if comments == 0 {
+                    format!("{}: empty file (a header line naming {} is needed)", r.shown, needed.join(","))
+                } else {
+                    format!(
+                        "{}: no header: {comments} line{} starting with '#', read as comments, and none names {}",
+                        r.shown,
+                        if comments == 1 { "" } else { "s" },
+                        needed.join(",")
+                    )
+                };
+                return Err(CliError(message));
+            }
+            let end = match r.carry[start..].iter().position(|&b| b == b'\n') {
+                Some(i) => start + i,
+                None if r.eof => r.carry.len(),
+                None => {
+                    // Lines skipped are not kept: a file of nothing but comments is read 64 KiB at a time.
+                    r.carry.drain(..start);
+                    r.bytes_done += start as u64;
+                    start = 0;
+                    r.fill(1 << 16)?;
+                    continue;
+                }
+            };
+            let line = &r.carry[start..end];
+            let text = line.trim_ascii_start();
+            let comment =
+                text.first() == Some(&b'#') && !std::str::from_utf8(&text[1..]).is_ok_and(|h| names_all(h, ','));
+            if !is_blank(line) && !comment {
+                break (start, end);
+            }
+            if let Some(h) = std::str::from_utf8(text)
+                .ok()
+                .filter(|h| comment && [';', '\t', ' '].into_iter().any(|sep| names_all(&h[1..], sep)))
+            {
+                otherwise = Some((skipped + 1, h.to_string()));
+            }
+            comments += usize::from(comment);
+            skipped += 1;
+            start = end + 1;
+        };
+        // The header's line in the file, for the messages.
+        let mut header_line = skipped + 1;
+        let mut header = std::str::from_utf8(&r.carry[header_start..header_end])
+            .map_err(|_| CliError(format!("{}:{header_line}: the header is not text", r.shown)))?;
+        if let Some((line, comment)) = otherwise.as_ref().filter(|_| !names_all(header, ',')) {
+            (header_line, header) = (*line, comment);
+        }
+        let written = header.trim_start();
         // numpy's `savetxt` writes its header after its comment mark, `# t,u,y`, unless told `comments=''`.
         let header = written.strip_prefix('#').unwrap_or(written);
         let fields: Vec<String> = header.split(',').map(|f| unquote(f.trim()).to_string()).collect();
@@ -199,7 +241,7 @@ impl Reader {
         let present: Vec<&str> = optional.iter().copied().filter(|o| has(o)).collect();
         if !present.is_empty() && present.len() < optional.len() {
             return Err(CliError(format!(
-                "{}:1: columns {} go together, the header has only {}",
+                "{}:{header_line}: columns {} go together, the header has only {}",
                 r.shown,
                 optional.join(", "),
                 present.join(", ")
@@ -214,7 +256,8 @@ impl Reader {
             let mut at = fields.iter().enumerate().filter(|(_, f)| f == name).map(|(i, _)| i + 1);
             if let (Some(first), Some(second)) = (at.next(), at.next()) {
                 return Err(CliError(format!(
-                    "{}:1: column '{name}' named twice in the header (fields {first} and {second}): which one is meant?",
+                    "{}:{header_line}: column '{name}' named twice in the header (fields {first} and {second}): \
+                     which one is meant?",
                     r.shown
                 )));
             }
@@ -224,6 +267,16 @@ impl Reader {
                     if *name == "t" && c < r.required {
                         r.t_field = Some((i, c));
                     }
+                }
+                None if fields.iter().all(|f| f.parse::<f64>().is_ok()) => {
+                    // A file without a header (`savetxt` without `header=`), or whose header is behind the comments.
+                    return Err(CliError(format!(
+                        "{}:{header_line}: numbers where the header should be (found: {}): the first line, blank lines \
+                         and '#' comments aside, must name the columns {}",
+                        r.shown,
+                        clip(written.trim(), 120),
+                        needed.join(",")
+                    )));
                 }
                 None => {
                     // One field holding the others, this one among them: another separator (Excel in a locale with
@@ -238,7 +291,7 @@ impl Reader {
                             )
                         });
                     return Err(CliError(format!(
-                        "{}:1: no column '{name}' in the header (found: {}){other}",
+                        "{}:{header_line}: no column '{name}' in the header (found: {}){other}",
                         r.shown,
                         clip(written.trim(), 120)
                     )));
@@ -249,7 +302,8 @@ impl Reader {
         r.names = wanted.iter().map(|n| n.to_string()).collect();
         let body_start = (header_end + 1).min(r.carry.len());
         r.carry.drain(..body_start);
-        r.bytes_done = body_start as u64;
+        r.bytes_done += body_start as u64;
+        r.lines_before = header_line;
         Ok(r)
     }
 
@@ -749,7 +803,7 @@ mod tests {
         assert_eq!(read("t,u\n0,1\nzz,2\n"), None, "reading the rows says what is wrong");
         assert_eq!(read("t,u\n"), None, "no rows");
         let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
-        assert!(e.0.ends_with("blank.csv: empty file (a header line naming u is needed)"), "{}", e.0);
+        assert!(e.0.ends_with("blank.csv: empty file (a header line naming t,u is needed)"), "{}", e.0);
         assert_eq!(read("t,u\n\"0\",\"1\"\n\"0.5\",\"2\"\n"), Some(0.5), "quoted");
         // Beyond the 64 KiB read from the end: the last line of a long file; and none when the last line is longer
         // than that (the tail starts inside it: here its 70 000 zeros cut, `0.000...05` would read as 5).
@@ -759,18 +813,49 @@ mod tests {
         assert_eq!(read(&format!("t,u\n0,1\n0.{}5,2\n", "0".repeat(70_000))), None, "a last line beyond the tail");
     }
 
-    /// Blank lines before anything else, beyond one read (64 KiB) too: an empty file if nothing follows; otherwise
-    /// the first line is where the header should be, and the message says so (it had said "no column 'u' in the
-    /// header (found: )").
+    /// Blank lines and `#` comments before the header are skipped, beyond one read (64 KiB) too, as numpy's
+    /// `loadtxt` skips them: a logger's notes of its run, `savetxt`'s `header=` of several lines. Line numbers in
+    /// later messages are the file's; a file of nothing else is said to be empty, or to have no header.
     #[test]
-    fn blank_lines_beyond_one_read_make_an_empty_file_or_a_blank_header() {
+    fn blank_lines_and_comments_before_the_header_are_skipped() {
+        let plain = read_columns(&file("plain.csv", "t,u\n0,1\n0.5,2\n"), &["u"], Time::Required).unwrap();
         let blank = "\n".repeat(200_000);
+        let notes = "# logger 7, run 3\n".repeat(5_000);
+        for (name, before) in [
+            ("late.csv", blank.as_str()),
+            ("one.csv", "\n"),
+            ("spaces.csv", "  \r\n"),
+            ("notes.csv", notes.as_str()),
+            ("numpy.csv", "# run 3: 1 V PRBS\n# t,u\n"),
+            ("mixed.csv", "\u{feff}# logger 7\n\n  # gain 1\r\n"),
+        ] {
+            let header = if name == "numpy.csv" { "" } else { "t,u\n" };
+            let text = format!("{before}{header}0,1\n0.5,2\n");
+            let got = read_columns_in(&file(name, &text), &["u"], &[], Time::Required, TINY).unwrap().0;
+            assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{name}");
+            // The lines before the header count: a bad field on the third row names its line in the file.
+            let e = read_columns(&file(name, &format!("{before}{header}0,1\n0.5,2\n1,x\n")), &["u"], Time::Required);
+            let line = before.matches('\n').count() + header.len().min(1) + 3;
+            let want = format!("{name}:{line}: column 'u': 'x' is not a number");
+            assert!(e.as_ref().unwrap_err().0.ends_with(&want), "{e:?}, not {want}");
+        }
         let e = Reader::open(&file("blanks.csv", &blank), &["u"], &[], Time::Required).err().unwrap();
-        assert!(e.0.ends_with("blanks.csv: empty file (a header line naming u is needed)"), "{}", e.0);
-        for (name, before) in [("late.csv", blank.as_str()), ("one.csv", "\n"), ("spaces.csv", "  \r\n")] {
-            let e =
-                Reader::open(&file(name, &format!("{before}t,u\n0,1\n")), &["u"], &[], Time::Required).err().unwrap();
-            let want = format!("{name}:1: blank, and rows follow: the first line must be the header, naming u");
+        assert!(e.0.ends_with("blanks.csv: empty file (a header line naming t,u is needed)"), "{}", e.0);
+        let e = Reader::open(&file("notes.csv", &format!("{notes}\n")), &["u"], &[], Time::Required).err().unwrap();
+        let want = "notes.csv: no header: 5000 lines starting with '#', read as comments, and none names t,u";
+        assert!(e.0.ends_with(want), "{}", e.0);
+        // The header's own line in its messages.
+        let e = read_columns(&file("twice.csv", "# run 3\n\nt,u,u\n0,1,2\n"), &["u"], Time::Required).unwrap_err();
+        assert!(e
+            .0
+            .ends_with("twice.csv:3: column 'u' named twice in the header (fields 2 and 3): which one is meant?"));
+        // Rows where the header should be: no header, or one left in a comment without all the columns.
+        for (name, text, line) in [("bare.csv", "0,1\n0.5,2\n", 1), ("hidden.csv", "# run 3\n# t\n0,1\n", 3)] {
+            let e = read_columns(&file(name, text), &["u"], Time::Required).unwrap_err();
+            let want = format!(
+                "{name}:{line}: numbers where the header should be (found: 0,1): the first line, blank lines and '#' \
+                 comments aside, must name the columns t,u"
+            );
             assert!(e.0.ends_with(&want), "{}", e.0);
         }
     }
@@ -828,11 +913,22 @@ mod tests {
             "(found: # t u y): its fields are separated by spaces; \
              this reads commas, and '.' as the decimal point"
         ));
-        // A comment line before the header is not a header of another separator.
-        for (name, header) in [("comment.csv", "# logger 7, run 3"), ("words.csv", "time volts microns")] {
-            let e = missing(name, header);
-            assert!(e.ends_with(&format!("(found: {header})")), "{e}");
-        }
+        // ... also with its rows, and after a comment of its own.
+        let e = missing("numpy.csv", "# run 3\n# t u y\n0.0e+00 1.0e+00 2.0e+00");
+        assert!(
+            e.contains("numpy.csv:2: no column 'u' in the header (found: # t u y): its fields are separated by spaces")
+        );
+        // A comment naming the columns with spaces before a header naming them with commas is only a comment.
+        let text = "# columns: t u y\nt,u,y\n0,1,2\n0.5,3,4\n";
+        assert!(read_columns(&file("noted.csv", text), &["u", "y"], Time::IfPresent).is_ok());
+        // A line of words without the columns is not a header of another separator.
+        let e = missing("words.csv", "time volts microns");
+        assert!(e.ends_with("words.csv:1: no column 'u' in the header (found: time volts microns)"), "{e}");
+        // Nor a comment: it is skipped, and the next line is the header, here with ';'.
+        let e = missing("comment.csv", "# logger 7, run 3\nt;u;y");
+        assert!(
+            e.contains("comment.csv:2: no column 'u' in the header (found: t;u;y): its fields are separated by ';'")
+        );
         for (name, header) in [("one.csv", "time"), ("inside.csv", "u;v,t")] {
             let e = missing(name, header);
             assert!(e.contains("1: no column '") && !e.contains(note), "{e}");
