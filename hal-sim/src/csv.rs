@@ -2,9 +2,9 @@
 //! uniformly sampled in `t`. Every problem is reported as `FILE:LINE: what` and nothing is guessed: a missing
 //! column, one named twice, part of a group of columns that go together, a field that is not a number, NaN or
 //! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
-//! other tools write is read: a UTF-8 byte-order mark before the header, blank lines and `#` comments before it (a
-//! logger's notes), a header after a comment mark (numpy's `savetxt` writes `# t,u,y`), and fields in double quotes
-//! (`"t"`, `"0.5"`; a field never holds a comma here).
+//! other tools write is read: a UTF-8 byte-order mark before the header, blank lines and `#` comments (a logger's
+//! notes) before it and among the rows, a header after a comment mark (numpy's `savetxt` writes `# t,u,y`), and
+//! fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
 
 use crate::cmd::{clip, show, CliError};
 use std::io::Read;
@@ -358,7 +358,7 @@ impl Reader {
         file.seek(SeekFrom::Start(len - tail)).ok()?;
         let mut bytes = Vec::with_capacity(tail as usize);
         file.read_to_end(&mut bytes).ok()?;
-        let mut lines = bytes.split(|&b| b == b'\n').filter(|l| !is_blank(l));
+        let mut lines = bytes.split(|&b| b == b'\n').filter(|l| !holds_no_row(l));
         let last = lines.next_back()?;
         // The first line of the tail may be cut; a whole line has a line end before it.
         if lines.next().is_none() && (tail as usize) < len as usize {
@@ -509,7 +509,7 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
     let mut data: Vec<Vec<f64>> = names.iter().map(|_| Vec::with_capacity(rows_guess)).collect();
     for (i, line) in piece.split('\n').enumerate() {
         let line_no = i + 1;
-        if is_blank(line.as_bytes()) {
+        if holds_no_row(line.as_bytes()) {
             continue;
         }
         // Fields by a plain byte scan: faster than `str::split` on short fields. `,` is ASCII, so every cut is on a
@@ -542,14 +542,21 @@ fn unquote(field: &str) -> &str {
     field.strip_prefix('"').and_then(|f| f.strip_suffix('"')).unwrap_or(field)
 }
 
-/// The line of `body` (counted from 1) that holds data row `row` (counted from 0; blank lines hold none).
+/// The line of `body` (counted from 1) that holds data row `row` (counted from 0; blank lines and comments hold
+/// none).
 fn line_of_row(body: &[u8], row: usize) -> usize {
-    body.split(|&b| b == b'\n').enumerate().filter(|(_, l)| !is_blank(l)).nth(row).map_or(0, |(i, _)| i + 1)
+    body.split(|&b| b == b'\n').enumerate().filter(|(_, l)| !holds_no_row(l)).nth(row).map_or(0, |(i, _)| i + 1)
 }
 
-/// A line with nothing but white space, skipped wherever it is.
+/// A line with nothing but white space.
 fn is_blank(line: &[u8]) -> bool {
     line.trim_ascii().is_empty()
+}
+
+/// A blank line or a comment (its first character '#': a logger's note of an event, a second file's header after
+/// `cat`, whose restart of `t` is then refused): skipped among the rows wherever it is.
+fn holds_no_row(line: &[u8]) -> bool {
+    matches!(line.trim_ascii().first(), None | Some(b'#'))
 }
 
 /// How many lines end in `bytes`.
@@ -608,6 +615,9 @@ mod tests {
             s += &format!("{:.4},{},{},x\n", k as f64 * 1e-4, (k as f64).sin(), k);
             if k % 7 == 3 {
                 s += "\n"; // blank lines are skipped wherever they fall
+            }
+            if k % 11 == 5 {
+                s += "  # and comments\n";
             }
         }
         s
@@ -813,11 +823,11 @@ mod tests {
         assert_eq!(read(&format!("t,u\n0,1\n0.{}5,2\n", "0".repeat(70_000))), None, "a last line beyond the tail");
     }
 
-    /// Blank lines and `#` comments before the header are skipped, beyond one read (64 KiB) too, as numpy's
-    /// `loadtxt` skips them: a logger's notes of its run, `savetxt`'s `header=` of several lines. Line numbers in
-    /// later messages are the file's; a file of nothing else is said to be empty, or to have no header.
+    /// Blank lines and `#` comments before the header are skipped, beyond one read (64 KiB) too, and among the rows,
+    /// as numpy's `loadtxt` skips them: a logger's notes of its run, `savetxt`'s `header=` of several lines. Line
+    /// numbers in later messages are the file's; a file of nothing else is said to be empty, or to have no header.
     #[test]
-    fn blank_lines_and_comments_before_the_header_are_skipped() {
+    fn blank_lines_and_comments_are_skipped_before_the_header_and_among_the_rows() {
         let plain = read_columns(&file("plain.csv", "t,u\n0,1\n0.5,2\n"), &["u"], Time::Required).unwrap();
         let blank = "\n".repeat(200_000);
         let notes = "# logger 7, run 3\n".repeat(5_000);
@@ -844,6 +854,14 @@ mod tests {
         let e = Reader::open(&file("notes.csv", &format!("{notes}\n")), &["u"], &[], Time::Required).err().unwrap();
         let want = "notes.csv: no header: 5000 lines starting with '#', read as comments, and none names t,u";
         assert!(e.0.ends_with(want), "{}", e.0);
+        // Among the rows too (the helper `rows` puts some there); two of numpy's files one after the other (`cat`):
+        // the second's header is a comment, its time's restart refused at its line.
+        let text = "# t,u\n0,1\n  # payload off\n0.5,2\n# t,u\n0,3\n0.5,4\n";
+        let e = read_columns(&file("cat.csv", text), &["u"], Time::Required).unwrap_err();
+        assert!(e.0.ends_with("cat.csv:6: time 0 breaks the uniform sampling (expected 1, step 0.5)"), "{}", e.0);
+        let event = text.strip_suffix("# t,u\n0,3\n0.5,4\n").unwrap();
+        let got = read_columns(&file("event.csv", event), &["u"], Time::Required).unwrap();
+        assert_eq!(got.data, plain.data);
         // The header's own line in its messages.
         let e = read_columns(&file("twice.csv", "# run 3\n\nt,u,u\n0,1,2\n"), &["u"], Time::Required).unwrap_err();
         assert!(e
