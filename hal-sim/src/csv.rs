@@ -862,6 +862,11 @@ mod tests {
         let event = text.strip_suffix("# t,u\n0,3\n0.5,4\n").unwrap();
         let got = read_columns(&file("event.csv", event), &["u"], Time::Required).unwrap();
         assert_eq!(got.data, plain.data);
+        // Without a time column asked for, numpy's header names the others only; `t` is not needed.
+        let got = read_columns(&file("no_t.csv", "# run 3\n# u,y\n1,2\n3,4\n"), &["u", "y"], Time::IfPresent).unwrap();
+        assert_eq!(got.data, [[1.0, 3.0], [2.0, 4.0]]);
+        let e = read_columns(&file("none.csv", "\n"), &["u", "y"], Time::IfPresent).unwrap_err();
+        assert!(e.0.ends_with("none.csv: empty file (a header line naming u,y is needed)"), "{}", e.0);
         // The header's own line in its messages.
         let e = read_columns(&file("twice.csv", "# run 3\n\nt,u,u\n0,1,2\n"), &["u"], Time::Required).unwrap_err();
         assert!(e
@@ -895,22 +900,25 @@ mod tests {
         }
     }
 
-    /// Progress counts the bytes parsed against the file's length: the header's on opening, each block's as it is
-    /// read, the whole file at the end.
+    /// Progress counts the bytes parsed against the file's length: the header's (and the comments' before it) on
+    /// opening, each block's as it is read, the whole file at the end.
     #[test]
     fn progress_counts_the_bytes_parsed() {
-        let text = rows(500);
-        let path = file("progress.csv", &text);
-        let mut r = Reader::open_in(&path, &["u"], &[], Time::Required, TINY).unwrap();
-        let len = text.len() as u64;
-        assert_eq!(r.progress(), ("t, u ,y,extra\n".len() as u64, len));
-        let mut last = r.progress().0;
-        while r.next_block().unwrap().is_some() {
-            let (done, of) = r.progress();
-            assert!(done > last && done <= len && of == len, "{done} of {of}, after {last}");
-            last = done;
+        // Without and with comments before the header, more of them than one read holds.
+        for notes in [String::new(), "# logger 7, run 3\n".repeat(5_000)] {
+            let text = notes.clone() + &rows(500);
+            let path = file("progress.csv", &text);
+            let mut r = Reader::open_in(&path, &["u"], &[], Time::Required, TINY).unwrap();
+            let len = text.len() as u64;
+            assert_eq!(r.progress(), ((notes.len() + "t, u ,y,extra\n".len()) as u64, len));
+            let mut last = r.progress().0;
+            while r.next_block().unwrap().is_some() {
+                let (done, of) = r.progress();
+                assert!(done > last && done <= len && of == len, "{done} of {of}, after {last}");
+                last = done;
+            }
+            assert_eq!(r.progress(), (len, len));
         }
-        assert_eq!(r.progress(), (len, len));
     }
 
     /// A header without a column asked for says so, as written; it names another separator only when the header is
