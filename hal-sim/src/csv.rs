@@ -177,7 +177,9 @@ impl Reader {
         let mut otherwise: Option<(usize, String)> = None;
         let (header_start, header_end) = loop {
             if start >= r.carry.len() && r.eof && otherwise.is_some() {
-                break (start, start);
+                // (`start` is past the end when the last line has no line end.)
+                let end = r.carry.len();
+                break (end, end);
             }
             if start >= r.carry.len() && r.eof {
                 let message = if comments == 0 {
@@ -631,6 +633,43 @@ mod tests {
             assert_eq!(pieces.concat(), body, "least {least}");
             assert!(pieces[..pieces.len() - 1].iter().all(|p| p.ends_with(b"\n")), "least {least}");
         }
+    }
+
+    /// Every file of up to three lines made of blank lines, comments, headers (with commas, spaces, after `#`) and
+    /// rows, with and without a line end at the end: no panic (a comment naming the columns with spaces as the last
+    /// line without a line end panicked), and the same in one piece and in many.
+    #[test]
+    fn files_of_comments_headers_and_rows_never_panic() {
+        let one_piece = Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 };
+        let lines = ["", "# c", "# t u y", "# t,u,y", "t,u,y", "0,1,2", "\u{feff}t,u,y"];
+        let mut files = vec![String::new()];
+        for _ in 0..3 {
+            let longer: Vec<String> =
+                files.iter().flat_map(|f| lines.iter().map(move |l| format!("{f}{l}\n"))).collect();
+            files.extend(longer);
+        }
+        let (mut read, mut refused) = (0, 0);
+        for (k, text) in files.iter().flat_map(|f| [f.clone(), f.trim_end_matches('\n').to_string()]).enumerate() {
+            let path = file(&format!("lines-{k}.csv"), &text);
+            for time in [Time::Required, Time::IfPresent] {
+                let read_in = |chunks| {
+                    std::panic::catch_unwind(|| read_columns_in(&path, &["y", "u"], &[], time, chunks))
+                        .unwrap_or_else(|_| panic!("the reader panicked on {text:?}"))
+                };
+                match (read_in(one_piece), read_in(TINY)) {
+                    (Ok((a, _)), Ok((b, _))) => {
+                        assert_eq!((a.data, a.sample_period_s), (b.data, b.sample_period_s), "{text:?}");
+                        read += 1;
+                    }
+                    (Err(a), Err(b)) => {
+                        assert_eq!(a.0, b.0, "{text:?}");
+                        refused += 1;
+                    }
+                    (a, b) => panic!("{text:?}: {a:?} in one piece, {b:?} in many"),
+                }
+            }
+        }
+        assert!(read > 500 && refused > 500, "{read} read, {refused} refused");
     }
 
     /// 600 damaged files (bytes changed to one of the characters a CSV is made of, or removed, or inserted; a line
