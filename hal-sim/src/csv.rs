@@ -871,15 +871,15 @@ mod tests {
         let plain = read_columns(&file("plain.csv", "t,u\n0,1\n0.5,2\n"), &["u"], Time::Required).unwrap();
         let blank = "\n".repeat(200_000);
         let notes = "# logger 7, run 3\n".repeat(5_000);
-        for (name, before) in [
-            ("late.csv", blank.as_str()),
-            ("one.csv", "\n"),
-            ("spaces.csv", "  \r\n"),
-            ("notes.csv", notes.as_str()),
-            ("numpy.csv", "# run 3: 1 V PRBS\n# t,u\n"),
-            ("mixed.csv", "\u{feff}# logger 7\n\n  # gain 1\r\n"),
+        // Each file's lines before its header, and its header (numpy's is among the comments).
+        for (name, before, header) in [
+            ("late.csv", blank.as_str(), "t,u\n"),
+            ("one.csv", "\n", "t,u\n"),
+            ("spaces.csv", "  \r\n", "t,u\n"),
+            ("notes.csv", notes.as_str(), "t,u\n"),
+            ("numpy.csv", "# run 3: 1 V PRBS\n# t,u\n", ""),
+            ("mixed.csv", "\u{feff}# logger 7\n\n  # gain 1\r\n", "t,u\n"),
         ] {
-            let header = if name == "numpy.csv" { "" } else { "t,u\n" };
             let text = format!("{before}{header}0,1\n0.5,2\n");
             let got = read_columns_in(&file(name, &text), &["u"], &[], Time::Required, TINY).unwrap().0;
             assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{name}");
