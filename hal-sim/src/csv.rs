@@ -635,12 +635,33 @@ mod tests {
         }
     }
 
+    /// `path` read in one piece and in [`TINY`] pieces, with the time checked and not: no panic, and both readings
+    /// the same, the same columns or the same message naming the same line. How many of the two checks read it.
+    fn read_both_ways(path: &Path, what: &str) -> usize {
+        let one_piece = Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 };
+        let mut read = 0;
+        for time in [Time::Required, Time::IfPresent] {
+            let read_in = |chunks| {
+                std::panic::catch_unwind(|| read_columns_in(path, &["y", "u"], &[], time, chunks))
+                    .unwrap_or_else(|_| panic!("the reader panicked on {what}"))
+            };
+            match (read_in(one_piece), read_in(TINY)) {
+                (Ok((a, _)), Ok((b, _))) => {
+                    assert_eq!((a.data, a.sample_period_s), (b.data, b.sample_period_s), "{what}");
+                    read += 1;
+                }
+                (Err(a), Err(b)) => assert_eq!(a.0, b.0, "{what}"),
+                (a, b) => panic!("{what}: in one piece {:?}, in many {:?}", a.map(|_| ()), b.map(|_| ())),
+            }
+        }
+        read
+    }
+
     /// Every file of up to three lines made of blank lines, comments, headers (with commas, spaces, after `#`) and
     /// rows, with and without a line end at the end: no panic (a comment naming the columns with spaces as the last
     /// line without a line end panicked), and the same in one piece and in many.
     #[test]
     fn files_of_comments_headers_and_rows_never_panic() {
-        let one_piece = Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 };
         let lines = ["", "# c", "# t u y", "# t,u,y", "t,u,y", "0,1,2", "\u{feff}t,u,y"];
         let mut files = vec![String::new()];
         for _ in 0..3 {
@@ -650,24 +671,8 @@ mod tests {
         }
         let (mut read, mut refused) = (0, 0);
         for (k, text) in files.iter().flat_map(|f| [f.clone(), f.trim_end_matches('\n').to_string()]).enumerate() {
-            let path = file(&format!("lines-{k}.csv"), &text);
-            for time in [Time::Required, Time::IfPresent] {
-                let read_in = |chunks| {
-                    std::panic::catch_unwind(|| read_columns_in(&path, &["y", "u"], &[], time, chunks))
-                        .unwrap_or_else(|_| panic!("the reader panicked on {text:?}"))
-                };
-                match (read_in(one_piece), read_in(TINY)) {
-                    (Ok((a, _)), Ok((b, _))) => {
-                        assert_eq!((a.data, a.sample_period_s), (b.data, b.sample_period_s), "{text:?}");
-                        read += 1;
-                    }
-                    (Err(a), Err(b)) => {
-                        assert_eq!(a.0, b.0, "{text:?}");
-                        refused += 1;
-                    }
-                    (a, b) => panic!("{text:?}: {a:?} in one piece, {b:?} in many"),
-                }
-            }
+            let ok = read_both_ways(&file(&format!("lines-{k}.csv"), &text), &format!("{text:?}"));
+            (read, refused) = (read + ok, refused + 2 - ok);
         }
         assert!(read > 500 && refused > 500, "{read} read, {refused} refused");
     }
@@ -678,7 +683,6 @@ mod tests {
     /// same line.
     #[test]
     fn a_damaged_file_reads_the_same_in_one_piece_and_in_many() {
-        let one_piece = Chunks { block_bytes: 1 << 30, most: 1, least_bytes: 1 };
         let good = rows(40);
         let mut next = nanopos_id::xorshift64(0x2F68_1C3A_99E1_0B47);
         let mut below = |n: usize| (next() % n.max(1) as u64) as usize;
@@ -708,25 +712,9 @@ mod tests {
                     }
                 }
             }
-            let path = file(&format!("damaged-{k}.csv"), &String::from_utf8_lossy(&text));
-            for time in [Time::Required, Time::IfPresent] {
-                let read_in = |chunks| {
-                    std::panic::catch_unwind(|| read_columns_in(&path, &["y", "u"], &[], time, chunks))
-                        .unwrap_or_else(|_| panic!("the reader panicked on {:?}", String::from_utf8_lossy(&text)))
-                };
-                match (read_in(one_piece), read_in(TINY)) {
-                    (Ok((a, _)), Ok((b, _))) => {
-                        assert_eq!((a.data, a.sample_period_s), (b.data, b.sample_period_s), "{k}");
-                        read += 1;
-                    }
-                    (Err(a), Err(b)) => {
-                        assert_eq!(a.0, b.0, "{k}");
-                        refused += 1;
-                    }
-                    (a, b) => panic!("{k}: in one piece {:?}, in many {:?}", a.map(|_| ()), b.map(|_| ())),
-                }
-            }
-            std::fs::remove_file(&path).unwrap();
+            let text = String::from_utf8_lossy(&text);
+            let ok = read_both_ways(&file(&format!("damaged-{k}.csv"), &text), &format!("file {k}, {text:?}"));
+            (read, refused) = (read + ok, refused + 2 - ok);
         }
         println!("{read} read, {refused} refused, the same in one piece and in many");
         assert!(read > 100 && refused > 100, "{read} read, {refused} refused");
