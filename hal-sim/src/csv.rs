@@ -176,12 +176,12 @@ impl Reader {
         let (mut skipped, mut comments) = (0, 0);
         let mut otherwise: Option<(usize, String)> = None;
         let (header_start, header_end) = loop {
-            if start >= r.carry.len() && r.eof && otherwise.is_some() {
-                // (`start` is past the end when the last line has no line end.)
-                let end = r.carry.len();
-                break (end, end);
-            }
             if start >= r.carry.len() && r.eof {
+                if otherwise.is_some() {
+                    // (`start` is past the end when the last line has no line end.)
+                    let end = r.carry.len();
+                    break (end, end);
+                }
                 let message = if comments == 0 {
                     format!("{}: empty file (a header line naming {} is needed)", r.shown, needed.join(","))
                 } else {
@@ -206,20 +206,24 @@ impl Reader {
                     continue;
                 }
             };
-            let line = &r.carry[start..end];
-            let text = line.trim_ascii_start();
-            let comment =
-                text.first() == Some(&b'#') && !std::str::from_utf8(&text[1..]).is_ok_and(|h| names_all(h, ','));
-            if !is_blank(line) && !comment {
+            let text = r.carry[start..end].trim_ascii_start();
+            let skip = match text.strip_prefix(b"#") {
+                Some(rest) => {
+                    let rest = std::str::from_utf8(rest).ok();
+                    let comment = !rest.is_some_and(|h| names_all(h, ','));
+                    if comment {
+                        comments += 1;
+                        if let Some(h) = rest.filter(|h| [';', '\t', ' '].into_iter().any(|sep| names_all(h, sep))) {
+                            otherwise = Some((skipped + 1, format!("#{h}")));
+                        }
+                    }
+                    comment
+                }
+                None => text.is_empty(),
+            };
+            if !skip {
                 break (start, end);
             }
-            if let Some(h) = std::str::from_utf8(text)
-                .ok()
-                .filter(|h| comment && [';', '\t', ' '].into_iter().any(|sep| names_all(&h[1..], sep)))
-            {
-                otherwise = Some((skipped + 1, h.to_string()));
-            }
-            comments += usize::from(comment);
             skipped += 1;
             start = end + 1;
         };
@@ -548,11 +552,6 @@ fn unquote(field: &str) -> &str {
 /// none).
 fn line_of_row(body: &[u8], row: usize) -> usize {
     body.split(|&b| b == b'\n').enumerate().filter(|(_, l)| !holds_no_row(l)).nth(row).map_or(0, |(i, _)| i + 1)
-}
-
-/// A line with nothing but white space.
-fn is_blank(line: &[u8]) -> bool {
-    line.trim_ascii().is_empty()
 }
 
 /// A blank line or a comment (its first character '#': a logger's note of an event, a second file's header after

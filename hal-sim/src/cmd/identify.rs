@@ -1611,7 +1611,7 @@ mod tests {
     /// starts; the reference it is compared with was a 1-s sample of it, and read the board's 1 V as 1.030.
     #[test]
     fn the_papers_prbs_has_strength_one_over_its_period() {
-        let s = prbs_without_change_20_s();
+        let s = prbs_record(20.0, false);
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: None };
         let tuning = Tuning::preset("prbs").unwrap();
         let strength = |t0: f64, span_s: f64| {
@@ -1627,11 +1627,6 @@ mod tests {
         for t0 in [1.0, 3.5, 7.0, 12.0] {
             assert!((strength(t0, 1.0) - 1.0).abs() < 0.06, "{t0}");
         }
-    }
-
-    /// 20 s of PRBS on the full board, the payload on throughout.
-    fn prbs_without_change_20_s() -> crate::cmd::paper::Simulated {
-        prbs_record(20.0, false)
     }
 
     /// `seconds` of the paper's PRBS on the full board, the payload removed at half of them or (`change` false) on
@@ -1651,7 +1646,7 @@ mod tests {
     /// estimate sits near it, not near the floor.
     #[test]
     fn the_truth_has_a_validation_rmse_and_a_converged_estimate_is_near_it() {
-        let s = prbs_without_change_20_s();
+        let s = prbs_record(20.0, false);
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
         let got =
             identify(&rec, &["hekf"], &Tuning::preset("prbs").unwrap(), &[Window { t0: 15.0, t1: 20.0 }]).unwrap();
@@ -1886,7 +1881,7 @@ mod tests {
     /// both estimates change, and the EKF's stays on the truth.
     #[test]
     fn the_tunings_prefilter_reaches_the_pipeline_and_the_rls() {
-        let s = prbs_without_change_20_s();
+        let s = prbs_record(20.0, false);
         let rec = Recording { source: "test", t: &s.t, u: &s.u, y: &s.y, truth: Some(&s.truth) };
         let truth = StageParams { a0: s.truth[0][0], a1: s.truth[1][0], b0: s.truth[2][0] };
         let err = |p: &StageParams<f64>| crate::experiment::rel_errors(p, &truth);
