@@ -506,15 +506,48 @@ fn split_lines(body: &[u8], chunks: Chunks) -> Vec<&[u8]> {
 type Parsed = Result<Vec<Vec<f64>>, (usize, String)>;
 
 /// The rows of one piece: one vector per output column. An error carries its line, counted from 1 within the piece.
+///
+/// Rows are numbers, so text that is not UTF-8 can only be a comment's (a logger's note in Latin-1 or Windows-1252,
+/// `# 23 \xb0C`): the piece is checked whole, and only where that fails is it taken apart at such comments.
 fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize) -> Parsed {
-    let piece = std::str::from_utf8(piece).map_err(|e| {
-        let line = 1 + line_ends(&piece[..e.valid_up_to()]);
-        (line, "not text (invalid UTF-8)".to_string())
-    })?;
     let rows_guess = piece.len() / 40 + 1;
     let mut data: Vec<Vec<f64>> = names.iter().map(|_| Vec::with_capacity(rows_guess)).collect();
-    for (i, line) in piece.split('\n').enumerate() {
-        let line_no = i + 1;
+    // The lines before `rest`.
+    let (mut rest, mut before) = (piece, 0);
+    loop {
+        let text = match std::str::from_utf8(rest) {
+            Ok(text) => text,
+            Err(e) => {
+                let bad = e.valid_up_to();
+                let start = rest[..bad].iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+                let end = rest[bad..].iter().position(|&b| b == b'\n').map_or(rest.len(), |i| bad + i);
+                if !holds_no_row(&rest[start..end]) {
+                    return Err((before + 1 + line_ends(&rest[..bad]), "not text (invalid UTF-8)".to_string()));
+                }
+                let valid = std::str::from_utf8(&rest[..start]).expect("valid up to the line of the first error");
+                // Up to its line end, which holds the comment's line (blank now).
+                parse_text(valid, before, slot, names, width, &mut data)?;
+                before += line_ends(&rest[..end]);
+                rest = &rest[end..];
+                continue;
+            }
+        };
+        parse_text(text, before, slot, names, width, &mut data)?;
+        return Ok(data);
+    }
+}
+
+/// The rows of `text`, whose first line is the piece's `before + 1`, appended to `data`.
+fn parse_text(
+    text: &str,
+    before: usize,
+    slot: &[Option<usize>],
+    names: &[&str],
+    width: usize,
+    data: &mut [Vec<f64>],
+) -> Result<(), (usize, String)> {
+    for (i, line) in text.split('\n').enumerate() {
+        let line_no = before + i + 1;
         if holds_no_row(line.as_bytes()) {
             continue;
         }
@@ -540,7 +573,7 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
             return Err((line_no, format!("{count} fields, the header has {width}")));
         }
     }
-    Ok(data)
+    Ok(())
 }
 
 /// A field without the double quotes around it, if it has them.
@@ -600,7 +633,7 @@ mod tests {
         }
     }
 
-    fn file(name: &str, text: &str) -> TestFile {
+    fn file(name: &str, text: impl AsRef<[u8]>) -> TestFile {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join(name);
         std::fs::write(&path, text).unwrap();
@@ -676,8 +709,8 @@ mod tests {
         assert!(read > 500 && refused > 500, "{read} read, {refused} refused");
     }
 
-    /// 600 damaged files (bytes changed to one of the characters a CSV is made of, `#` among them, or removed, or
-    /// inserted; a line doubled or lost; the file cut anywhere), each read in one piece and in [`TINY`] pieces, with
+    /// 600 damaged files (bytes changed to one of the characters a CSV is made of, `#` among them, or to a byte that
+    /// is not UTF-8 (Latin-1's degree sign), or removed, or inserted; a line doubled or lost; the file cut anywhere), each read in one piece and in [`TINY`] pieces, with
     /// the time checked and not: no panic, and both readings the same, the same columns or the same message naming the
     /// same line.
     #[test]
@@ -688,7 +721,7 @@ mod tests {
         let (mut read, mut refused) = (0, 0);
         for k in 0..600 {
             let mut text = good.clone().into_bytes();
-            let alphabet = b",.\n\r-e x\"0123456789+iInNaA\t#";
+            let alphabet = b",.\n\r-e x\"0123456789+iInNaA\t#\xb0";
             for _ in 0..1 + below(3) {
                 if text.is_empty() {
                     break;
@@ -711,8 +744,8 @@ mod tests {
                     }
                 }
             }
-            let text = String::from_utf8_lossy(&text);
-            let ok = read_both_ways(&file(&format!("damaged-{k}.csv"), &text), &format!("file {k}, {text:?}"));
+            let what = format!("file {k}, {:?}", String::from_utf8_lossy(&text));
+            let ok = read_both_ways(&file(&format!("damaged-{k}.csv"), &text), &what);
             (read, refused) = (read + ok, refused + 2 - ok);
         }
         println!("{read} read, {refused} refused, the same in one piece and in many");
@@ -808,15 +841,24 @@ mod tests {
         );
     }
 
+    /// A row that is not UTF-8 is refused at its line; a comment that is not (a logger's note in Latin-1) is skipped
+    /// as any comment, before the header and among the rows, in one piece and in many.
     #[test]
-    fn invalid_utf8_is_refused_with_its_line() {
-        let path = file("bytes.csv", "t,u\n0,1\n0.1,\u{0}\n");
-        let mut bytes = std::fs::read(&path).unwrap();
-        let at = bytes.iter().position(|&b| b == 0).unwrap();
-        bytes[at] = 0xff;
-        std::fs::write(&path, bytes).unwrap();
-        let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
+    fn invalid_utf8_is_refused_with_its_line_unless_a_comment() {
+        let e = read_columns(&file("bytes.csv", b"t,u\n0,1\n0.1,\xff\n"), &["u"], Time::Required).unwrap_err();
         assert!(e.0.ends_with("bytes.csv:3: not text (invalid UTF-8)"), "{}", e.0);
+        let plain = read_columns(&file("plain.csv", "t,u\n0,1\n0.5,2\n1,3\n"), &["u"], Time::Required).unwrap();
+        let latin = b"# 23 \xb0C\nt,u\n0,1\n# 23.5 \xb0C\n0.5,2\n  #\xb5\n#\xe9\n1,3\n# \xff";
+        for chunks in [Chunks::for_this_machine(), TINY] {
+            let got = read_columns_in(&file("latin.csv", latin), &["u"], &[], Time::Required, chunks).unwrap().0;
+            assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{chunks:?}");
+            // Line numbers past such comments are the file's, for a bad row and for a bad field alike.
+            for (row, line, what) in [(&b"1,\xb0"[..], 9, "not text (invalid UTF-8)"), (b"1,x", 9, "column 'u'")] {
+                let text = [&latin[..latin.len() - 3], row, b"\n# \xff\n"].concat();
+                let e = read_columns_in(&file("late.csv", text), &["u"], &[], Time::Required, chunks).unwrap_err();
+                assert!(e.0.contains(&format!("late.csv:{line}: {what}")), "{}", e.0);
+            }
+        }
     }
 
     /// A field quoted in a message shows what a terminal would not as escapes: a carriage return in it had sent the
