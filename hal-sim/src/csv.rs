@@ -3,8 +3,9 @@
 //! column, one named twice, part of a group of columns that go together, a field that is not a number, NaN or
 //! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
 //! other tools write is read: a UTF-8 byte-order mark before the header, blank lines and `#` comments (a logger's
-//! notes) before it and among the rows, a header after a comment mark (numpy's `savetxt` writes `# t,u,y`), and
-//! fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
+//! notes, in UTF-8 or Latin-1) before it and among the rows, a header after a comment mark (numpy's `savetxt` writes
+//! `# t,u,y`) or in Latin-1, a column's unit in its name when it is the one the column is read in (`y [um]`; another,
+//! `y [nm]`, is refused), and fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
 
 use crate::cmd::{clip, show, CliError};
 use std::io::Read;
@@ -158,7 +159,7 @@ impl Reader {
             .chain(names.iter().copied())
             .collect();
         // Whether a line names them all, separated by `sep`.
-        let names_all = |line: &str, sep: char| needed.iter().all(|n| line.split(sep).any(|f| unquote(f.trim()) == *n));
+        let names_all = |line: &str, sep: char| needed.iter().all(|n| line.split(sep).any(|f| name_of(f) == *n));
         r.fill(1 << 16)?;
         if utf16(&r.carry) {
             return Err(CliError(format!(
@@ -229,8 +230,21 @@ impl Reader {
         };
         // The header's line in the file, for the messages.
         let mut header_line = skipped + 1;
-        let mut header = std::str::from_utf8(&r.carry[header_start..header_end])
-            .map_err(|_| CliError(format!("{}:{header_line}: the header is not text", r.shown)))?;
+        let header_bytes = &r.carry[header_start..header_end];
+        let decoded: std::borrow::Cow<str> = match std::str::from_utf8(header_bytes) {
+            Ok(text) => text.into(),
+            // Not UTF-8 but text: Latin-1 (Windows' Western European, a logger's `y [\xb5m]`), the units' signs the same.
+            Err(_) if !header_bytes.iter().any(|&b| b < b' ' && b != b'\t' && b != b'\r' || b == 0x7f) => {
+                header_bytes.iter().map(|&b| char::from(b)).collect::<String>().into()
+            }
+            Err(_) => {
+                return Err(CliError(format!(
+                    "{}:{header_line}: the header is not text (is the file a spreadsheet's own, not its CSV export?)",
+                    r.shown
+                )))
+            }
+        };
+        let mut header = decoded.as_ref();
         if let Some((line, comment)) = otherwise.as_ref().filter(|_| !names_all(header, ',')) {
             (header_line, header) = (*line, comment);
         }
@@ -238,7 +252,9 @@ impl Reader {
         // numpy's `savetxt` writes its header after its comment mark, `# t,u,y`, unless told `comments=''`.
         let header = written.strip_prefix('#').unwrap_or(written);
         let fields: Vec<String> = header.split(',').map(|f| unquote(f.trim()).to_string()).collect();
-        let has = |name: &str| fields.iter().any(|f| f == name);
+        // The columns' names, their units aside.
+        let named: Vec<&str> = fields.iter().map(|f| name_of(f)).collect();
+        let has = |name: &str| named.contains(&name);
         let mut wanted: Vec<&str> = names.to_vec();
         if !wanted.contains(&"t") && (time == Time::Required || has("t")) {
             wanted.push("t");
@@ -259,7 +275,7 @@ impl Reader {
         }
         r.slot = vec![None; fields.len()];
         for (c, name) in wanted.iter().enumerate() {
-            let mut at = fields.iter().enumerate().filter(|(_, f)| f == name).map(|(i, _)| i + 1);
+            let mut at = named.iter().enumerate().filter(|(_, f)| *f == name).map(|(i, _)| i + 1);
             if let (Some(first), Some(second)) = (at.next(), at.next()) {
                 return Err(CliError(format!(
                     "{}:{header_line}: column '{name}' named twice in the header (fields {first} and {second}): \
@@ -267,8 +283,9 @@ impl Reader {
                     r.shown
                 )));
             }
-            match fields.iter().position(|f| f == name) {
+            match named.iter().position(|f| f == name) {
                 Some(i) => {
+                    unit_read(&fields[i], name).map_err(|e| CliError(format!("{}:{header_line}: {e}", r.shown)))?;
                     r.slot[i] = Some(c);
                     if *name == "t" && c < r.required {
                         r.t_field = Some((i, c));
@@ -287,7 +304,7 @@ impl Reader {
                 None => {
                     // One field holding the others, this one among them: another separator (Excel in a locale with
                     // a decimal comma writes ';', numpy's `savetxt` spaces by default).
-                    let apart = |sep: char| fields[0].split(sep).any(|f| unquote(f.trim()) == *name);
+                    let apart = |sep: char| fields[0].split(sep).any(|f| name_of(f) == *name);
                     let other = [(';', "';'"), ('\t', "tabs"), (' ', "spaces")]
                         .into_iter()
                         .find(|&(sep, _)| fields.len() == 1 && apart(sep))
@@ -576,6 +593,46 @@ fn parse_text(
     Ok(())
 }
 
+/// The column a header's field names, without the quotes and the unit ([`name_and_unit`]).
+fn name_of(field: &str) -> &str {
+    name_and_unit(unquote(field.trim())).0
+}
+
+/// A header's field (unquoted) as its column's name and unit, if it gives one: `y [um]`, `y (um)`, or `y / um`
+/// (DIN 1313's quantity over unit, as some loggers write it).
+fn name_and_unit(field: &str) -> (&str, Option<&str>) {
+    for (open, close) in [('[', Some(']')), ('(', Some(')')), ('/', None)] {
+        let Some((name, rest)) = field.split_once(open) else { continue };
+        let unit = match close {
+            Some(close) => rest.strip_suffix(close),
+            None => Some(rest),
+        };
+        if let Some(unit) = unit.map(str::trim).filter(|u| !u.is_empty() && !name.trim().is_empty()) {
+            return (name.trim_end(), Some(unit));
+        }
+    }
+    (field, None)
+}
+
+/// The units a column is read in: time in seconds, the command in volts, the reading in micrometres (ASCII `um`, the
+/// micro sign, or the Greek mu); the others (the truth's parameters) as plain numbers.
+const UNITS: [(&str, &[&str]); 3] = [("t", &["s"]), ("u", &["V"]), ("y", &["um", "\u{b5}m", "\u{3bc}m"])];
+
+/// Whether the header's `field`, which names column `name`, gives the unit it is read in, or none.
+fn unit_read(field: &str, name: &str) -> Result<(), String> {
+    let Some(unit) = name_and_unit(field).1 else { return Ok(()) };
+    match UNITS.iter().find(|(n, _)| *n == name) {
+        Some((_, units)) if units.contains(&unit) => Ok(()),
+        Some((_, units)) => Err(format!(
+            "column '{}': {name} is read in {}, not {}: scale the column (this reads t in s, u in V, y in um)",
+            clip(field, 40),
+            units[0],
+            clip(unit, 20)
+        )),
+        None => Err(format!("column '{}': {name} is read as a plain number, without a unit", clip(field, 40))),
+    }
+}
+
 /// A field without the double quotes around it, if it has them.
 fn unquote(field: &str) -> &str {
     field.strip_prefix('"').and_then(|f| f.strip_suffix('"')).unwrap_or(field)
@@ -754,7 +811,7 @@ mod tests {
 
     #[test]
     fn parallel_pieces_read_exactly_what_one_piece_reads() {
-        let path = file("many.csv", &rows(500));
+        let path = file("many.csv", rows(500));
         let one = read_columns_in(
             &path,
             &["y", "u"],
@@ -775,11 +832,11 @@ mod tests {
     #[test]
     fn a_message_quotes_only_the_start_of_a_huge_field() {
         let huge = "1".repeat(100_000);
-        let path = file("huge.csv", &format!("t,u,y\n0,{huge},0\n0.0001,0,0\n"));
+        let path = file("huge.csv", format!("t,u,y\n0,{huge},0\n0.0001,0,0\n"));
         let e = read_columns(&path, &["u", "y"], Time::Required).unwrap_err();
         let want = format!("huge.csv:2: column 'u': {}... (100000 characters) is not a finite number", &huge[..40]);
         assert!(e.0.ends_with(&want), "{}", &e.0[..e.0.len().min(300)]);
-        let path = file("wide.csv", &format!("t,{}\n", vec!["x"; 50_000].join(",")));
+        let path = file("wide.csv", format!("t,{}\n", vec!["x"; 50_000].join(",")));
         let e = read_columns(&path, &["u"], Time::Required).unwrap_err();
         assert!(e.0.len() < 250 && e.0.ends_with("... (100001 characters))"), "{}", &e.0[..e.0.len().min(300)]);
     }
@@ -825,14 +882,14 @@ mod tests {
             s
         };
         for t0_s in [1000, 100, -5] {
-            let path = file("far.csv", &rows(t0_s * 10_000, 100_000, None));
+            let path = file("far.csv", rows(t0_s * 10_000, 100_000, None));
             let read = read_columns(&path, &["y"], Time::Required);
             let c = read.unwrap_or_else(|e| panic!("t0 {t0_s} s: {}", e.0));
             assert_eq!(c.data[0].len(), 100_000);
             let period = c.sample_period_s.unwrap();
             assert!((period / 1e-4 - 1.0).abs() < 1e-12, "t0 {t0_s} s: {period:e}");
         }
-        let path = file("hole.csv", &rows(1000 * 10_000, 100_000, Some(60_000)));
+        let path = file("hole.csv", rows(1000 * 10_000, 100_000, Some(60_000)));
         let e = read_columns(&path, &["y"], Time::Required).unwrap_err();
         assert!(
             e.0.ends_with("hole.csv:60002: time 1006.0001 breaks the uniform sampling (expected 1006, step 0.0001)"),
@@ -913,14 +970,14 @@ mod tests {
             let got = read_columns_in(&file(name, &text), &["u"], &[], Time::Required, TINY).unwrap().0;
             assert_eq!((&got.data, got.sample_period_s), (&plain.data, plain.sample_period_s), "{name}");
             // The lines before the header count: a bad field on the third row names its line in the file.
-            let e = read_columns(&file(name, &format!("{before}{header}0,1\n0.5,2\n1,x\n")), &["u"], Time::Required);
+            let e = read_columns(&file(name, format!("{before}{header}0,1\n0.5,2\n1,x\n")), &["u"], Time::Required);
             let line = before.matches('\n').count() + header.len().min(1) + 3;
             let want = format!("{name}:{line}: column 'u': 'x' is not a number");
             assert!(e.as_ref().unwrap_err().0.ends_with(&want), "{e:?}, not {want}");
         }
         let e = Reader::open(&file("blanks.csv", &blank), &["u"], &[], Time::Required).err().unwrap();
         assert!(e.0.ends_with("blanks.csv: empty file (a header line naming t,u is needed)"), "{}", e.0);
-        let e = Reader::open(&file("notes.csv", &format!("{notes}\n")), &["u"], &[], Time::Required).err().unwrap();
+        let e = Reader::open(&file("notes.csv", format!("{notes}\n")), &["u"], &[], Time::Required).err().unwrap();
         let want = "notes.csv: no header: 5000 lines starting with '#', read as comments, and none names t,u";
         assert!(e.0.ends_with(want), "{}", e.0);
         // Among the rows too (the helper `rows` puts some there); two of numpy's files one after the other (`cat`):
@@ -996,7 +1053,7 @@ mod tests {
     #[test]
     fn a_missing_column_names_another_separator_only_when_it_is_the_reason() {
         let missing = |name: &str, header: &str| {
-            read_columns(&file(name, &format!("{header}\n1\n")), &["u", "y"], Time::IfPresent).unwrap_err().0
+            read_columns(&file(name, format!("{header}\n1\n")), &["u", "y"], Time::IfPresent).unwrap_err().0
         };
         let note = ": its fields are separated by";
         assert!(missing("semi.csv", "t;u;y").ends_with(
@@ -1028,6 +1085,55 @@ mod tests {
             let e = missing(name, header);
             assert!(e.contains("1: no column '") && !e.contains(note), "{e}");
         }
+    }
+
+    /// A column's unit in its name (`y [um]`, `u (V)`, DIN 1313's `t / s`; numpy's header too) is read when it is the
+    /// one the column is read in, and refused, named, when it is another: a reading in nm read as um would be a stage
+    /// a thousand times larger. A header that is not UTF-8 but text is read as Latin-1 (a Windows logger's `\xb5m`).
+    #[test]
+    fn a_unit_in_a_columns_name_is_read_when_it_is_the_columns() {
+        let plain = read_columns(&file("plain.csv", "t,u,y\n0,1,2\n0.5,3,4\n"), &["u", "y"], Time::Required).unwrap();
+        let read = |header: &[u8]| {
+            let text = [header, b"\n0,1,2\n0.5,3,4\n"].concat();
+            read_columns(&file("units.csv", text), &["u", "y"], Time::Required).map(|c| (c.data, c.sample_period_s))
+        };
+        for header in [
+            &b"t [s],u [V],y [um]"[..],
+            b"t(s), u (V) ,y (\xc2\xb5m)",
+            b"\"t / s\",\"u/V\",\"y / \xce\xbcm\"",
+            b"# t [s],u [V],y [um]",
+            b"t,u [V],y [\xb5m]",
+        ] {
+            let got = read(header).unwrap_or_else(|e| panic!("{}: {}", String::from_utf8_lossy(header), e.0));
+            assert_eq!(got, (plain.data.clone(), plain.sample_period_s), "{}", String::from_utf8_lossy(header));
+        }
+        // A column not read has what name it likes.
+        let text = b"t,u,y,temp [\xb0C]\n0,1,2,20\n0.5,3,4,21\n";
+        let got = read_columns(&file("temp.csv", text), &["u", "y"], Time::Required).unwrap();
+        assert_eq!((got.data, got.sample_period_s), (plain.data.clone(), plain.sample_period_s));
+        for (header, want) in [
+            ("t,u,y [nm]", "units.csv:1: column 'y [nm]': y is read in um, not nm: scale the column"),
+            ("t,u (mV),y", "units.csv:1: column 'u (mV)': u is read in V, not mV"),
+            ("t / ms,u,y", "units.csv:1: column 't / ms': t is read in s, not ms"),
+            ("t,u,y [um],a0 [1/s^2],a1,b0", "units.csv:1: column 'a0 [1/s^2]': a0 is read as a plain number"),
+        ] {
+            let text = format!("{header}\n0,1,2,3,4,5\n");
+            let e = read_columns_optional(&file("units.csv", &text), &["u", "y"], &["a0", "a1", "b0"], Time::Required)
+                .unwrap_err();
+            assert!(e.0.contains(want), "{header}: {}", e.0);
+        }
+        // Not a unit: no name before it, nothing in it, or not closed.
+        for header in ["t,u,[V]", "t,u,y []", "t,u,y [um"] {
+            let e = read(header.as_bytes()).unwrap_err();
+            assert!(e.0.contains("units.csv:1: no column 'y' in the header"), "{header}: {}", e.0);
+        }
+        // A spreadsheet's own file (here the start of an .xlsx, a zip) is not text in any encoding.
+        let e = read(b"PK\x03\x04\x14\0\x06\0\x08\0\0\0!\0b\xee\x9dh^\x01").unwrap_err();
+        assert!(
+            e.0.ends_with("units.csv:1: the header is not text (is the file a spreadsheet's own, not its CSV export?)"),
+            "{}",
+            e.0
+        );
     }
 
     /// `t` may be asked for like any column: it is then the one whose steps are checked, in its place in the output.
