@@ -109,7 +109,8 @@ where
     h
 }
 
-/// Mean estimate over `[t0, t1)` and its truth (the truth at the window's end).
+/// Mean of the estimates stamped in `(t0, t1]` (each is stamped at the end of its sample: these are the estimates
+/// after the samples of `[t0, t1)`, `identify`'s window) and its truth (the truth at the window's end).
 pub fn window_mean(h: &[Sample], t0: f64, t1: f64) -> (StageParams<f64>, StageParams<f64>) {
     let w: Vec<&Sample> = h.iter().filter(|s| s.t_s > t0 && s.t_s <= t1).collect();
     let n = w.len() as f64;
