@@ -339,5 +339,29 @@ mod tests {
         // Wandering 5 % about its mean: never settles within 3 %.
         let h = history(1.0, 0.2, 0.05, 12.0);
         assert_eq!(settle_time(&h, 10.0, (15.0, 20.0), 0.03), None);
+        // Both parameters must be there: with `b0` wandering, neither relocked nor settled, however steady `a0` is.
+        let mut h = history(1.0, 0.2, 0.005, 12.0);
+        for (k, s) in h.iter_mut().enumerate() {
+            s.est.b0 = s.truth.b0 * if k % 2 == 0 { 1.05 } else { 0.95 };
+        }
+        assert_eq!(relock_time(&h, 10.0, 0.01), None);
+        assert_eq!(settle_time(&h, 10.0, (15.0, 20.0), 0.03), None);
+    }
+
+    /// A window's mean takes the estimates stamped after its start up to its end: those made from its samples.
+    #[test]
+    fn a_window_takes_the_estimates_after_its_start_up_to_its_end() {
+        let mut h = history(1.0, 0.0, 0.0, 0.0);
+        let truth = h[0].truth;
+        // Stamped 1.00 s to 1.03 s: 3, 1, 2, 7 times the truth's a0.
+        for (s, f) in h[99..103].iter_mut().zip([3.0, 1.0, 2.0, 7.0]) {
+            s.est.a0 = truth.a0 * f;
+        }
+        assert_eq!(h[99].t_s, 1.0);
+        let (mean, at_end) = window_mean(&h, 1.0, 1.02);
+        assert!((mean.a0 / truth.a0 - 1.5).abs() < 1e-12, "{}", mean.a0 / truth.a0);
+        assert_eq!((mean.a1, mean.b0), (truth.a1, truth.b0));
+        assert_eq!((at_end.a0, at_end.a1, at_end.b0), (truth.a0, truth.a1, truth.b0));
+        assert_eq!(rel_errors(&mean, &truth).map(|e| (e * 1e12).round() / 1e12), [0.5, 0.0, 0.0]);
     }
 }
