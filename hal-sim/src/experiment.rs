@@ -346,6 +346,15 @@ mod tests {
         }
         assert_eq!(relock_time(&h, 10.0, 0.01), None);
         assert_eq!(settle_time(&h, 10.0, (15.0, 20.0), 0.03), None);
+        // Within from 12 s but for one estimate at 15 s: relocked after that one, 5.01 s after the change.
+        let mut h = history(1.0, 0.2, 0.005, 12.0);
+        assert_eq!(h[1499].t_s, 15.0);
+        h[1499].est.a0 *= 1.1;
+        assert!(close(relock_time(&h, 10.0, 0.01), 5.01), "{:?}", relock_time(&h, 10.0, 0.01));
+        assert!(close(settle_time(&h, 10.0, (15.0, 20.0), 0.03), 5.01));
+        // On the truth throughout: relocked at the first estimate after the change, not at the one stamped with it.
+        let h = history(1.0, 0.0, 0.005, 0.0);
+        assert!(close(relock_time(&h, 10.0, 0.01), 0.01), "{:?}", relock_time(&h, 10.0, 0.01));
     }
 
     /// A window's mean takes the estimates stamped after its start up to its end: those made from its samples.
