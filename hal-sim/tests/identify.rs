@@ -1018,6 +1018,52 @@ fn an_output_never_replaces_an_input_or_another_output() {
     assert_eq!(names, want, "no partial file left");
 }
 
+/// The part of a summary's JSON text from `"name": {` on (the first such: a window's, or the estimator's or the
+/// truth's within a window's part).
+fn part<'a>(json: &'a str, name: &str) -> &'a str {
+    json.split_once(&format!("\"{name}\": {{")).unwrap_or_else(|| panic!("no {name}: {json}")).1
+}
+
+/// `paper`'s PRBS run is `simulate`'s record identified with the PRBS tuning: over 8 s, so that `paper` feeds its
+/// identifications more than one block of the simulation (65 536 rows), its summary is `identify`'s byte for byte; and
+/// its table's errors and RMSE, f64 and f32, are those of `identify`'s summaries (no test had read the table's
+/// figures, nor crossed a block: cargo-mutants' changes to both passed).
+#[test]
+fn papers_prbs_run_is_identify_on_simulates_record_and_its_table_the_summaries() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = nanopos_sim(&["paper", "--duration", "8", "--out-dir", "res"], dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let table = String::from_utf8(out.stdout).unwrap();
+    simulate_prbs(dir.path(), "8");
+    let mut rows = 0;
+    for prec in ["f64", "f32"] {
+        let summary = format!("{prec}.json");
+        let args = ["identify", "--input", "run.csv", "--tuning", "prbs", "--precision", prec, "--summary", &summary];
+        let out = nanopos_sim(&args, dir.path());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json = std::fs::read_to_string(dir.path().join(&summary)).unwrap();
+        if prec == "f64" {
+            assert_eq!(json, std::fs::read_to_string(dir.path().join("res/prbs-summary.json")).unwrap());
+        }
+        for row in table.lines().filter(|l| l.starts_with(&format!("prbs      {prec} "))) {
+            let cells: Vec<&str> = row.split_whitespace().collect();
+            let (name, t0) = (cells[2], cells[3].split('-').next().unwrap().parse::<f64>().unwrap());
+            let window = json.split("{\"t0\": ").find(|w| w.starts_with(&format!("{t0:?},"))).expect("window");
+            let truth = part(window, "truth");
+            let (figures, rmse) = if name == "truth" { (truth, cells[4]) } else { (part(window, name), cells[7]) };
+            assert_eq!(rmse, format!("{:.2}", number_after(figures, "rmse_nm")), "{row}");
+            if name != "truth" {
+                for (cell, key) in cells[4..7].iter().zip(["a0", "a1", "b0"]) {
+                    let error = 100.0 * (number_after(figures, key) / number_after(truth, key) - 1.0);
+                    assert_eq!(*cell, format!("{error:+.3}%"), "{key}: {row}");
+                }
+            }
+            rows += 1;
+        }
+    }
+    assert_eq!(rows, 20, "{table}");
+}
+
 #[test]
 fn paper_prints_the_table_for_both_inputs_and_writes_the_summaries() {
     let dir = tempfile::tempdir().unwrap();
