@@ -203,6 +203,9 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
         y = [1.8 * y[0] - 0.9 * y[1] + 0.1 * u, y[0]];
     }
     write(d, "rich.csv", &rich);
+    // A constant input: with --offset its column and the constant's are the same.
+    let still: String = (0..50).map(|k| format!("{},1,{}\n", k as f64 * 0.001, (next() % 1000) as f64)).collect();
+    write(d, "still_u.csv", &format!("t,u,y\n{still}"));
     assert_eq!(
         nanopos_sim(&["fit", "--input", "rich.csv", "--arx", "2,2,1", "--weight", "1,0.9"], d).status.code(),
         Some(0)
@@ -233,6 +236,10 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
         (
             &["fit", "--input", "t.csv", "--arx", "2,2,1"],
             "rank-deficient fit: column u(k-2) is (nearly) a combination of u(k-1)",
+        ),
+        (
+            &["fit", "--input", "still_u.csv", "--arx", "1,1,1", "--offset"],
+            "rank-deficient fit: column 1 (the constant) is (nearly) a combination of u(k-1)",
         ),
         (&["fit", "--input", "t.csv", "--arx", "2,2"], "NA,NB,NK"),
         // Refused as --arx's value, not as an unknown option '-1'.

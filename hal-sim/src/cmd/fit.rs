@@ -279,6 +279,24 @@ pub fn run(
 mod tests {
     use super::*;
 
+    /// Orders and weights are taken up to their bounds and refused beyond: 32 parameters, not 33; a model of the
+    /// outputs or the inputs alone, not of neither; `A` and `GAMMA` above 0, not at it; `GAMMA` up to 1.
+    #[test]
+    fn orders_and_weights_are_taken_up_to_their_bounds() {
+        for ok in ["16,16,1", "32,0,0", "2,0,0", "0,2,1"] {
+            assert!(ok.parse::<ArxOrders>().is_ok(), "{ok}");
+        }
+        for bad in ["16,17,1", "33,0,0", "0,0,3"] {
+            assert!(bad.parse::<ArxOrders>().is_err(), "{bad}");
+        }
+        for ok in ["1e-300,1", "1,1e-300", "0.2,0.8"] {
+            assert!(ok.parse::<Weight>().is_ok(), "{ok}");
+        }
+        for bad in ["0,0.8", "1,0", "1,1.0000001", "inf,1", "NaN,1", "1,NaN"] {
+            assert!(bad.parse::<Weight>().is_err(), "{bad}");
+        }
+    }
+
     /// Read in blocks (this file is two of them), the fit adds exactly the rows of the whole record in memory, in
     /// the same order: the same solution bit for bit, with full history and with zero initial conditions.
     #[test]
