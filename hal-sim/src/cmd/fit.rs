@@ -333,5 +333,27 @@ mod tests {
             assert_eq!((got.sse, got.rows), (s.sse, s.rows));
             assert!((got.a[0] - 1.6).abs() < 1e-3 && (got.b[1] - 0.1).abs() < 1e-3, "{got:?}");
         }
+        // A wild sample in the second block is named by its place in the record, not in its block.
+        let k = 300_000;
+        let (line, wild) =
+            (format!("\n{},{},{}\n", k as f64 * 1e-4, u[k], y[k]), format!("\n{},{},1e6\n", k as f64 * 1e-4, u[k]));
+        std::fs::write(&path, std::fs::read_to_string(&path).unwrap().replacen(&line, &wild, 1)).unwrap();
+        let got = run(&path, orders, false, None, false).unwrap();
+        assert!(got.notes.iter().any(|n| n.contains(&format!(" at sample {k} (the first is 0)"))), "{:?}", got.notes);
+    }
+
+    /// The rows a model's orders leave: those with every lag inside the record, `max(NA, NK + NB - 1)` samples in.
+    #[test]
+    fn the_rows_are_those_with_every_lag_in_the_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rows.csv");
+        let mut next = nanopos_id::xorshift64(0x0123_4567_89AB_CDEF);
+        let text: String = (0..100).map(|k| format!("{},{},{}\n", k, next() % 7, next() % 11)).collect();
+        std::fs::write(&path, format!("t,u,y\n{text}")).unwrap();
+        for (orders, rows) in [("2,0,0", 98), ("0,2,0", 99), ("1,2,3", 96), ("4,1,0", 96), ("1,1,0", 99)] {
+            let got = run(&path, orders.parse().unwrap(), false, None, false).unwrap();
+            assert_eq!(got.rows, rows, "{orders}");
+            assert_eq!(run(&path, orders.parse().unwrap(), true, None, false).unwrap().rows, 100, "{orders}");
+        }
     }
 }
