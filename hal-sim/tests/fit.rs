@@ -114,12 +114,16 @@ fn fit_recovers_a_noise_free_arx_exactly_with_and_without_weights() {
 fn an_offset_of_y_is_noted_and_fitted_with_offset() {
     let (u, y) = noise_free_arx();
     let dir = tempfile::tempdir().unwrap();
-    let csv = |offset: f64| {
-        let rows = (0..u.len()).map(|k| format!("{},{:?},{:?}\n", k as f64 * 1e-4, u[k], y[k] + offset));
+    let csv = |offset: f64, scale: f64| {
+        let rows = (0..u.len()).map(|k| format!("{},{:?},{:?}\n", k as f64 * 1e-4, u[k], (y[k] + offset) * scale));
         rows.fold(String::from("t,u,y\n"), |a, r| a + &r)
     };
-    write(dir.path(), "off.csv", &csv(2.0));
-    write(dir.path(), "on.csv", &csv(0.0));
+    write(dir.path(), "off.csv", &csv(2.0, 1.0));
+    write(dir.path(), "on.csv", &csv(0.0, 1.0));
+    // The same in pm read as um (1e-6 as large): the note's test of a residual that is only rounding is to the scale
+    // of `y` (cargo-mutants' `a + y^2` for `a y^2` in that scale passed).
+    write(dir.path(), "off_small.csv", &csv(2.0, 1e-6));
+    write(dir.path(), "on_small.csv", &csv(0.0, 1e-6));
     let fit = |file: &str, offset: bool| {
         let mut args = vec!["fit", "--input", file, "--arx", "2,2,2"];
         if offset {
@@ -143,6 +147,10 @@ fn an_offset_of_y_is_noted_and_fitted_with_offset() {
     let c: f64 = json.split("\"c\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap();
     assert!((c - 2.0 * (1.0 - 1.5 + 0.7)).abs() < 1e-9, "{json}");
     let (_, stderr) = fit("on.csv", false);
+    assert!(stderr.is_empty(), "{stderr}");
+    let (_, stderr) = fit("off_small.csv", false);
+    assert!(stderr.contains("note: a constant term would lower the fit's residual by "), "{stderr}");
+    let (_, stderr) = fit("on_small.csv", false);
     assert!(stderr.is_empty(), "{stderr}");
 }
 
@@ -226,6 +234,10 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
         (
             &["fit", "--input", "short.csv", "--arx", "2,2,1"],
             "short.csv: too few rows: 3 samples give 1 regression row with full history, 4 parameters need at least 4",
+        ),
+        (
+            &["fit", "--input", "short.csv", "--arx", "1,1,1", "--offset"],
+            "short.csv: too few rows: 3 samples give 2 regression rows with full history, 3 parameters need at least 3",
         ),
         (
             &["fit", "--input", "one.csv", "--arx", "1,1,1"],
