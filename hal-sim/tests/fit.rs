@@ -124,8 +124,8 @@ fn an_offset_of_y_is_noted_and_fitted_with_offset() {
     // of `y` (cargo-mutants' `a + y^2` for `a y^2` in that scale passed).
     write(dir.path(), "off_small.csv", &csv(2.0, 1e-6));
     write(dir.path(), "on_small.csv", &csv(0.0, 1e-6));
-    let fit = |file: &str, offset: bool| {
-        let mut args = vec!["fit", "--input", file, "--arx", "2,2,2"];
+    let fit_orders = |file: &str, offset: bool, orders: &str| {
+        let mut args = vec!["fit", "--input", file, "--arx", orders];
         if offset {
             args.push("--offset");
         }
@@ -133,6 +133,10 @@ fn an_offset_of_y_is_noted_and_fitted_with_offset() {
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         (String::from_utf8(out.stdout).unwrap(), String::from_utf8(out.stderr).unwrap())
     };
+    let fit = |file: &str, offset: bool| fit_orders(file, offset, "2,2,2");
+    // With orders whose sum is not their product, the constant is still the one after the coefficients.
+    let (_, stderr) = fit_orders("off.csv", false, "3,2,2");
+    assert!(stderr.contains("(c = 0.400, y 2.00 um off): y sits off the model"), "{stderr}");
     let (json, stderr) = fit("off.csv", false);
     assert!(stderr.contains("note: a constant term would lower the fit's residual by "), "{stderr}");
     assert!(stderr.contains(", y 2.00 um off): y sits off the model"), "{stderr}");
