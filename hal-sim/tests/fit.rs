@@ -222,6 +222,10 @@ fn bad_inputs_fail_with_one_line_naming_file_and_line() {
         nanopos_sim(&["fit", "--input", "rich.csv", "--arx", "2,2,1", "--weight", "1,0.9"], d).status.code(),
         Some(0)
     );
+    // As many rows as parameters are enough (the fit is then exact): 3 samples, 2 rows with full history for 1,1,1.
+    let out = nanopos_sim(&["fit", "--input", "short.csv", "--arx", "1,1,1"], d);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8(out.stdout).unwrap().ends_with("\"rows\": 2}\n"));
     let cases: &[(&[&str], &str)] = &[
         (
             &["fit", "--input", "rich.csv", "--arx", "2,2,1", "--weight", "1,1e-300"],
