@@ -233,7 +233,8 @@ impl Reader {
         let header_bytes = &r.carry[header_start..header_end];
         let decoded: std::borrow::Cow<str> = match std::str::from_utf8(header_bytes) {
             Ok(text) => text.into(),
-            // Not UTF-8 but text: Latin-1 (Windows' Western European, a logger's `y [\xb5m]`), the units' signs the same.
+            // Not UTF-8 but text: Latin-1 (Windows' Western European, a logger's `y [\xb5m]`; the units' signs the
+            // same in both).
             Err(_) if !header_bytes.iter().any(|&b| b < b' ' && b != b'\t' && b != b'\r' || b == 0x7f) => {
                 header_bytes.iter().map(|&b| char::from(b)).collect::<String>().into()
             }
@@ -767,9 +768,9 @@ mod tests {
     }
 
     /// 600 damaged files (bytes changed to one of the characters a CSV is made of, `#` among them, or to a byte that
-    /// is not UTF-8 (Latin-1's degree sign), or removed, or inserted; a line doubled or lost; the file cut anywhere), each read in one piece and in [`TINY`] pieces, with
-    /// the time checked and not: no panic, and both readings the same, the same columns or the same message naming the
-    /// same line.
+    /// is not UTF-8 (Latin-1's degree sign), or removed, or inserted; a line doubled or lost; the file cut anywhere),
+    /// each read in one piece and in [`TINY`] pieces, with the time checked and not: no panic, and both readings the
+    /// same, the same columns or the same message naming the same line.
     #[test]
     fn a_damaged_file_reads_the_same_in_one_piece_and_in_many() {
         let good = rows(40);
