@@ -532,27 +532,24 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
     let mut data: Vec<Vec<f64>> = names.iter().map(|_| Vec::with_capacity(rows_guess)).collect();
     // The lines before `rest`.
     let (mut rest, mut before) = (piece, 0);
-    loop {
-        let text = match std::str::from_utf8(rest) {
-            Ok(text) => text,
-            Err(e) => {
-                let bad = e.valid_up_to();
-                let start = rest[..bad].iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
-                let end = rest[bad..].iter().position(|&b| b == b'\n').map_or(rest.len(), |i| bad + i);
-                if !holds_no_row(&rest[start..end]) {
-                    return Err((before + 1 + line_ends(&rest[..bad]), "not text (invalid UTF-8)".to_string()));
-                }
-                let valid = std::str::from_utf8(&rest[..start]).expect("valid up to the line of the first error");
-                // Up to its line end, which holds the comment's line (blank now).
-                parse_text(valid, before, slot, names, width, &mut data)?;
-                before += line_ends(&rest[..end]);
-                rest = &rest[end..];
-                continue;
-            }
+    let text = loop {
+        let bad = match std::str::from_utf8(rest) {
+            Ok(text) => break text,
+            Err(e) => e.valid_up_to(),
         };
-        parse_text(text, before, slot, names, width, &mut data)?;
-        return Ok(data);
-    }
+        let start = rest[..bad].iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+        let end = rest[bad..].iter().position(|&b| b == b'\n').map_or(rest.len(), |i| bad + i);
+        if !holds_no_row(&rest[start..end]) {
+            return Err((before + 1 + line_ends(&rest[..bad]), "not text (invalid UTF-8)".to_string()));
+        }
+        // The text before the comment's line, up to its line end (the comment's line, blank now), then past it.
+        let valid = std::str::from_utf8(&rest[..start]).expect("valid up to the line of the first error");
+        parse_text(valid, before, slot, names, width, &mut data)?;
+        before += line_ends(&rest[..end]);
+        rest = &rest[end..];
+    };
+    parse_text(text, before, slot, names, width, &mut data)?;
+    Ok(data)
 }
 
 /// The rows of `text`, whose first line is the piece's `before + 1`, appended to `data`.
