@@ -4,8 +4,9 @@
 //! infinity, a row with the wrong number of fields, time that does not advance uniformly. What spreadsheets and
 //! other tools write is read: a UTF-8 byte-order mark before the header, blank lines and `#` comments (a logger's
 //! notes, in UTF-8 or Latin-1) before it and among the rows, a header after a comment mark (numpy's `savetxt` writes
-//! `# t,u,y`) or in Latin-1, a column's unit in its name when it is the one the column is read in (`y [um]`; another,
-//! `y [nm]`, is refused), and fields in double quotes (`"t"`, `"0.5"`; a field never holds a comma here).
+//! `# t,u,y`) or in Latin-1, a column's unit in its name (`y [um]`; `y [nm]` and the like are scaled to the unit the
+//! column is read in, a unit of another quantity is refused), and fields in double quotes (`"t"`, `"0.5"`; a field
+//! never holds a comma here).
 
 use crate::cmd::{clip, show, CliError};
 use std::io::Read;
@@ -101,8 +102,8 @@ pub struct Reader {
     /// How many of `names` are not optional.
     required: usize,
     with_optional: bool,
-    /// For each field of a row: the output column it fills, if any.
-    slot: Vec<Option<usize>>,
+    /// For each field of a row: the output column it fills, if any, and the scale of its unit.
+    slot: Vec<Option<Slot>>,
     /// Fields per row.
     fields: usize,
     /// The field of `t` in a row, and its output column, when `t` is read.
@@ -286,8 +287,9 @@ impl Reader {
             }
             match named.iter().position(|f| f == name) {
                 Some(i) => {
-                    unit_read(&fields[i], name).map_err(|e| CliError(format!("{}:{header_line}: {e}", r.shown)))?;
-                    r.slot[i] = Some(c);
+                    let scale =
+                        unit_read(&fields[i], name).map_err(|e| CliError(format!("{}:{header_line}: {e}", r.shown)))?;
+                    r.slot[i] = Some(Slot { column: c, scale });
                     if *name == "t" && c < r.required {
                         r.t_field = Some((i, c));
                     }
@@ -376,6 +378,7 @@ impl Reader {
     pub fn last_time(&self) -> Option<f64> {
         use std::io::{Seek, SeekFrom};
         let (field, _) = self.t_field?;
+        let scale = self.slot[field].and_then(|s| s.scale);
         let mut file = std::fs::File::open(&self.path).ok()?;
         let len = file.metadata().ok()?.len();
         let tail = len.min(1 << 16);
@@ -391,7 +394,8 @@ impl Reader {
         unquote(std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim())
             .parse()
             .ok()
-            .filter(|t: &f64| t.is_finite())
+            .map(|t: f64| scale.map_or(t, |s| s.apply(t)))
+            .filter(|t| t.is_finite())
     }
 
     /// The next block of rows, one vector per column (`None` at the end of the file).
@@ -527,7 +531,7 @@ type Parsed = Result<Vec<Vec<f64>>, (usize, String)>;
 ///
 /// Rows are numbers, so text that is not UTF-8 can only be a comment's (a logger's note in Latin-1 or Windows-1252,
 /// `# 23 \xb0C`): the piece is checked whole, and only where that fails is it taken apart at such comments.
-fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize) -> Parsed {
+fn parse_rows(piece: &[u8], slot: &[Option<Slot>], names: &[&str], width: usize) -> Parsed {
     let rows_guess = piece.len() / 40 + 1;
     let mut data: Vec<Vec<f64>> = names.iter().map(|_| Vec::with_capacity(rows_guess)).collect();
     // The lines before `rest`.
@@ -556,7 +560,7 @@ fn parse_rows(piece: &[u8], slot: &[Option<usize>], names: &[&str], width: usize
 fn parse_text(
     text: &str,
     before: usize,
-    slot: &[Option<usize>],
+    slot: &[Option<Slot>],
     names: &[&str],
     width: usize,
     data: &mut [Vec<f64>],
@@ -571,7 +575,7 @@ fn parse_text(
         let ends = line.bytes().enumerate().filter(|&(_, b)| b == b',').map(|(j, _)| j).chain([line.len()]);
         let (mut count, mut start) = (0, 0);
         for end in ends {
-            if let Some(c) = slot.get(count).copied().flatten() {
+            if let Some(Slot { column: c, scale }) = slot.get(count).copied().flatten() {
                 let text = unquote(line[start..end].trim_ascii());
                 let v: f64 = text
                     .parse()
@@ -579,6 +583,13 @@ fn parse_text(
                 if !v.is_finite() {
                     return Err((line_no, format!("column '{}': {} is not a finite number", names[c], clip(text, 40))));
                 }
+                let v = match scale {
+                    None => v,
+                    Some(s) => Some(s.apply(v)).filter(|v| v.is_finite()).ok_or_else(|| {
+                        let read = UNITS.iter().find(|(n, _)| *n == names[c]).map_or("", |(_, units)| units[0].0);
+                        (line_no, format!("column '{}': {} is too large in {read}", names[c], clip(text, 40)))
+                    })?,
+                };
                 data[c].push(v);
             }
             count += 1;
@@ -612,21 +623,71 @@ fn name_and_unit(field: &str) -> (&str, Option<&str>) {
     (field, None)
 }
 
-/// The units a column is read in: time in seconds, the command in volts, the reading in micrometres (ASCII `um`, the
-/// micro sign, or the Greek mu); the others (the truth's parameters) as plain numbers.
-const UNITS: [(&str, &[&str]); 3] = [("t", &["s"]), ("u", &["V"]), ("y", &["um", "\u{b5}m", "\u{3bc}m"])];
+/// Where a field of a row goes: its output column, and the scale of its unit when that is not the one read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Slot {
+    column: usize,
+    scale: Option<Scale>,
+}
 
-/// Whether the header's `field`, which names column `name`, gives the unit it is read in, or none.
-fn unit_read(field: &str, name: &str) -> Result<(), String> {
-    let Some(unit) = name_and_unit(field).1 else { return Ok(()) };
+/// How a value in a column's unit becomes one in the unit the column is read in: multiplied by `mul`, then divided
+/// by `div`, one of them 1, so that one rounding is added (`1234.5` nm is 1.2345 um to the last bit, as the decimal
+/// would have been read in um).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Scale {
+    mul: f64,
+    div: f64,
+}
+
+impl Scale {
+    fn apply(self, v: f64) -> f64 {
+        v * self.mul / self.div
+    }
+}
+
+/// The units each column may be given in, with their scales to the first, the one it is read in: time in seconds,
+/// the command in volts, the reading in micrometres (ASCII `u`, the micro sign, or the Greek mu, for micro); the
+/// other columns (the truth's parameters) as plain numbers.
+const UNITS: [(&str, &[(&str, Scale)]); 3] = {
+    const fn by(mul: f64, div: f64) -> Scale {
+        Scale { mul, div }
+    }
+    [
+        ("t", &[("s", by(1.0, 1.0)), ("ms", by(1.0, 1e3)), ("us", by(1.0, 1e6)), ("\u{b5}s", by(1.0, 1e6))]),
+        ("u", &[("V", by(1.0, 1.0)), ("mV", by(1.0, 1e3))]),
+        (
+            "y",
+            &[
+                ("um", by(1.0, 1.0)),
+                ("\u{b5}m", by(1.0, 1.0)),
+                ("nm", by(1.0, 1e3)),
+                ("mm", by(1e3, 1.0)),
+                ("m", by(1e6, 1.0)),
+            ],
+        ),
+    ]
+};
+
+/// The scale of the unit the header's `field`, which names column `name`, gives it: `None` for none or the unit it
+/// is read in, an error for a unit it is not read in or a column read as a plain number. The Greek mu is read as the
+/// micro sign (keyboards give one or the other).
+fn unit_read(field: &str, name: &str) -> Result<Option<Scale>, String> {
+    let Some(unit) = name_and_unit(field).1 else { return Ok(None) };
+    let unit = unit.replace('\u{3bc}', "\u{b5}");
     match UNITS.iter().find(|(n, _)| *n == name) {
-        Some((_, units)) if units.contains(&unit) => Ok(()),
-        Some((_, units)) => Err(format!(
-            "column '{}': {name} is read in {}, not {}: scale the column (this reads t in s, u in V, y in um)",
-            clip(field, 40),
-            units[0],
-            clip(unit, 20)
-        )),
+        Some((_, units)) => match units.iter().find(|(sign, _)| *sign == unit) {
+            Some(&(_, scale)) => Ok(Some(scale).filter(|s| *s != Scale { mul: 1.0, div: 1.0 })),
+            None => {
+                let signs: Vec<&str> = units.iter().map(|(sign, _)| *sign).filter(|s| s.is_ascii()).collect();
+                let (last, rest) = signs.split_last().expect("every column read with a unit has units");
+                Err(format!(
+                    "column '{}': {name} is read in {} or {last}, not {}: scale the column",
+                    clip(field, 40),
+                    rest.join(", "),
+                    clip(&unit, 20)
+                ))
+            }
+        },
         None => Err(format!("column '{}': {name} is read as a plain number, without a unit", clip(field, 40))),
     }
 }
@@ -939,6 +1000,7 @@ mod tests {
         let e = Reader::open(&file("blank.csv", " \n\n"), &["u"], &[], Time::Required).err().unwrap();
         assert!(e.0.ends_with("blank.csv: empty file (a header line naming t,u is needed)"), "{}", e.0);
         assert_eq!(read("t,u\n\"0\",\"1\"\n\"0.5\",\"2\"\n"), Some(0.5), "quoted");
+        assert_eq!(read("t [ms],u\n0,1\n500,2\n"), Some(0.5), "in the unit read, s");
         // Beyond the 64 KiB read from the end: the last line of a long file; and none when the last line is longer
         // than that (the tail starts inside it: here its 70 000 zeros cut, `0.000...05` would read as 5).
         let long = rows(3_000);
@@ -1086,8 +1148,9 @@ mod tests {
     }
 
     /// A column's unit in its name (`y [um]`, `u (V)`, DIN 1313's `t / s`; numpy's header too) is read when it is the
-    /// one the column is read in, and refused, named, when it is another: a reading in nm read as um would be a stage
-    /// a thousand times larger. A header that is not UTF-8 but text is read as Latin-1 (a Windows logger's `\xb5m`).
+    /// one the column is read in, scaled when it is another of its quantity (`y [nm]`, `t [ms]`, `u (mV)`), and
+    /// refused, named, otherwise: a reading in nm read as um would be a stage a thousand times larger. A header that
+    /// is not UTF-8 but text is read as Latin-1 (a Windows logger's `\xb5m`).
     #[test]
     fn a_unit_in_a_columns_name_is_read_when_it_is_the_columns() {
         let plain = read_columns(&file("plain.csv", "t,u,y\n0,1,2\n0.5,3,4\n"), &["u", "y"], Time::Required).unwrap();
@@ -1109,10 +1172,31 @@ mod tests {
         let text = b"t,u,y,temp [\xb0C]\n0,1,2,20\n0.5,3,4,21\n";
         let got = read_columns(&file("temp.csv", text), &["u", "y"], Time::Required).unwrap();
         assert_eq!((got.data, got.sample_period_s), (plain.data.clone(), plain.sample_period_s));
+        // Another unit of the quantity, scaled: to the last bit where the scaled value is exact in binary.
+        let scaled = |header: &[u8], rows: &str| {
+            let text = [header, rows.as_bytes()].concat();
+            read_columns(&file("scaled.csv", text), &["u", "y"], Time::Required).map(|c| (c.data, c.sample_period_s))
+        };
+        for header in [&b"t [ms],u (mV),y [nm]"[..], b"t / \xb5s,u/mV,y / nm", b"t [\xce\xbcs],u [mV],y [nm]"] {
+            let micro = header.starts_with(b"t [\xce") || header.contains(&0xb5);
+            let rows = if micro { "\n0,1000,2000\n500000,3000,4000\n" } else { "\n0,1000,2000\n500,3000,4000\n" };
+            let got = scaled(header, rows).unwrap_or_else(|e| panic!("{}: {}", String::from_utf8_lossy(header), e.0));
+            assert_eq!(got, (plain.data.clone(), plain.sample_period_s), "{}", String::from_utf8_lossy(header));
+        }
+        let (data, _) = scaled(b"t,u,y [mm]", "\n0,1,0.5\n0.5,3,0.25\n").unwrap();
+        assert_eq!(data[1], [500.0, 250.0]);
+        // A value not exact in binary gains one rounding: 1.5e-6 m is 1.5 um to within an ulp.
+        let (data, _) = scaled(b"t,u,y [m]", "\n0,1,1.5e-6\n0.5,3,-2.5e-7\n").unwrap();
+        for (got, want) in data[1].iter().zip([1.5, -0.25]) {
+            assert!((got - want).abs() <= f64::EPSILON * want.abs(), "{got} against {want}");
+        }
+        // Time scaled before its steps are checked: a step of 0.1 ms.
+        let (_, period) = scaled(b"t [ms],u,y", "\n0,1,2\n0.1,3,4\n0.2,5,6\n").unwrap();
+        assert!((period.unwrap() - 1e-4).abs() < 1e-18, "{period:?}");
         for (header, want) in [
-            ("t,u,y [nm]", "units.csv:1: column 'y [nm]': y is read in um, not nm: scale the column"),
-            ("t,u (mV),y", "units.csv:1: column 'u (mV)': u is read in V, not mV"),
-            ("t / ms,u,y", "units.csv:1: column 't / ms': t is read in s, not ms"),
+            ("t,u,y [pm]", "units.csv:1: column 'y [pm]': y is read in um, nm, mm or m, not pm: scale the column"),
+            ("t,u (kV),y", "units.csv:1: column 'u (kV)': u is read in V or mV, not kV"),
+            ("t / min,u,y", "units.csv:1: column 't / min': t is read in s, ms or us, not min"),
             ("t,u,y [um],a0 [1/s^2],a1,b0", "units.csv:1: column 'a0 [1/s^2]': a0 is read as a plain number"),
         ] {
             let text = format!("{header}\n0,1,2,3,4,5\n");
@@ -1120,6 +1204,9 @@ mod tests {
                 .unwrap_err();
             assert!(e.0.contains(want), "{header}: {}", e.0);
         }
+        // A value that leaves f64's range once scaled is refused at its line, not read as infinity.
+        let e = scaled(b"t,u,y [m]", "\n0,1,2\n0.5,3,1e303\n").unwrap_err();
+        assert!(e.0.ends_with("scaled.csv:3: column 'y': 1e303 is too large in um"), "{}", e.0);
         // Not a unit: no name before it, nothing in it, or not closed.
         for header in ["t,u,[V]", "t,u,y []", "t,u,y [um"] {
             let e = read(header.as_bytes()).unwrap_err();

@@ -868,13 +868,13 @@ fn bad_identify_inputs_fail_with_one_line_and_leave_no_files() {
         (
             &["identify", "--input", "ms.csv"],
             "ms.csv: a sample every 0.1 s (10 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's f_p), \
-             which needs more than 900 samples a second: is t in seconds?",
+             which needs more than 900 samples a second: is t in seconds? (a header's `t [ms]` reads it in ms)",
         ),
         // Too slow for the paper's band too (more than 2 f_p = 900 Hz needed): the time is questioned.
         (
             &["identify", "--input", "hz500.csv"],
             "hz500.csv: a sample every 0.002 s (500 Hz) cannot show the pre-filter's band at 450 Hz (--tuning prbs's \
-             f_p), which needs more than 900 samples a second: is t in seconds?",
+             f_p), which needs more than 900 samples a second: is t in seconds? (a header's `t [ms]` reads it in ms)",
         ),
         // A record fast enough for the paper's band: the tuning's band is the one questioned.
         (

@@ -336,7 +336,7 @@ fn identify_blocks<T: Real>(
         let question = if 1.0 / dt > 2.0 * PrefilterDesign::default().f_p_hz {
             format!("is {name}'s f_p in Hz, and below {} Hz?", show(0.5 / dt))
         } else {
-            "is t in seconds?".to_string()
+            "is t in seconds? (a header's `t [ms]` reads it in ms)".to_string()
         };
         return fail(format!(
             "{source}: a sample every {} s ({} Hz) cannot show the pre-filter's band at {} Hz ({name}'s f_p), which \
