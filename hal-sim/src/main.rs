@@ -46,7 +46,8 @@ enum Command {
     },
     /// Run the firmware's pipeline and estimators on a recorded run (t,u,y); write estimates and a summary.
     Identify {
-        /// CSV with a header naming at least t, u, y (a0, a1, b0: the truth, optional).
+        /// CSV with a header naming at least t, u, y: s, V, um, or the unit a name gives (`t [ms]`, `y [nm]`); a0, a1,
+        /// b0: the truth, optional.
         #[arg(long)]
         input: PathBuf,
         /// Estimators to run.
@@ -102,7 +103,7 @@ enum Command {
     },
     /// Batch (weighted) least squares of an ARX model on a recorded run's u and y; prints JSON.
     Fit {
-        /// CSV with a header naming at least u and y.
+        /// CSV with a header naming at least u and y: V and um, or the unit a name gives (`u [mV]`, `y [nm]`).
         #[arg(long)]
         input: PathBuf,
         /// Orders NA,NB,NK: y(k) = a1 y(k-1)+..+a_NA y(k-NA) + b1 u(k-NK)+..+b_NB u(k-NK-NB+1).

@@ -4,17 +4,18 @@
 use hal_sim::board::{BoardSettings, SimBoard, Tone};
 use hal_sim::noise::NormalStream;
 use hal_sim::plant::{Plant, PlantSettings, STATES};
-use hal_sim::sim::Simulation;
+use hal_sim::sim::{Scenario, Simulation};
 use nanopos_id::excitation::{ExcitationDesign, ExcitationState};
 use nanopos_id::hal::{run_sample, StageBoard};
 use nanopos_id::pipeline::PipelineSettings;
 use nanopos_id::StageParams;
 
 /// `data_fingerprint` of `../shared/golden/paper-reference.json` (float64 reference, numpy), copied here so the
-/// test stands without the shared folder: ideal ZOH plant, Table I parameters, switch at 100 s, noise 1.25 nm.
+/// test stands without the shared folder: ideal ZOH plant, Table I parameters, switch at 100 s, noise 1.25 nm. Its
+/// excitation and noise stream are the scenario's, as `simulate` and `paper` run it by default (seed 1 for the
+/// PRBS, 2 for the triangle).
 struct Fingerprint {
-    excitation: ExcitationDesign,
-    seed: u64,
+    scenario: Scenario,
     segment_samples: u64,
     u_first5: [f64; 5],
     y_first5: [f64; 5],
@@ -25,8 +26,7 @@ struct Fingerprint {
 }
 
 const PRBS_SEG100: Fingerprint = Fingerprint {
-    excitation: ExcitationDesign::PAPER_PRBS,
-    seed: 1,
+    scenario: Scenario::Prbs,
     segment_samples: 1_000_000,
     u_first5: [-1.0; 5],
     y_first5: [
@@ -43,8 +43,7 @@ const PRBS_SEG100: Fingerprint = Fingerprint {
 };
 
 const TRIANGLE_SEG100: Fingerprint = Fingerprint {
-    excitation: ExcitationDesign::PAPER_TRIANGLE,
-    seed: 2,
+    scenario: Scenario::Triangle,
     segment_samples: 1_000_000,
     u_first5: [0.0, 0.003976180515826248, 0.007961460501146928, 0.01196146456481152, 0.015976194060673722],
     y_first5: [
@@ -61,10 +60,10 @@ const TRIANGLE_SEG100: Fingerprint = Fingerprint {
 };
 
 fn regenerate_and_compare(fp: &Fingerprint) {
-    let gen = fp.excitation.design::<f64>(10_000.0);
+    let gen = fp.scenario.excitation().design::<f64>(10_000.0);
     let mut ex = ExcitationState::default();
     let mut plant = Plant::new(PlantSettings::ideal(StageParams::PAYLOAD, StageParams::NO_PAYLOAD, fp.segment_samples));
-    let mut noise = NormalStream::new(fp.seed);
+    let mut noise = NormalStream::new(fp.scenario.default_seed());
     let (mut u_sum, mut y_sum, mut y_sumsq) = (0.0, 0.0, 0.0);
     for k in 0..2 * fp.segment_samples {
         let y = plant.output_um() + 1.25e-3 * noise.next_normal();
