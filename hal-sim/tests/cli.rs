@@ -96,6 +96,20 @@ fn simulate_notes_a_fault_and_an_excitation_the_dac_cannot_show() {
     assert!(!stderr.contains("note") && u.iter().any(|&v| v != 0.0), "{stderr}");
     let (stderr, _) = run(&["--amplitude", "0"], "zero.csv");
     assert!(!stderr.contains("note"), "{stderr}");
+    // Both, when a fault latches after the first sample under an excitation that never moved the DAC (the hum alone
+    // reaches the range here, 0.5 s in).
+    let (stderr, _) = run(&["--amplitude", "0.002", "--hum", "50:49900"], "both.csv");
+    assert!(stderr.contains("latched a fault (over_range)") && stderr.contains(note), "{stderr}");
+}
+
+/// The shortest run: two samples, the payload change at the second.
+#[test]
+fn simulate_writes_a_run_of_two_samples() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = simulated_rows(dir.path(), "0.0002", &[], "two.csv");
+    assert_eq!(rows.len(), 2);
+    assert_eq!((rows[0][0], rows[1][0]), (0.0, 1e-4));
+    assert!(rows[0][3] < rows[1][3], "a0 rises when the payload comes off: {rows:?}");
 }
 
 /// `--hysteresis` and `--creep` change the stage, not the command: the same `t` and `u` columns, another `y`.
@@ -413,12 +427,24 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "sawtooth", "--out", "x.csv"], "sawtooth"),
         (&["simulate", "--out", "x.csv"], "--scenario"),
         (&["simulate", "--scenario", "prbs"], "--out"),
-        (&["simulate", "--scenario", "prbs", "--duration", "0", "--out", "x.csv"], "--duration"),
-        (&["simulate", "--scenario", "prbs", "--duration", "-3", "--out", "x.csv"], "--duration"),
-        (&["simulate", "--scenario", "prbs", "--duration", "NaN", "--out", "x.csv"], "--duration"),
-        (&["simulate", "--scenario", "prbs", "--duration", "inf", "--out", "x.csv"], "--duration"),
+        (&["simulate", "--scenario", "prbs", "--duration", "0", "--out", "x.csv"], "--duration 0: must be a positive"),
+        (
+            &["simulate", "--scenario", "prbs", "--duration", "-3", "--out", "x.csv"],
+            "--duration -3: must be a positive",
+        ),
+        (
+            &["simulate", "--scenario", "prbs", "--duration", "NaN", "--out", "x.csv"],
+            "--duration NaN: must be a positive",
+        ),
+        (
+            &["simulate", "--scenario", "prbs", "--duration", "inf", "--out", "x.csv"],
+            "--duration inf: must be a positive",
+        ),
         (&["simulate", "--scenario", "prbs", "--duration", "ten", "--out", "x.csv"], "ten"),
-        (&["simulate", "--scenario", "prbs", "--duration", "1e9", "--out", "x.csv"], "--duration"),
+        (
+            &["simulate", "--scenario", "prbs", "--duration", "1e9", "--out", "x.csv"],
+            "1000000000: longer than the 86400 s",
+        ),
         (&["simulate", "--scenario", "prbs", "--duration", "0.00001", "--out", "x.csv"], "two samples"),
         // In exponent form, not 1e-300 with its 300 zeros.
         (&["simulate", "--scenario", "prbs", "--duration", "1e-300", "--out", "x.csv"], "--duration 1e-300: shorter"),
@@ -472,6 +498,11 @@ fn bad_arguments_fail_with_one_line_exit_2_and_no_file() {
         (&["simulate", "--scenario", "prbs", "--bogus", "--out", "x.csv"], "--bogus"),
         (&["frobnicate"], "frobnicate"),
         (&[], "no command given"),
+        // The limit itself is taken (a day: here it stops at its first write, to a device that is always full).
+        (
+            &["simulate", "--scenario", "prbs", "--duration", "86400", "--out", "/dev/full"],
+            "/dev/full: cannot write: No space left on device",
+        ),
     ];
     for (args, mention) in cases {
         let dir = tempfile::tempdir().unwrap();
