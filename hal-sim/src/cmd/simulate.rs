@@ -198,3 +198,20 @@ impl TimeColumn {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::TimeColumn;
+
+    /// A power-of-ten period is printed from the sample's index with as many decimals as it has, none for 1 s; another
+    /// as the shortest representation of the time.
+    #[test]
+    fn the_time_column_prints_the_periods_decimals() {
+        let text = |period: f64, k: u64| TimeColumn::new(period).text(k, k as f64 * period);
+        assert_eq!(text(1e-4, 123_456), "12.3456");
+        assert_eq!(text(1e-4, 7), "0.0007");
+        assert_eq!(text(0.01, 1_005), "10.05");
+        assert_eq!(text(1.0, 5), "5");
+        assert_eq!(text(2e-4, 3), "0.0006000000000000001");
+    }
+}
