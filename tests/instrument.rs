@@ -1584,6 +1584,33 @@ fn the_interrupt_adds_the_excitation_to_a_command_of_its_own_and_records_the_sum
     assert!(out.iter().all(|o| o.u_v <= 2.5 + 0.0025) && out.iter().any(|o| o.u_v > 2.49));
 }
 
+/// While it records, the console sends a frame as soon as it is whole, and only whole frames (`Lab::drain_recording`
+/// as the firmware's console task).
+#[test]
+fn a_recording_goes_out_a_whole_frame_at_a_time() {
+    let mut lab = Lab::new();
+    assert!(verdict(&lab.send("record burst 3000\n")).starts_with("ok record burst 3000"));
+    let mut sizes = Vec::new();
+    for _ in 0..2_000 {
+        lab.sample();
+        for line in lab.drain_recording().lines() {
+            let mut out = [RawSample::default(); FRAME_SAMPLES];
+            sizes.push(decode_frame(line.as_bytes(), &mut out).unwrap_or_else(|e| panic!("{e:?}: {line}")).1);
+        }
+        let st = lab.isr.record_status();
+        assert!(st.active && st.buffered < FRAME_SAMPLES, "{st:?}");
+    }
+    assert!(sizes.iter().all(|&n| n == FRAME_SAMPLES), "{sizes:?}");
+    // The `send`'s sample and the 2 000 after it.
+    assert_eq!(sizes.len() * FRAME_SAMPLES + lab.isr.record_status().buffered, 2_001);
+    // A line while it records leaves the frames to the console task: the link gets the reply alone.
+    lab.run(100);
+    let at = lab.link.len();
+    assert!(verdict(&lab.send("status\n")).starts_with("ok status"));
+    assert!(!lab.link[at..].lines().any(|l| l.starts_with('R')), "{}", &lab.link[at..]);
+    assert!(lab.isr.record_status().buffered >= 100);
+}
+
 /// The samples of every frame on `link`, in order (each frame intact).
 fn recorded_samples(link: &str) -> Vec<RawSample> {
     let mut samples = Vec::new();
