@@ -391,11 +391,8 @@ impl Reader {
         if lines.next().is_none() && (tail as usize) < len as usize {
             return None;
         }
-        unquote(std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim())
-            .parse()
-            .ok()
-            .map(|t: f64| scale.map_or(t, |s| s.apply(t)))
-            .filter(|t| t.is_finite())
+        let text = unquote(std::str::from_utf8(last).ok()?.split(',').nth(field)?.trim());
+        text.parse().ok().map(|t: f64| scale.map_or(t, |s| s.apply(text, t))).filter(|t| t.is_finite())
     }
 
     /// The next block of rows, one vector per column (`None` at the end of the file).
@@ -585,7 +582,7 @@ fn parse_text(
                 }
                 let v = match scale {
                     None => v,
-                    Some(s) => Some(s.apply(v)).filter(|v| v.is_finite()).ok_or_else(|| {
+                    Some(s) => Some(s.apply(text, v)).filter(|v| v.is_finite()).ok_or_else(|| {
                         let read = UNITS.iter().find(|(n, _)| *n == names[c]).map_or("", |(_, units)| units[0].0);
                         (line_no, format!("column '{}': {} is too large in {read}", names[c], clip(text, 40)))
                     })?,
@@ -630,18 +627,37 @@ struct Slot {
     scale: Option<Scale>,
 }
 
-/// How a value in a column's unit becomes one in the unit the column is read in: multiplied by `mul`, then divided
-/// by `div`, one of them 1, so that one rounding is added (`1234.5` nm is 1.2345 um to the last bit, as the decimal
-/// would have been read in um).
+/// How a value in a column's unit becomes one in the unit the column is read in: times `10^exp`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Scale {
-    mul: f64,
-    div: f64,
+    exp: i32,
 }
 
 impl Scale {
-    fn apply(self, v: f64) -> f64 {
-        v * self.mul / self.div
+    /// The field `text`, read as `v`, in the unit read: the decimal with its point moved, so that it is the double a
+    /// file in that unit would give (`3999.9` ms is `3.9999` s to the last bit, not `3.9999000000000002`, which `v /
+    /// 1000` is); a field with an exponent of its own, or too long for the buffer, as `v` times the power of ten
+    /// (one rounding).
+    fn apply(self, text: &str, v: f64) -> f64 {
+        let mut buf = [0u8; 64];
+        // `e3` or `e-3` (the units' powers are single digits).
+        let digit = b'0' + self.exp.unsigned_abs().min(9) as u8;
+        let (negative, positive) = ([b'e', b'-', digit], [b'e', digit]);
+        let suffix: &[u8] = if self.exp < 0 { &negative } else { &positive };
+        let n = text.len() + suffix.len();
+        if n <= buf.len() && !text.bytes().any(|b| b == b'e' || b == b'E') {
+            buf[..text.len()].copy_from_slice(text.as_bytes());
+            buf[text.len()..n].copy_from_slice(suffix);
+            if let Some(x) = std::str::from_utf8(&buf[..n]).ok().and_then(|t| t.parse().ok()) {
+                return x;
+            }
+        }
+        let power = 10f64.powi(self.exp.abs());
+        if self.exp < 0 {
+            v / power
+        } else {
+            v * power
+        }
     }
 }
 
@@ -649,22 +665,13 @@ impl Scale {
 /// the command in volts, the reading in micrometres (ASCII `u`, the micro sign, or the Greek mu, for micro); the
 /// other columns (the truth's parameters) as plain numbers.
 const UNITS: [(&str, &[(&str, Scale)]); 3] = {
-    const fn by(mul: f64, div: f64) -> Scale {
-        Scale { mul, div }
+    const fn by(exp: i32) -> Scale {
+        Scale { exp }
     }
     [
-        ("t", &[("s", by(1.0, 1.0)), ("ms", by(1.0, 1e3)), ("us", by(1.0, 1e6)), ("\u{b5}s", by(1.0, 1e6))]),
-        ("u", &[("V", by(1.0, 1.0)), ("mV", by(1.0, 1e3))]),
-        (
-            "y",
-            &[
-                ("um", by(1.0, 1.0)),
-                ("\u{b5}m", by(1.0, 1.0)),
-                ("nm", by(1.0, 1e3)),
-                ("mm", by(1e3, 1.0)),
-                ("m", by(1e6, 1.0)),
-            ],
-        ),
+        ("t", &[("s", by(0)), ("ms", by(-3)), ("us", by(-6)), ("\u{b5}s", by(-6))]),
+        ("u", &[("V", by(0)), ("mV", by(-3))]),
+        ("y", &[("um", by(0)), ("\u{b5}m", by(0)), ("nm", by(-3)), ("mm", by(3)), ("m", by(6))]),
     ]
 };
 
@@ -676,7 +683,7 @@ fn unit_read(field: &str, name: &str) -> Result<Option<Scale>, String> {
     let unit = unit.replace('\u{3bc}', "\u{b5}");
     match UNITS.iter().find(|(n, _)| *n == name) {
         Some((_, units)) => match units.iter().find(|(sign, _)| *sign == unit) {
-            Some(&(_, scale)) => Ok(Some(scale).filter(|s| *s != Scale { mul: 1.0, div: 1.0 })),
+            Some(&(_, scale)) => Ok(Some(scale).filter(|s| s.exp != 0)),
             None => {
                 let signs: Vec<&str> = units.iter().map(|(sign, _)| *sign).filter(|s| s.is_ascii()).collect();
                 let (last, rest) = signs.split_last().expect("every column read with a unit has units");
@@ -1185,7 +1192,15 @@ mod tests {
         }
         let (data, _) = scaled(b"t,u,y [mm]", "\n0,1,0.5\n0.5,3,0.25\n").unwrap();
         assert_eq!(data[1], [500.0, 250.0]);
-        // A value not exact in binary gains one rounding: 1.5e-6 m is 1.5 um to within an ulp.
+        // The decimal's point moved: the double a file in um or s gives, to the last bit (`1234.56 / 1000` is not).
+        let (data, period) = scaled(b"t [ms],u,y [nm]", "\n3999.8,1,1234.56\n3999.9,3,-0.7\n").unwrap();
+        assert_eq!(data[1], [1.23456, -0.0007]);
+        assert_eq!(data[2], [3.9998, 3.9999]);
+        assert_eq!(period, Some(3.9999 - 3.9998));
+        assert_ne!(1234.56 / 1e3, 1.23456, "the division would have been another double");
+        let (data, _) = scaled(b"t,u,y [nm]", "\n0,1,2.5e3\n0.5,3,-1E2\n").unwrap();
+        assert_eq!(data[1], [2.5, -0.1]);
+        // A value with an exponent of its own gains one rounding: 1.5e-6 m is 1.5 um to within an ulp.
         let (data, _) = scaled(b"t,u,y [m]", "\n0,1,1.5e-6\n0.5,3,-2.5e-7\n").unwrap();
         for (got, want) in data[1].iter().zip([1.5, -0.25]) {
             assert!((got - want).abs() <= f64::EPSILON * want.abs(), "{got} against {want}");
