@@ -1200,6 +1200,10 @@ mod tests {
         assert_ne!(1234.56 / 1e3, 1.23456, "the division would have been another double");
         let (data, _) = scaled(b"t,u,y [nm]", "\n0,1,2.5e3\n0.5,3,-1E2\n").unwrap();
         assert_eq!(data[1], [2.5, -0.1]);
+        // So is a field longer than the buffer the point is moved in (64 bytes).
+        let long = format!("1234.{}", "0".repeat(70));
+        let (data, _) = scaled(b"t,u,y [nm]", &format!("\n0,1,{long}\n0.5,3,{long}\n")).unwrap();
+        assert_eq!(data[1], [1.234; 2]);
         // A value with an exponent of its own gains one rounding: 1.5e-6 m is 1.5 um to within an ulp.
         let (data, _) = scaled(b"t,u,y [m]", "\n0,1,1.5e-6\n0.5,3,-2.5e-7\n").unwrap();
         for (got, want) in data[1].iter().zip([1.5, -0.25]) {
